@@ -1,0 +1,18 @@
+"""The pure algorithm core: numpy in, numpy out; no I/O, no messaging.
+
+Both the in-process simulator and the multi-process runtime call these functions.
+"""
+from .clustering import (
+    DEFAULT_RATIO_DENSITY,
+    DEFAULT_RHO,
+    KERNELS,
+    PARENT_MODES,
+    QuickMatch,
+    QuickMatchResult,
+    quickmatch,
+)
+
+__all__ = [
+    "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES",
+    "QuickMatch", "QuickMatchResult", "quickmatch",
+]

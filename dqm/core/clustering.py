@@ -1,0 +1,315 @@
+"""QuickMatch (Tron et al., ICCV 2017): density-based clustering of all features at once.
+
+Semantics follow the authors' MATLAB code (``shared/notes/quickmatch-reference.md``):
+
+1. ``sigma_j``: distance from feature j to the nearest other feature of its image.
+2. density ``D_j = sum_i K_i(||x_i - x_j||)`` over all features, self included.
+3. parent of j: nearest feature ranking above j (see :mod:`dqm.core.tree`).
+4. break/merge edges shortest first under ``rho * min(scale)`` and disjoint images.
+
+Kernels (``kernel=``):
+
+* ``"gaussian"`` (default): ``K_i(d) = exp(-d^2 / (2 (ratio_density sigma_i)^2))``.
+* ``"quadratic"``: the finite kernel of the distributed paper, whose equation
+  reads ``1 - d^2/sigma`` inside ``sigma``. We read sigma there as a length, so
+  the kernel is dimensionless and scale-free: ``K_i(d) = 1 - d^2/sigma_i^2`` for
+  ``d < sigma_i`` and 0 beyond (support radius ``sigma_i``; ``ratio_density``
+  does not enter). Taken literally (``1 - d^2/sigma_i``) the kernel would change
+  with the descriptors' units and go negative for SIFT-scale data.
+
+Defined edge cases:
+
+* no features: an empty result;
+* one image: no match is possible (C2), every feature is its own cluster;
+* an image with a single feature: it has no intra-image distance, so its sigma
+  is the median sigma of all features of multi-feature images (the data's
+  typical distinctiveness); if no image has two features, sigma is 0 for all and
+  nothing merges;
+* duplicate descriptors in one image: sigma is 0, such a feature never merges,
+  and its kernel is the indicator of distance 0 (the kernel's limit);
+* exact duplicates have exactly equal densities (ties ranked by index).
+
+``parent`` reports the tree parent only where it can matter: the nearest
+higher-ranked feature within ``rho * sigma_j`` (an edge longer than that can
+never merge); features without one get ``-1`` and ``parent_distance = inf``.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from .. import validation as V
+from ..progress import ProgressArg, resolve_progress
+from . import pairs, tree
+
+KERNELS = ("gaussian", "quadratic")
+PARENT_MODES = ("any", "other-image")
+#: default merge ratio, chosen by the sweep in scripts/sweep_rho.py (docs/quickmatch.md)
+DEFAULT_RHO = 0.75
+DEFAULT_RATIO_DENSITY = 0.25
+
+
+@dataclass(frozen=True)
+class QuickMatchResult:
+    """Clusters and the per-feature quantities that produced them.
+
+    Attributes are numpy arrays of length n (number of features):
+    ``labels`` (cluster id, 0..n_clusters-1 numbered by each cluster's lowest
+    feature index), ``sigma``, ``density``, ``parent`` (-1: none within reach),
+    ``parent_distance`` and ``image_ids`` (as given).
+    """
+
+    labels: np.ndarray
+    sigma: np.ndarray
+    density: np.ndarray
+    parent: np.ndarray
+    parent_distance: np.ndarray
+    image_ids: np.ndarray
+    rho: float
+    ratio_density: float
+    kernel: str
+    parent_mode: str
+    stats: Dict[str, float] = field(default_factory=dict, compare=False)
+
+    @property
+    def n_features(self) -> int:
+        return int(len(self.labels))
+
+    @property
+    def n_clusters(self) -> int:
+        return int(self.labels.max() + 1) if len(self.labels) else 0
+
+    @property
+    def n_images(self) -> int:
+        return int(len(np.unique(self.image_ids)))
+
+    def cluster_sizes(self) -> np.ndarray:
+        """Number of features of every cluster, indexed by label."""
+        return np.bincount(self.labels, minlength=self.n_clusters)
+
+    def clusters(self, min_size: int = 1) -> List[np.ndarray]:
+        """Feature indices of every cluster with at least ``min_size`` members."""
+        order = np.argsort(self.labels, kind="stable")
+        bounds = np.searchsorted(self.labels[order], np.arange(self.n_clusters + 1))
+        out = [order[bounds[k]:bounds[k + 1]] for k in range(self.n_clusters)]
+        return [c for c in out if len(c) >= min_size]
+
+    def summary(self) -> str:
+        """One paragraph: features, images, clusters, size histogram, time."""
+        sizes = self.cluster_sizes()
+        hist = np.bincount(sizes) if len(sizes) else np.zeros(1, int)
+        parts = ", ".join(f"{s}:{c}" for s, c in enumerate(hist) if s > 0 and c > 0)
+        multi = int((sizes > 1).sum())
+        matched = int(sizes[sizes > 1].sum())
+        t = self.stats.get("time_total")
+        tt = f" in {t:.2f} s" if t is not None else ""
+        return (
+            f"QuickMatch ({self.kernel} kernel, rho={self.rho:g}) clustered {self.n_features} features "
+            f"from {self.n_images} images into {self.n_clusters} clusters{tt}; "
+            f"{multi} clusters span 2+ images and hold {matched} features "
+            f"({100.0 * matched / max(1, self.n_features):.1f}%). Cluster sizes (size:count): {parts or 'none'}."
+        )
+
+
+def _empty_result(image_ids: np.ndarray, rho, ratio, kernel, parent_mode) -> QuickMatchResult:
+    z = np.zeros(0)
+    return QuickMatchResult(
+        labels=np.zeros(0, np.int64), sigma=z, density=z, parent=np.zeros(0, np.int64),
+        parent_distance=z, image_ids=image_ids, rho=rho, ratio_density=ratio, kernel=kernel,
+        parent_mode=parent_mode, stats={"time_total": 0.0},
+    )
+
+
+def duplicate_groups(X: np.ndarray) -> np.ndarray:
+    """Group id of every row; rows with identical values share an id (ids are 0..g-1)."""
+    if len(X) == 0:
+        return np.zeros(0, np.int64)
+    Z = np.ascontiguousarray(X + 0.0)  # -0.0 -> 0.0 so equal values have equal bytes
+    rows = Z.view(np.dtype((np.void, Z.dtype.itemsize * Z.shape[1]))).ravel()
+    _, inverse = np.unique(rows, return_inverse=True)
+    return inverse.ravel().astype(np.int64)
+
+
+def distinctiveness(aug: pairs.Augmented, image_index: np.ndarray, n_images: int,
+                    n_threads: Optional[int] = None) -> np.ndarray:
+    """sigma of every feature, with the documented fallback for single-feature images."""
+    sigma = pairs.nearest_same_image(aug, image_index, n_images, n_threads=n_threads)
+    lonely = np.isnan(sigma)
+    if lonely.any():
+        finite = sigma[~lonely]
+        sigma[lonely] = float(np.median(finite)) if len(finite) else 0.0
+    return sigma
+
+
+def kernel_weights(sigma: np.ndarray, kernel: str, ratio_density: float):
+    """Per-contributor weight ``w`` (argument ``d^2 w``) and on/off flag (sigma > 0)."""
+    active = (sigma > 0).astype(np.float64)
+    safe = np.where(sigma > 0, sigma, 1.0)
+    if kernel == "gaussian":
+        w = 1.0 / (2.0 * (ratio_density * safe) ** 2)
+    else:
+        w = 1.0 / safe ** 2
+    return np.where(sigma > 0, w, 0.0), active
+
+
+def quickmatch(
+    descriptors,
+    image_ids,
+    *,
+    rho: float = DEFAULT_RHO,
+    ratio_density: float = DEFAULT_RATIO_DENSITY,
+    kernel: str = "gaussian",
+    parent: str = "any",
+    sigma: Optional[np.ndarray] = None,
+    n_threads: Optional[int] = None,
+    progress: ProgressArg = None,
+) -> QuickMatchResult:
+    """Cluster features of many images so each cluster is one physical point.
+
+    Parameters
+    ----------
+    descriptors : (n, dim) float or integer array (uint8 SIFT is fine).
+    image_ids : (n,) integer array, the image of every feature.
+    rho : merge ratio; an edge merges iff shorter than ``rho * min(scale)``.
+    ratio_density : Gaussian bandwidth as a fraction of sigma (reference: 0.25).
+    kernel : ``"gaussian"`` or ``"quadratic"`` (finite support, see module doc).
+    parent : ``"any"`` or ``"other-image"`` (parent must come from another image).
+    sigma : optional precomputed per-feature distinctiveness (>= 0), e.g. an
+        agent's own in the distributed algorithm; computed when None.
+    n_threads : worker threads for the all-pairs pass (default: CPU count).
+    progress : True for a terminal progress bar, or a callable ``(done, total)``.
+
+    Returns
+    -------
+    QuickMatchResult. Every feature gets exactly one label (C1) and no cluster
+    holds two features of one image (C2). Deterministic for a given input.
+    """
+    t0 = time.perf_counter()
+    X = V.check_descriptors(descriptors)
+    ids = V.check_image_ids(image_ids, len(X))
+    rho = V.check_positive(rho, "rho")
+    ratio_density = V.check_positive(ratio_density, "ratio_density")
+    V.check_choice(kernel, "kernel", KERNELS)
+    V.check_choice(parent, "parent", PARENT_MODES)
+    n = len(X)
+    if n == 0:
+        return _empty_result(ids, rho, ratio_density, kernel, parent)
+    _, image_index = np.unique(ids, return_inverse=True)
+    image_index = image_index.ravel().astype(np.int64)
+    n_images = int(image_index.max()) + 1
+    if n_images == 1:
+        warnings.warn("quickmatch: all features come from one image, so no match is possible "
+                      "(every feature is its own cluster)", stacklevel=2)
+    stats: Dict[str, float] = {}
+
+    aug = pairs.Augmented(X)
+    t = time.perf_counter()
+    if sigma is None:
+        sig = distinctiveness(aug, image_index, n_images, n_threads=n_threads)
+    else:
+        sig = np.asarray(sigma, dtype=np.float64)
+        if sig.shape != (n,) or not np.isfinite(sig).all() or (sig < 0).any():
+            raise V.InputError(f"sigma must be {n} finite non-negative values, one per descriptor")
+    stats["time_sigma"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    w, active = kernel_weights(sig, kernel, ratio_density)
+    radius = rho * sig
+    bar = resolve_progress(progress, "quickmatch")
+    dens_o, err, cr, cc = pairs.kernel_pass(aug, w, active, kernel, radius, n_threads=n_threads, progress=bar)
+    stats["time_pass"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    # zero-sigma features contribute only to their exact duplicates (kernel limit)
+    groups = duplicate_groups(X)
+    gsize = np.bincount(groups)
+    zero = sig == 0
+    if zero.any():
+        zcount = np.bincount(groups[zero], minlength=len(gsize))
+        dens_o = dens_o + zcount[groups] - zero
+    # candidate edges, exact distances, within the child's radius
+    d = pairs.exact_distances(aug.exact, cr, cc)
+    keep = d < radius[cr]
+    if parent == "other-image":
+        keep &= image_index[cr] != image_index[cc]
+    cr, cc, d = cr[keep], cc[keep], d[keep]
+    # refine densities whose order on some candidate edge is not certain
+    uncertain = np.abs(dens_o[cr] - dens_o[cc]) <= err[cr] + err[cc]
+    refine = np.zeros(n, dtype=bool)
+    refine[cr[uncertain]] = True
+    refine[cc[uncertain]] = True
+    in_dup = gsize[groups] > 1
+    refine |= in_dup
+    idx = np.flatnonzero(refine)
+    if len(idx):
+        exact = pairs.exact_density_others(aug, idx, w, active, kernel)
+        if zero.any():
+            exact = exact + zcount[groups[idx]] - zero[idx]
+        dens_o = dens_o.copy()
+        dens_o[idx] = exact
+    if in_dup.any():  # identical vectors have identical densities: remove rounding
+        dup_idx = np.flatnonzero(in_dup)
+        first_of = np.full(len(gsize), n, dtype=np.int64)
+        np.minimum.at(first_of, groups[dup_idx], dup_idx)
+        dens_o[dup_idx] = dens_o[first_of[groups[dup_idx]]]
+    density = 1.0 + dens_o
+    stats["n_candidate_edges"] = float(len(cr))
+    stats["n_refined"] = float(len(idx))
+    stats["time_refine"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    par, pdist = tree.select_parents(n, cr, cc, d, density)
+    labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
+    stats["time_tree"] = time.perf_counter() - t
+    stats["time_total"] = time.perf_counter() - t0
+    return QuickMatchResult(
+        labels=labels, sigma=sig, density=density, parent=par, parent_distance=pdist,
+        image_ids=ids, rho=rho, ratio_density=ratio_density, kernel=kernel, parent_mode=parent,
+        stats=stats,
+    )
+
+
+class QuickMatch:
+    """scikit-learn style estimator around :func:`quickmatch`.
+
+    >>> qm = QuickMatch(rho=0.75).fit(X, image_ids)   # doctest: +SKIP
+    >>> qm.labels_                                     # doctest: +SKIP
+    """
+
+    def __init__(self, rho: float = DEFAULT_RHO, ratio_density: float = DEFAULT_RATIO_DENSITY,
+                 kernel: str = "gaussian", parent: str = "any", n_threads: Optional[int] = None):
+        self.rho = rho
+        self.ratio_density = ratio_density
+        self.kernel = kernel
+        self.parent = parent
+        self.n_threads = n_threads
+
+    def get_params(self, deep: bool = True) -> Dict[str, object]:
+        return {"rho": self.rho, "ratio_density": self.ratio_density, "kernel": self.kernel,
+                "parent": self.parent, "n_threads": self.n_threads}
+
+    def set_params(self, **params) -> "QuickMatch":
+        for k, v in params.items():
+            if k not in self.get_params():
+                raise V.InputError(f"unknown parameter {k!r} for QuickMatch")
+            setattr(self, k, v)
+        return self
+
+    def fit(self, descriptors, image_ids, progress: ProgressArg = None) -> "QuickMatch":
+        r = quickmatch(descriptors, image_ids, rho=self.rho, ratio_density=self.ratio_density,
+                       kernel=self.kernel, parent=self.parent, n_threads=self.n_threads, progress=progress)
+        self.result_ = r
+        self.labels_ = r.labels
+        self.sigma_ = r.sigma
+        self.density_ = r.density
+        self.parent_ = r.parent
+        self.parent_distance_ = r.parent_distance
+        self.n_clusters_ = r.n_clusters
+        return self
+
+    def fit_predict(self, descriptors, image_ids) -> np.ndarray:
+        return self.fit(descriptors, image_ids).labels_

@@ -1,0 +1,252 @@
+"""The per-tile kernel of the all-pairs pass: a native (C, via ctypes) version and
+the numpy version of the same computation.
+
+A tile is a float32 block ``G`` of squared distances between ``m`` target
+features (rows) and ``k`` contributor features (columns). For every row the tile
+kernel
+
+* adds the kernel terms ``sum_c s_c K(G[r, c] * w[c])`` to ``dens[r]``,
+* adds ``sum_c s_c |dK/d(d^2)|`` to ``err[r]`` (times the error of a float32
+  squared distance this bounds the error of the row's density),
+* returns the pairs ``(r, c)`` with ``G[r, c] < rad2[r]`` (candidate tree edges),
+
+skipping the self pair ``c == r + self_col``. The native kernel is loaded from
+``_tilekernel*.so`` next to this file when it was built at install time (see
+``setup.py``); otherwise, or with ``DQM_NATIVE=0`` in the environment, the numpy
+version runs. Both give the same candidates and densities equal to float32
+rounding (a test checks it).
+"""
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+from typing import Optional, Tuple
+
+import numpy as np
+
+KERNEL_CODES = {"gaussian": 0, "quadratic": 1}
+_EXP_CLAMP = 87.0  # exp(-87) is the smallest normal float32 magnitude we produce
+
+
+def _load() -> Optional[ctypes.CDLL]:
+    if os.environ.get("DQM_NATIVE", "1") == "0":
+        return None
+    here = os.path.dirname(os.path.abspath(__file__))
+    for path in sorted(glob.glob(os.path.join(here, "_tilekernel*.so"))):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        fn = lib.dqm_tile
+        f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")
+        f64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
+        i32 = np.ctypeslib.ndpointer(np.int32, flags="C_CONTIGUOUS")
+        fn.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+            f32, f32, ctypes.c_int32, f32, ctypes.c_int64, f64, f64, i32, i32, ctypes.c_int64,
+        ]
+        fn.restype = ctypes.c_int64
+        sym = lib.dqm_tile_sym
+        sym.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+            f32, f32, f32, f32, ctypes.c_int32, f32, f32, f64, f64, f64, f64, f32, f32,
+            i32, i32, ctypes.c_int64,
+        ]
+        sym.restype = ctypes.c_int64
+        nn = lib.dqm_nearest_sym
+        nn.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+            f32, f32, f32, f32, i32, i32, f32, ctypes.c_int64,
+        ]
+        nn.restype = ctypes.c_int64
+        return lib
+    return None
+
+
+_LIB = _load()
+
+
+def native_available() -> bool:
+    """True when the compiled tile kernel is loaded."""
+    return _LIB is not None
+
+
+def tile_numpy(
+    G: np.ndarray, w: np.ndarray, s: np.ndarray, kernel: str, rad2: np.ndarray,
+    self_col: int, dens: np.ndarray, err: np.ndarray,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """numpy version of the tile kernel (see the module docstring)."""
+    m, k = G.shape
+    d2 = np.maximum(G, 0.0)
+    t = d2 * w[None, :]
+    if kernel == "gaussian":
+        np.minimum(t, _EXP_CLAMP, out=t)
+        E = np.exp(-t)
+        dE = E * w[None, :]
+    else:
+        q = 1.0 - t
+        E = np.maximum(q, 0.0)
+        dE = (q > -0.01) * w[None, :]
+    E *= s[None, :]
+    dE *= s[None, :]
+    rows = np.arange(m)
+    cols = rows + self_col
+    has_self = (cols >= 0) & (cols < k)
+    E[rows[has_self], cols[has_self]] = 0.0
+    dE[rows[has_self], cols[has_self]] = 0.0
+    dens += E.sum(axis=1, dtype=np.float64)
+    err += dE.sum(axis=1, dtype=np.float64)
+    mask = G < rad2[:, None]
+    mask[rows[has_self], cols[has_self]] = False
+    r, c = np.nonzero(mask)
+    return r.astype(np.int32), c.astype(np.int32)
+
+
+def tile(
+    G: np.ndarray, w: np.ndarray, s: np.ndarray, kernel: str, rad2: np.ndarray,
+    self_col: int, dens: np.ndarray, err: np.ndarray, use_native: bool = True,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Run the tile kernel, natively when available. ``G`` must be C-contiguous float32."""
+    if _LIB is None or not use_native:
+        return tile_numpy(G, w, s, kernel, rad2, self_col, dens, err)
+    m, k = G.shape
+    cap = max(1024, 4 * m)
+    ws = np.ascontiguousarray(w, dtype=np.float32)
+    ss = np.ascontiguousarray(s, dtype=np.float32)
+    while True:
+        cr = np.empty(cap, dtype=np.int32)
+        cc = np.empty(cap, dtype=np.int32)
+        d_add = np.zeros(m, dtype=np.float64)
+        e_add = np.zeros(m, dtype=np.float64)
+        got = _LIB.dqm_tile(
+            G.ctypes.data, m, k, G.strides[0] // 4, ws, ss, KERNEL_CODES[kernel],
+            np.ascontiguousarray(rad2, dtype=np.float32), self_col, d_add, e_add, cr, cc, cap,
+        )
+        if got >= 0:
+            dens += d_add
+            err += e_add
+            return cr[:got], cc[:got]
+        cap *= 4
+
+
+def _terms(d2: np.ndarray, w, s, kernel: str) -> Tuple[np.ndarray, np.ndarray]:
+    """Kernel terms and error weights of float32 squared distances (numpy)."""
+    t = np.maximum(d2, 0.0) * w
+    if kernel == "gaussian":
+        np.minimum(t, _EXP_CLAMP, out=t)
+        E = np.exp(-t) * s
+        dE = E * w
+    else:
+        q = 1.0 - t
+        E = np.maximum(q, 0.0) * s
+        dE = (q > -0.01) * (w * s)
+    return E, dE
+
+
+def tile_sym_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err_c):
+    """numpy version of the symmetric off-diagonal tile (rows and columns disjoint)."""
+    E, dE = _terms(G, wc[None, :], sc[None, :], kernel)
+    dens_r += E.sum(axis=1, dtype=np.float64)
+    err_r += dE.sum(axis=1, dtype=np.float64)
+    E, dE = _terms(G, wr[:, None], sr[:, None], kernel)
+    dens_c += E.sum(axis=0, dtype=np.float64)
+    err_c += dE.sum(axis=0, dtype=np.float64)
+    r, c = np.nonzero((G < rad2r[:, None]) | (G < rad2c[None, :]))
+    return r.astype(np.int32), c.astype(np.int32)
+
+
+def tile_sym(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err_c, use_native=True):
+    """Symmetric off-diagonal tile: densities of rows and of columns, candidate pairs
+    ``(r, c)`` with ``G < max(rad2r[r], rad2c[c])``. ``G`` C-contiguous float32."""
+    if _LIB is None or not use_native:
+        return tile_sym_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err_c)
+    m, k = G.shape
+    cap = max(1024, 4 * (m + k))
+    scratch_a = np.empty(k, dtype=np.float32)
+    scratch_e = np.empty(k, dtype=np.float32)
+    while True:
+        cr = np.empty(cap, dtype=np.int32)
+        cc = np.empty(cap, dtype=np.int32)
+        dr = np.zeros(m)
+        er = np.zeros(m)
+        dc = np.zeros(k)
+        ec = np.zeros(k)
+        got = _LIB.dqm_tile_sym(
+            G.ctypes.data, m, k, G.strides[0] // 4, wc, sc, wr, sr, KERNEL_CODES[kernel],
+            rad2r, rad2c, dr, er, dc, ec, scratch_a, scratch_e, cr, cc, cap,
+        )
+        if got >= 0:
+            dens_r += dr
+            err_r += er
+            dens_c += dc
+            err_c += ec
+            return cr[:got], cc[:got]
+        cap *= 4
+
+
+def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_native: bool = True):
+    """Tile of the distinctiveness pass (self pairs already set to a huge value in ``G``).
+
+    Returns ``(rmin, cmin, r, c, g)``: row and column minima of the tile and
+    every entry within ``slack`` of its row's or its column's minimum.
+    """
+    m, k = G.shape
+    if _LIB is None or not use_native:
+        rmin = G.min(axis=1)
+        cmin = G.min(axis=0)
+        r, c = np.nonzero((G <= (rmin + slack_r)[:, None]) | (G <= (cmin + slack_c)[None, :]))
+        return rmin, cmin, r, c, G[r, c]
+    cap = max(1024, 4 * (m + k))
+    rmin = np.empty(m, dtype=np.float32)
+    cmin = np.empty(k, dtype=np.float32)
+    sr = np.ascontiguousarray(slack_r, dtype=np.float32)
+    sc = np.ascontiguousarray(slack_c, dtype=np.float32)
+    while True:
+        cr = np.empty(cap, dtype=np.int32)
+        cc = np.empty(cap, dtype=np.int32)
+        cg = np.empty(cap, dtype=np.float32)
+        got = _LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, sr, sc, rmin, cmin, cr, cc, cg, cap)
+        if got >= 0:
+            return rmin, cmin, cr[:got], cc[:got], cg[:got]
+        cap *= 4
+
+
+def _blas_local_threads():
+    """``openblas_set_num_threads_local`` of the OpenBLAS numpy uses, if any (else None)."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = {line.split()[-1] for line in fh if "openblas" in line.split()[-1].lower()}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            fn = ctypes.CDLL(path).openblas_set_num_threads_local
+        except (OSError, AttributeError):
+            continue
+        fn.argtypes = [ctypes.c_int]
+        fn.restype = ctypes.c_int
+        return fn
+    return None
+
+
+_BLAS_LOCAL = None
+_BLAS_CHECKED = False
+
+
+def single_threaded_blas_in_this_thread() -> bool:
+    """Make BLAS calls from the calling thread single-threaded (OpenBLAS >= 0.3.27).
+
+    The all-pairs pass runs one tile per worker thread; letting each tile's
+    GEMM spawn its own BLAS threads as well would oversubscribe the cores.
+    Returns False when the BLAS offers no per-thread setting.
+    """
+    global _BLAS_LOCAL, _BLAS_CHECKED
+    if not _BLAS_CHECKED:
+        np.ones((2, 2)) @ np.ones((2, 2))  # make sure BLAS is loaded
+        _BLAS_LOCAL = _blas_local_threads()
+        _BLAS_CHECKED = True
+    if _BLAS_LOCAL is None:
+        return False
+    _BLAS_LOCAL(1)
+    return True

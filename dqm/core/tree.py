@@ -1,0 +1,117 @@
+"""QuickMatch's tree: parents from candidate edges, then break/merge into clusters.
+
+Small and separate from the API on purpose (as HDBSCAN keeps its tree code): it
+takes plain arrays and returns plain arrays.
+
+Order of features ("i ranks above j"): higher density, and for equal densities
+the lower feature index. This total order replaces the original code's 1e-6
+random noise, so the tree is deterministic and every feature but the top one has
+a higher-ranked feature.
+
+Parent of j: the nearest feature that ranks above j (optionally: from another
+image); among equally near ones the lowest index.
+
+Break/merge: edges in increasing distance (ties: lower child index first); the
+clusters of child and parent merge iff ``d < rho * min(scale_child, scale_parent)``
+(a cluster's scale is the minimum sigma of its members) and their image sets are
+disjoint.
+"""
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+
+def ranks_above(density: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Boolean array: does feature ``a[k]`` rank above feature ``b[k]``?"""
+    da = density[a]
+    db = density[b]
+    return (da > db) | ((da == db) & (a < b))
+
+
+def select_parents(
+    n: int,
+    child: np.ndarray,
+    cand: np.ndarray,
+    dist: np.ndarray,
+    density: np.ndarray,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Parent of every feature among candidate edges ``child[k] -> cand[k]`` at ``dist[k]``.
+
+    The candidates must contain, for every child, every feature that ranks above
+    it within the child's search radius (and may contain more). Features without
+    a higher-ranked candidate get parent -1 and distance inf.
+    """
+    parent = np.full(n, -1, dtype=np.int64)
+    pdist = np.full(n, np.inf)
+    keep = ranks_above(density, cand, child)
+    c, p, d = child[keep], cand[keep], dist[keep]
+    if len(c):
+        order = np.lexsort((p, d, c))  # by child, then distance, then parent index
+        c, p, d = c[order], p[order], d[order]
+        first = np.ones(len(c), dtype=bool)
+        first[1:] = c[1:] != c[:-1]
+        parent[c[first]] = p[first]
+        pdist[c[first]] = d[first]
+    return parent, pdist
+
+
+def merge_clusters(
+    parent: np.ndarray,
+    pdist: np.ndarray,
+    sigma: np.ndarray,
+    image_index: np.ndarray,
+    rho: float,
+) -> np.ndarray:
+    """Break/merge along tree edges; returns labels numbered by first member (0, 1, ...)."""
+    n = len(parent)
+    root = np.arange(n)
+    scale = sigma.astype(np.float64).copy()
+    images = [None] * n  # lazily created sets; None means {image_index[i]}
+
+    def find(i: int) -> int:
+        r = i
+        while root[r] != r:
+            r = root[r]
+        while root[i] != r:  # path compression
+            nxt = root[i]
+            root[i] = r
+            i = nxt
+        return r
+
+    edges = np.flatnonzero(parent >= 0)
+    order = np.lexsort((edges, pdist[edges]))
+    for j in edges[order].tolist():
+        p = int(parent[j])
+        d = pdist[j]
+        rj, rp = find(j), find(p)
+        if rj == rp:
+            continue
+        if not d < rho * min(scale[rj], scale[rp]):
+            continue
+        sj = images[rj] if images[rj] is not None else {int(image_index[rj])}
+        sp = images[rp] if images[rp] is not None else {int(image_index[rp])}
+        if len(sj) > len(sp):
+            sj, sp = sp, sj
+            rj, rp = rp, rj
+        if not sj.isdisjoint(sp):
+            continue
+        sp |= sj
+        root[rj] = rp
+        images[rp] = sp
+        images[rj] = None
+        scale[rp] = min(scale[rp], scale[rj])
+    roots = np.array([find(i) for i in range(n)], dtype=np.int64) if n else np.zeros(0, np.int64)
+    return canonical_labels(roots)
+
+
+def canonical_labels(labels: np.ndarray) -> np.ndarray:
+    """Renumber labels 0, 1, ... in order of each cluster's lowest feature index."""
+    labels = np.asarray(labels)
+    if labels.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    return rank[inverse.ravel()]

@@ -1,0 +1,68 @@
+"""Input validation at dqm's edges: clear errors that name the problem."""
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """Raised for input that dqm cannot use; the message names the input and the problem."""
+
+
+def check_descriptors(descriptors, name: str = "descriptors") -> np.ndarray:
+    """Return descriptors as a C-contiguous float64 (n, dim) array, or raise InputError.
+
+    Accepts any real floating or unsigned/signed integer dtype (uint8 SIFT
+    included). Rejects other dtypes, non-2-D shapes, zero dimension, NaN and inf.
+    """
+    arr = np.asarray(descriptors)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise InputError(f"{name} must be a float or integer array, got dtype {arr.dtype}")
+    if arr.dtype == np.bool_:
+        raise InputError(f"{name} must be a float or integer array, got dtype bool")
+    if arr.ndim != 2:
+        raise InputError(f"{name} must be 2-D (features x dimensions), got shape {arr.shape}")
+    if arr.shape[1] == 0:
+        raise InputError(f"{name} has zero dimensions per feature (shape {arr.shape})")
+    out = np.ascontiguousarray(arr, dtype=np.float64)
+    if out.size and not np.isfinite(out).all():
+        bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
+        kind = "NaN" if np.isnan(out[bad[0]]).any() else "inf"
+        raise InputError(
+            f"{name} contain {kind} (or other non-finite values) in {len(bad)} row(s), first at row {bad[0]}"
+        )
+    return out
+
+
+def check_image_ids(image_ids, n: int, name: str = "image_ids") -> np.ndarray:
+    """Return image ids as an int64 (n,) array, or raise InputError."""
+    arr = np.asarray(image_ids)
+    if arr.ndim != 1:
+        raise InputError(f"{name} must be 1-D (one image id per feature), got shape {arr.shape}")
+    if len(arr) != n:
+        raise InputError(f"{name} has {len(arr)} entries but there are {n} descriptors (one id per row needed)")
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not np.issubdtype(arr.dtype, np.integer):
+        if np.issubdtype(arr.dtype, np.floating) and np.isfinite(arr).all() and (arr == np.round(arr)).all():
+            arr = arr.astype(np.int64)
+        else:
+            raise InputError(f"{name} must be integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64, copy=False)
+
+
+def check_positive(value, name: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a positive number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise InputError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def check_choice(value, name: str, choices: Tuple[str, ...]) -> str:
+    if value not in choices:
+        raise InputError(f"{name} must be one of {', '.join(repr(c) for c in choices)}; got {value!r}")
+    return value
