@@ -314,7 +314,8 @@ static float minrow_avx2(const float *g, int64_t k, float *cmin)
 
 /*
  * Nearest-neighbour tile of the distinctiveness pass: rows and columns are
- * features of one image (pass a tile whose self pairs are set to FLT_MAX).
+ * features of one image (pass a tile whose self pairs are set to FLT_MAX;
+ * entries equal to FLT_MAX are never reported).
  * Writes every row's and column's minimum over the tile and every (r, c) with
  * g <= rmin[r] + slack_r[r] or g <= cmin[c] + slack_c[c] (with its value), so
  * that the caller, knowing the global minima, can recompute those exactly.
@@ -344,7 +345,7 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
         float lr = rmin[r] + slack_r[r];
         for (int64_t c = 0; c < k; ++c) {
             float v = g[c];
-            if (v <= lr || v <= cmin[c] + slack_c[c]) {
+            if (v < FLT_MAX && (v <= lr || v <= cmin[c] + slack_c[c])) {
                 if (count >= cap)
                     return -1;
                 cand_r[count] = (int32_t)r;

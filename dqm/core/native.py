@@ -195,7 +195,8 @@ def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_nat
     if _LIB is None or not use_native:
         rmin = G.min(axis=1)
         cmin = G.min(axis=0)
-        r, c = np.nonzero((G <= (rmin + slack_r)[:, None]) | (G <= (cmin + slack_c)[None, :]))
+        near = (G <= (rmin + slack_r)[:, None]) | (G <= (cmin + slack_c)[None, :])
+        r, c = np.nonzero(near & (G < np.finfo(np.float32).max))
         return rmin, cmin, r, c, G[r, c]
     cap = max(1024, 4 * (m + k))
     rmin = np.empty(m, dtype=np.float32)

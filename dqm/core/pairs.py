@@ -87,17 +87,22 @@ class Augmented:
         return self.gamma * (self.norm2[rows] + self.max_norm2) + 1e-30
 
 
-def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 << 15) -> np.ndarray:
+def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 << 14) -> np.ndarray:
     """Euclidean distances ``||X[a_k] - X[b_k]||`` by direct differences.
 
     Exact for integer-valued descriptors (pass the compact integer copy,
-    :attr:`Augmented.exact`: differences and sums in int64), float64 otherwise.
+    :attr:`Augmented.exact`: integer differences and sums), float64 otherwise.
     """
     out = np.empty(len(a), dtype=np.float64)
-    wide = np.int64 if np.issubdtype(X.dtype, np.integer) else np.float64
+    if X.dtype == np.uint8 and X.shape[1] <= 32768:
+        wide = np.int32  # |diff| <= 255, sum of squares < 2^31
+    elif np.issubdtype(X.dtype, np.integer):
+        wide = np.int64
+    else:
+        wide = np.float64
     for s in range(0, len(a), chunk):
         diff = X[a[s:s + chunk]].astype(wide) - X[b[s:s + chunk]]
-        out[s:s + chunk] = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        out[s:s + chunk] = np.sqrt(np.einsum("ij,ij->i", diff, diff).astype(np.float64))
     return out
 
 
@@ -118,6 +123,8 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     tasks = []
     for img in range(n_images):
         lo, hi = bounds[img], bounds[img + 1]
+        if hi - lo < 2:
+            continue
         starts = list(range(lo, hi, BLOCK))
         tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK)) for i, a in enumerate(starts) for b in starts[i:]]
     local = threading.local()
@@ -265,19 +272,25 @@ def exact_density_others(
     wc = np.asarray(weights, dtype=np.float64)[contrib]
     Xcon = Xc[contrib]
     ncon = nrm[contrib]
-    for s in range(0, len(targets), 256):
-        t = targets[s:s + 256]
-        d2 = nrm[t][:, None] + ncon[None, :] - 2.0 * (Xc[t] @ Xcon.T)
+    step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
+    for s in range(0, len(targets), step):
+        t = targets[s:s + step]
+        d2 = Xc[t] @ Xcon.T
+        d2 *= -2.0
+        d2 += nrm[t][:, None]
+        d2 += ncon[None, :]
         np.maximum(d2, 0.0, out=d2)
+        d2 *= wc[None, :]
+        if kernel == "gaussian":
+            np.negative(d2, out=d2)
+            vals = np.exp(d2, out=d2)
+        else:
+            np.subtract(1.0, d2, out=d2)
+            vals = np.maximum(d2, 0.0, out=d2)
         # exclude the self term
         pos = np.searchsorted(contrib, t)
         hit = (pos < len(contrib)) & (contrib[np.minimum(pos, len(contrib) - 1)] == t)
-        arg = d2 * wc[None, :]
-        if kernel == "gaussian":
-            vals = np.exp(-arg)
-        else:
-            vals = np.maximum(1.0 - arg, 0.0)
         rows = np.flatnonzero(hit)
         vals[rows, pos[rows]] = 0.0
-        out[s:s + 256] = vals.sum(axis=1)
+        out[s:s + step] = vals.sum(axis=1)
     return out

@@ -1,0 +1,50 @@
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+#: the shared real data (Oxford sequences, CMU hotel), next to the project checkout
+SHARED = Path(os.environ.get("DQM_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+DATA = SHARED / "data"
+
+
+def require_data(*parts: str) -> Path:
+    """Path under ../shared/data, or skip the test with the reason."""
+    p = DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"real data not available: {p} is absent (set DQM_SHARED to the shared folder)")
+    return p
+
+
+def assert_consistent(labels, image_ids):
+    """C1: every feature has exactly one cluster; C2: at most one feature per image per cluster."""
+    labels = np.asarray(labels)
+    image_ids = np.asarray(image_ids)
+    assert labels.shape == image_ids.shape
+    assert labels.dtype.kind == "i"
+    assert (labels >= 0).all()
+    if len(labels):
+        # canonical numbering 0..k-1, every id used
+        assert set(np.unique(labels).tolist()) == set(range(labels.max() + 1))
+        pairs = np.unique(np.stack([labels, image_ids]), axis=1)
+        assert pairs.shape[1] == len(labels), "a cluster holds two features of one image (C2)"
+
+
+@pytest.fixture(scope="session")
+def graf_sift():
+    """SIFT descriptors (OpenCV defaults) of all six graf images: (descriptors, image_ids)."""
+    root = require_data("oxford", "graf")
+    import cv2
+
+    sift = cv2.SIFT_create()
+    descs, ids = [], []
+    for k in range(1, 7):
+        img = cv2.imread(str(root / f"img{k}.png"), cv2.IMREAD_GRAYSCALE)
+        _, d = sift.detectAndCompute(img, None)
+        descs.append(d)
+        ids.append(np.full(len(d), k))
+    return np.vstack(descs), np.concatenate(ids)
