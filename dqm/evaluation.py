@@ -161,3 +161,22 @@ def homography_scores(a, b, keypoints_xy, image_ids, homography: Callable[[int, 
             in_truth = np.array([(u, v) in truth for u, v in zip(pa[good].tolist(), pb[good].tolist())], bool)
             n_correct_recall += int(in_truth.sum())
     return _scores(len(a), n_correct, n_truth, n_correct_recall)
+
+
+def comembership_scores(labels: np.ndarray, reference: np.ndarray) -> Scores:
+    """Pairwise co-membership precision/recall/F1 of ``labels`` against ``reference`` labels.
+
+    A pair counts when both features share a cluster; no n x n matrix (counts
+    via the contingency table).
+    """
+    labels = np.asarray(labels)
+    reference = np.asarray(reference)
+    _, li = np.unique(labels, return_inverse=True)
+    _, ri = np.unique(reference, return_inverse=True)
+    li, ri = li.ravel(), ri.ravel()
+    pairs_of = lambda c: int((c * (c - 1) // 2).sum())  # noqa: E731
+    n_pred = pairs_of(np.bincount(li))
+    n_ref = pairs_of(np.bincount(ri))
+    joint = np.unique(li.astype(np.int64) * (ri.max() + 1) + ri, return_counts=True)[1]
+    both = pairs_of(joint)
+    return _scores(n_pred, both, n_ref)

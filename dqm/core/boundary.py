@@ -1,0 +1,160 @@
+"""Distances from features to the Voronoi cells of other agents.
+
+For a feature x in cell i and another cell a:
+
+* **bisector (closed form)**: distance from x to the hyperplane
+  ``H_ia = {z : |z - P_i| = |z - P_a|}``, i.e.
+  ``(|x - P_a|^2 - |x - P_i|^2) / (2 |P_a - P_i|)``. It is a lower bound on the
+  distance to cell a, and it is the exact distance when the foot of the
+  perpendicular lies in cell a. It is also *additive*: for x in cell i and y in
+  cell a, the segment xy crosses H_ia, so ``|x - y| >= h(x, H_ia) + h(y, H_ia)``.
+  The contested test (dqm.core.contested) relies on this.
+* **exact distance to the cell** ``min |z - x| s.t. z in V_a`` (a QP with m-1
+  linear constraints ``2 (P_b - P_a) . z <= |P_b|^2 - |P_a|^2``). All seeds lie in
+  an affine subspace of dimension <= m-1, and the constraints only see the
+  component of z in it, so the QP is solved in those <= m-1 coordinates (the
+  orthogonal part of x is kept as is). Problems are batched per target cell:
+  one piqp solver per cell, updated per point. It is a valid lower bound on
+  ``|x - y|`` for every y in cell a (not additive across two cells).
+
+Used where: the contested test uses the bisector bounds (cheap, additive); the
+exact distance tightens it for the pairs that survive the bisector test and
+whose perpendicular foot lies outside the cell (see ``cell_distances``).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+
+def hyperplane_distances(X: np.ndarray, seeds: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(n, m) bisector distances of every x (in cell ``cells[k]``) to every cell; 0 for its own."""
+    X = np.asarray(X, dtype=np.float64)
+    P = np.asarray(seeds, dtype=np.float64)
+    n, m = len(X), len(P)
+    if n == 0:
+        return np.zeros((0, m))
+    cells = np.asarray(cells, dtype=np.int64)
+    # |x - P_a|^2 - |x - P_i|^2 = |P_a|^2 - |P_i|^2 - 2 x.(P_a - P_i)
+    pn = (P ** 2).sum(1)
+    xp = X @ P.T  # (n, m)
+    num = (pn[None, :] - pn[cells][:, None]) - 2.0 * (xp - xp[np.arange(n), cells][:, None])
+    sep = seed_separation(P)[cells]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = num / (2.0 * sep)
+    h[np.arange(n), cells] = 0.0
+    # coincident seeds (sep == 0): the lower index owns the whole cell; distance 0
+    h[~np.isfinite(h)] = 0.0
+    return np.maximum(h, 0.0)
+
+
+def seed_separation(seeds: np.ndarray) -> np.ndarray:
+    """(m, m) distances between seeds."""
+    P = np.asarray(seeds, dtype=np.float64)
+    return np.sqrt(((P[:, None, :] - P[None, :, :]) ** 2).sum(axis=2))
+
+
+class CellGeometry:
+    """The seeds in the coordinates of their own affine span (dimension <= m-1)."""
+
+    def __init__(self, seeds: np.ndarray):
+        P = np.asarray(seeds, dtype=np.float64)
+        self.seeds = P
+        self.m = len(P)
+        self.origin = P[0]
+        D = (P[1:] - P[0]).T  # dim x (m-1)
+        if D.size:
+            U, s, _ = np.linalg.svd(D, full_matrices=False)
+            keep = s > 1e-9 * max(1.0, s.max())
+            self.basis = U[:, keep]
+        else:
+            self.basis = np.zeros((P.shape[1], 0))
+        self.q = (P - self.origin) @ self.basis  # seeds in span coordinates
+        self.qn = (self.q ** 2).sum(1)
+
+    def coords(self, X: np.ndarray) -> np.ndarray:
+        return (np.asarray(X, dtype=np.float64) - self.origin) @ self.basis
+
+    def constraints(self, a: int):
+        """(G, h) with V_a = {u : G u <= h} in span coordinates."""
+        others = np.array([b for b in range(self.m) if b != a], dtype=np.int64)
+        G = 2.0 * (self.q[others] - self.q[a])
+        h = self.qn[others] - self.qn[a]
+        return G, h
+
+
+def _solve_batch(geom: CellGeometry, U: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Exact distances of points (span coordinates ``U``) to cells ``targets`` with piqp.
+
+    Batched by target cell: one solver is set up per cell (its constraint
+    matrix is shared by every point) and only the linear term is updated per
+    point, so the factorisation structure is reused.
+    """
+    import piqp
+
+    B, r = U.shape
+    out = np.zeros(B)
+    if B == 0 or r == 0:
+        return out
+    eye = np.asfortranarray(np.eye(r))
+    for a in np.unique(targets).tolist():
+        rows = np.flatnonzero(targets == a)
+        G, h = geom.constraints(int(a))
+        solver = piqp.DenseSolver()
+        solver.settings.verbose = False
+        solver.setup(eye, -U[rows[0]], None, None, np.asfortranarray(G), None, h, None, None)
+        for k in rows.tolist():
+            solver.update(c=-U[k])
+            status = solver.solve()
+            if status != piqp.PIQP_SOLVED:
+                raise RuntimeError(f"piqp failed on a cell-distance QP (cell {a}): {status}")
+            out[k] = np.linalg.norm(solver.result.x - U[k])
+    return out
+
+
+def cell_distances(
+    X: np.ndarray,
+    seeds: np.ndarray,
+    cells: np.ndarray,
+    need: Optional[np.ndarray] = None,
+    hyper: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """(n, m) exact distances of every x to every other cell (0 for its own).
+
+    ``need`` (n, m) bool limits the work: where False the bisector bound is
+    returned instead. Where the foot of the perpendicular on the bisector lies
+    in the target cell the bisector distance is exact and no QP is solved.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    P = np.asarray(seeds, dtype=np.float64)
+    cells = np.asarray(cells, dtype=np.int64)
+    n, m = len(X), len(P)
+    H = hyperplane_distances(X, P, cells) if hyper is None else hyper.copy()
+    if n == 0 or m == 1:
+        return H
+    if need is None:
+        need = np.ones((n, m), dtype=bool)
+    need = need.copy()
+    need[np.arange(n), cells] = False
+    k_idx, a_idx = np.nonzero(need)
+    if len(k_idx) == 0:
+        return H
+    # foot of the perpendicular on H_ia, checked against all of cell a's constraints
+    i_idx = cells[k_idx]
+    normal = P[a_idx] - P[i_idx]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    Z = X[k_idx] + H[k_idx, a_idx][:, None] * normal
+    dz = ((Z[:, None, :] - P[None, :, :]) ** 2).sum(2) if len(Z) * m * P.shape[1] < 2e7 else \
+        np.stack([((Z - p) ** 2).sum(1) for p in P], axis=1)
+    own = dz[np.arange(len(Z)), a_idx]
+    scale = 1e-9 * np.maximum(1.0, dz.max(axis=1))
+    inside = (own[:, None] <= dz + scale[:, None]).all(axis=1)
+    hard = np.flatnonzero(~inside)
+    if len(hard):
+        geom = CellGeometry(P)
+        Uc = geom.coords(X[k_idx[hard]])
+        out = _solve_batch(geom, Uc, a_idx[hard])
+        # numerical safety: never below the bisector bound
+        H[k_idx[hard], a_idx[hard]] = np.maximum(out, H[k_idx[hard], a_idx[hard]])
+    return H

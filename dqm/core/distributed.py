@@ -1,0 +1,202 @@
+"""Distributed QuickMatch (Serlin et al.): the steps one agent runs on its own data.
+
+Pure functions on a :class:`Shard` (the features an agent holds); no I/O. The
+in-process simulator (dqm.simulator) and the zenoh runtime (dqm.runtime) call
+exactly these, so they cannot drift apart.
+
+Protocol (m agents, agent i owns Voronoi cell i of the seeds):
+
+1. seeds from one integer (dqm.core.partition);
+2. routing: every agent sends each of its source features to the agent of its
+   cell. In the default mode the source agent, which holds whole images, first
+   computes the exact distinctiveness sigma of its features and sends it along;
+   the paper mode recomputes sigma inside each cell (``per-agent sigma``);
+3. every agent clusters its cell with the finite (quadratic) kernel;
+4. boundary distances: bisector distances of held features to all cells; the
+   exchanged minima ``e[a, i]`` are broadcast (m - 1 scalars per agent);
+5. hand-down cascade from agent m-1 to agent 0: agent a re-clusters what it
+   holds plus what higher agents handed it, tests contested features against
+   lower agents, hands every unit with a contested feature to the lowest such
+   agent (the receiver checks on arrival that it is that agent), tells the
+   lower agents which cells' features went where, and re-clusters the rest:
+   its final clusters. Default mode adds the follow rule: a feature contested
+   with a cell whose features were handed further down follows them.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+from . import boundary, contested, pairs
+from .clustering import DEFAULT_RHO, QuickMatchResult, distinctiveness, quickmatch
+
+DQM_MODES = ("default", "paper")
+
+
+@dataclass
+class Shard:
+    """Features held by one agent: global ids, image ids, descriptors, sigma, cell, unit."""
+
+    ids: np.ndarray
+    image_ids: np.ndarray
+    descriptors: np.ndarray
+    sigma: np.ndarray
+    cells: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @classmethod
+    def empty(cls, dim: int, dtype=np.uint8) -> "Shard":
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, dim), dtype),
+                   np.zeros(0), np.zeros(0, np.int64))
+
+    def take(self, idx: np.ndarray) -> "Shard":
+        return Shard(self.ids[idx], self.image_ids[idx], self.descriptors[idx], self.sigma[idx], self.cells[idx])
+
+    @staticmethod
+    def concat(parts) -> "Shard":
+        parts = [p for p in parts if p is not None]
+        out = Shard(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                      ("ids", "image_ids", "descriptors", "sigma", "cells")))
+        order = np.argsort(out.ids, kind="stable")  # canonical order: results independent of arrival order
+        return out.take(order)
+
+
+@dataclass
+class LocalStep:
+    """What an agent computed at one step (kept for statistics and pictures)."""
+
+    result: Optional[QuickMatchResult]
+    time_cluster: float = 0.0
+    time_boundary: float = 0.0
+    extra: Dict[str, float] = field(default_factory=dict)
+
+
+def source_sigma(descriptors: np.ndarray, image_ids: np.ndarray) -> np.ndarray:
+    """Exact sigma of features of whole images (what a source agent can compute)."""
+    X = np.asarray(descriptors, dtype=np.float64)
+    if len(X) == 0:
+        return np.zeros(0)
+    _, img = np.unique(image_ids, return_inverse=True)
+    img = img.ravel()
+    return distinctiveness(pairs.Augmented(X), img, int(img.max()) + 1)
+
+
+def cluster_shard(shard: Shard, mode: str, rho: float = DEFAULT_RHO, kernel: str = "quadratic",
+                  n_threads: Optional[int] = None) -> Tuple[Optional[QuickMatchResult], np.ndarray]:
+    """Local QuickMatch of a shard; returns (result, sigma used). Empty shards give (None, [])."""
+    if len(shard) == 0:
+        return None, np.zeros(0)
+    sigma = None if mode == "paper" else shard.sigma
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a cell holding one image is fine here
+        r = quickmatch(shard.descriptors, shard.image_ids, rho=rho, kernel=kernel, sigma=sigma,
+                       n_threads=n_threads)
+    return r, r.sigma
+
+
+def reach(sigma: np.ndarray, mode: str, rho: float, halo: float = 1.0) -> np.ndarray:
+    """Interaction radius of every feature for the contested test.
+
+    Paper: ``sigma`` (the paper's sigma_p). Default: ``halo * max(rho, 1) * sigma``:
+    with ``halo = 1`` it covers both the longest edge that can merge
+    (``rho * sigma``) and the quadratic kernel's support (``sigma``), so no
+    feature that could change x's density or merge with x is missed by the
+    test; smaller values trade fidelity for traffic (docs/distributed.md).
+    """
+    sigma = np.asarray(sigma, dtype=np.float64)
+    return sigma if mode == "paper" else sigma * (halo * max(rho, 1.0))
+
+
+def boundary_distances(shard: Shard, seeds: np.ndarray, mode: str,
+                       reach_values: Optional[np.ndarray] = None) -> np.ndarray:
+    """(n, m) distances of held features to every cell (0 for the feature's own cell).
+
+    Default mode: bisector bounds (closed form). Paper mode: exact cell
+    distances (QP, piqp) where the bisector bound is below the reach (beyond
+    it the exact distance is larger too and changes nothing).
+    """
+    H = boundary.hyperplane_distances(shard.descriptors, seeds, shard.cells)
+    if mode == "paper" and len(shard) and len(seeds) > 1:
+        need = H < (reach_values[:, None] if reach_values is not None else np.inf)
+        H = boundary.cell_distances(shard.descriptors, seeds, shard.cells, need=need, hyper=H)
+    return H
+
+
+def minima_for_broadcast(H: np.ndarray, me: int, m: int) -> np.ndarray:
+    """The exchanged minima this agent publishes: e[me, a] for every a."""
+    return contested.exchanged_minima(H, me, m)
+
+
+def contested_with(shard: Shard, H: np.ndarray, reach_values: np.ndarray, minima: np.ndarray) -> np.ndarray:
+    """(n, m) contested matrix of held features; ``minima[a, i]`` = e[a, i] from agent a.
+
+    A feature of cell i is tested against agent a with ``e[a, i]`` (the cell it
+    is geometrically in, which for handed-down features is not the holder's).
+    """
+    if len(shard) == 0:
+        return np.zeros((0, minima.shape[0]), bool)
+    E = minima[:, shard.cells].T  # (n, m): e[a, cell(x)]
+    C = (H + E) < reach_values[:, None]
+    C[np.arange(len(shard)), shard.cells] = False
+    return C
+
+
+def candidate_agents(C: np.ndarray, location: Optional[np.ndarray], mode: str) -> np.ndarray:
+    """(n, m) bool: agents a feature may have to meet, from its contested cells.
+
+    Paper mode: the contested cells' own agents. Default mode: every agent
+    that holds features of a contested cell (``location[k, b]``: some features
+    of cell k are at agent b), so a feature follows the features it may
+    interact with when those were handed further down (the follow rule).
+    """
+    if mode == "paper" or location is None:
+        return C
+    return (C.astype(np.uint8) @ location.astype(np.uint8)) > 0
+
+
+def hand_down(shard: Shard, result: QuickMatchResult, C: np.ndarray, me: int, mode: str,
+              location: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(target agent of every held feature (``me`` = keep), unit of every feature); hand-down only."""
+    if len(shard) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if mode == "paper":
+        units = contested.units_from_clusters(result.labels)
+    else:
+        units = contested.units_from_tree(result.labels, result.parent)
+    A = candidate_agents(C, location, mode)
+    targets = contested.unit_targets(units, A, me, below=me)
+    return targets[units], units
+
+
+def record_moves(location: np.ndarray, cells: np.ndarray, targets: np.ndarray) -> None:
+    """Mark in ``location`` that features of ``cells[k]`` are now held by ``targets[k]``."""
+    location[np.asarray(cells, dtype=np.int64), np.asarray(targets, dtype=np.int64)] = True
+
+
+def arrival_check(units_in: np.ndarray, C_in: np.ndarray, me: int, sender: int,
+                  location: Optional[np.ndarray] = None, mode: str = "default") -> int:
+    """Number of arrived units that should not have come to ``me``.
+
+    The sender hands a unit to the lowest agent below itself that any member
+    is contested with; the receiver recomputes that target from the same seeds,
+    minima and the sigma sent along. A non-zero count means inconsistent state
+    or a bad sender; the caller counts it and keeps the features (nothing is lost).
+    """
+    if len(units_in) == 0:
+        return 0
+    _, u = np.unique(units_in, return_inverse=True)
+    targets = contested.unit_targets(u.ravel(), candidate_agents(C_in, location, mode), sender, below=sender)
+    return int((targets != me).sum())
+
+
+def timed(fn, *args, **kwargs):
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t
