@@ -17,6 +17,10 @@ from .validation import InputError
 COMMANDS = [
     "dqm.commands.match",
     "dqm.commands.demo",
+    "dqm.commands.run",
+    "dqm.commands.router",
+    "dqm.commands.agent",
+    "dqm.commands.coordinator",
 ]
 
 

@@ -80,6 +80,8 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "stats": {"values": "dict"},
     # coordinator -> agents: abort the job (reason)
     "abort": {"reason": "str"},
+    # coordinator -> agents: all results are in, exit
+    "finish": {"clusters": "int"},
 }
 
 

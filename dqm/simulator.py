@@ -17,43 +17,14 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from . import messages
+from . import messages, protocol
 from .core import distributed as dist
+from .core.distributed import DQMConfig
 from .core import partition
-from .core.clustering import DEFAULT_RHO, KERNELS
 from .core.tree import canonical_labels
-from .validation import InputError, check_choice, check_descriptors, check_image_ids, check_positive
+from .validation import InputError, check_descriptors, check_image_ids
 
 COORDINATOR = -1
-#: feature rows per features message (bounded message size)
-CHUNK_ROWS = 8192
-
-
-@dataclass(frozen=True)
-class DQMConfig:
-    """Parameters of a distributed job (identical in the simulator and the runtime)."""
-
-    agents: int
-    seed: int = 0
-    partition: str = "kmeans"
-    mode: str = "default"
-    rho: float = DEFAULT_RHO
-    kernel: str = "quadratic"
-    samples_per_agent: int = 64
-    halo: float = 1.0
-    job: str = "job"
-
-    def validated(self, n_features: int) -> "DQMConfig":
-        partition.check_agents(self.agents, n_features)
-        partition.check_seed(self.seed)
-        check_choice(self.partition, "partition", partition.PARTITION_MODES)
-        check_choice(self.mode, "mode", dist.DQM_MODES)
-        check_choice(self.kernel, "kernel", KERNELS)
-        check_positive(self.rho, "rho")
-        check_positive(self.halo, "halo")
-        if not isinstance(self.samples_per_agent, int) or self.samples_per_agent < 1:
-            raise InputError(f"samples_per_agent must be a positive integer, got {self.samples_per_agent!r}")
-        return self
 
 
 class Traffic:
@@ -141,17 +112,17 @@ def image_owners(image_ids: np.ndarray, m: int) -> np.ndarray:
     return (inv.ravel() % m).astype(np.int64)
 
 
-def _feature_messages(cfg: DQMConfig, src: int, shard: dist.Shard, units: np.ndarray, phase: str,
-                      seq0: int) -> List[bytes]:
-    out = []
-    desc = shard.descriptors if shard.descriptors.dtype == np.uint8 else shard.descriptors.astype(np.float32)
-    for k, s in enumerate(range(0, max(1, len(shard)), CHUNK_ROWS)):
-        sl = slice(s, s + CHUNK_ROWS)
-        out.append(messages.encode(
-            "features", cfg.job, src, phase=phase, seq=seq0 + k, ids=shard.ids[sl].astype(np.int64),
-            image_ids=shard.image_ids[sl].astype(np.int64), descriptors=np.ascontiguousarray(desc[sl]),
-            sigma=shard.sigma[sl].astype(np.float64), unit=units[sl].astype(np.int64)))
-    return out
+def _send_features(traffic: Traffic, cfg: "DQMConfig", src: int, dst: int, phase: str, shard: dist.Shard,
+                   units: np.ndarray, seqs: Dict[Tuple[int, int], int]) -> int:
+    """Meter the features chunks of one (src, dst, phase) and their acks; returns the chunk count."""
+    seq0 = seqs.get((src, dst), 0)
+    msgs = protocol.feature_messages(cfg.job, src, phase, shard.ids, shard.image_ids, shard.descriptors,
+                                     shard.sigma, units, seq0=seq0)
+    for k, msg in enumerate(msgs):
+        traffic.add(src, dst, "features", msg)
+        traffic.add(dst, src, "ack", protocol.ack(cfg.job, dst, src, seq0 + k))
+    seqs[(src, dst)] = seq0 + len(msgs)
+    return len(msgs)
 
 
 def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMResult:
@@ -165,8 +136,9 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     cfg = config.validated(n)
     m = cfg.agents
     dim = X.shape[1]
-    raw = np.asarray(descriptors)
-    store = raw.astype(np.uint8) if raw.dtype == np.uint8 else X
+    # features travel as uint8 (SIFT) or float32: every agent computes on what it receives
+    store = protocol.wire_descriptors(np.asarray(descriptors) if np.asarray(descriptors).dtype == np.uint8 else X)
+    X = store.astype(np.float64)
     owners = image_owners(ids, m)
     traffic = Traffic()
     gid = np.arange(n, dtype=np.int64)
@@ -180,7 +152,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     # 1. partition seeds
     t = time.perf_counter()
     if cfg.partition == "seeded":
-        seeds = partition.seeded_seeds(cfg.seed, m, dim, norm=float(np.median(np.linalg.norm(X, axis=1))))
+        seeds = partition.seeded_seeds(cfg.seed, m, dim, norm=cfg.seed_norm)
     else:
         samples = []
         for a in range(m):
@@ -188,8 +160,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
             pick = own[partition.sample_for_seeds(X[own], gid[own], cfg.seed, cfg.samples_per_agent)]
             samples.append(pick)
             if a != 0:
-                payload = store[pick] if store.dtype == np.uint8 else store[pick].astype(np.float32)
-                traffic.add(a, 0, "sample", messages.encode("sample", cfg.job, a, descriptors=payload))
+                traffic.add(a, 0, "sample", messages.encode("sample", cfg.job, a, descriptors=store[pick]))
         pooled = np.concatenate(samples)
         seeds = partition.kmeans_seeds(X[pooled], m, cfg.seed)
         for b in range(1, m):
@@ -197,135 +168,67 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     stats["time_seeds"] = time.perf_counter() - t
 
     # 2. routing (default mode: exact sigma computed at the source, sent along)
+    cores = [dist.AgentCore(a, cfg) for a in range(m)]
     cells = partition.route(X, seeds)
-    sigma0 = np.zeros(n)
-    if cfg.mode == "default":
-        for a in range(m):
-            own = np.flatnonzero(owners == a)
-            sigma0[own] = dist.source_sigma(X[own], ids[own])
-    shards: List[dist.Shard] = []
-    for b in range(m):
-        parts = []
-        for a in range(m):
-            sel = np.flatnonzero((owners == a) & (cells == b))
-            sh = dist.Shard(gid[sel], ids[sel], store[sel], sigma0[sel], cells[sel])
+    parts_for: List[List[dist.Shard]] = [[] for _ in range(m)]
+    seqs: Dict[Tuple[int, int], int] = {}
+    for a in range(m):
+        own = np.flatnonzero(owners == a)
+        for b, sh in cores[a].route(gid[own], ids[own], store[own], seeds).items():
             if a != b:
-                for k, msg in enumerate(_feature_messages(cfg, a, sh, np.full(len(sel), -1), "route", 0)):
-                    traffic.add(a, b, "features", msg)
-                    traffic.add(b, a, "ack", messages.encode("ack", cfg.job, b, seq=k, dst=a))
-                traffic.add(a, b, "phase_end", messages.encode("phase_end", cfg.job, a, phase="route", dst=b,
-                                                               messages=1, features=len(sel),
-                                                               moved=np.zeros(0, np.int64)))
-                traffic.features_moved += len(sel)
-            parts.append(sh)
-        shards.append(dist.Shard.concat(parts))
+                k = _send_features(traffic, cfg, a, b, "route", sh, np.full(len(sh), -1), seqs)
+                traffic.add(a, b, "phase_end", protocol.phase_end(cfg.job, a, b, "route", k, len(sh)))
+                traffic.features_moved += len(sh)
+            parts_for[b].append(sh)
     routed_moves = traffic.features_moved
 
-    # boundary distances depend only on a feature's descriptor and the seeds; an
-    # agent keeps those it computed (for a reach at least as large as needed now)
-    Hcache = np.zeros((n, m))
-    Hreach = np.full(n, -1.0)
-
-    def bounds(a: int, shard: dist.Shard, rch: np.ndarray) -> np.ndarray:
-        todo = np.flatnonzero(Hreach[shard.ids] < rch)
-        if len(todo):
-            sub = shard.take(todo)
-            H, tb = dist.timed(dist.boundary_distances, sub, seeds, cfg.mode, rch[todo])
-            per_agent[a]["time_boundary"] = per_agent[a].get("time_boundary", 0.0) + tb
-            Hcache[sub.ids] = H
-            Hreach[sub.ids] = rch[todo]
-        return Hcache[shard.ids]
-
     # 3. local clustering, 4. boundary distances and exchanged minima
-    per_agent = [{"features_routed": float(len(s)), "time_boundary": 0.0} for s in shards]
-    first: List[Optional[object]] = []
     minima = np.full((m, m), np.inf)
-    H0, reach0 = [], []
     for a in range(m):
-        (res, sig), tc = dist.timed(dist.cluster_shard, shards[a], cfg.mode, cfg.rho, cfg.kernel)
-        if cfg.mode == "paper" and len(shards[a]):
-            shards[a].sigma = sig
-        rch = dist.reach(shards[a].sigma, cfg.mode, cfg.rho, cfg.halo)
-        H = bounds(a, shards[a], rch)
-        minima[a] = dist.minima_for_broadcast(H, a, m)
-        per_agent[a]["time_cluster"] = tc
-        first.append(res)
-        H0.append(H)
-        reach0.append(rch)
+        cores[a].set_shard(parts_for[a], seeds)
+        minima[a] = cores[a].local_step()
         for b in range(m):
             if b != a:
                 traffic.add(a, b, "minima", messages.encode("minima", cfg.job, a, values=minima[a]))
         if progress:
             progress(a + 1, 2 * m)
-
+    per_agent = [{"features_routed": float(len(c.shard))} for c in cores]
     initial_labels = np.zeros(n, np.int64)
     contested0 = np.zeros(n, bool)
     offset = 0
-    for a in range(m):
-        if first[a] is not None:
-            initial_labels[shards[a].ids] = first[a].labels + offset
-            offset += first[a].n_clusters
-            C = dist.contested_with(shards[a], H0[a], reach0[a], minima)
-            contested0[shards[a].ids] = C.any(axis=1)
+    for c in cores:
+        c.set_minima(minima)
+        if c.first is not None:
+            initial_labels[c.shard.ids] = c.first.labels + offset
+            offset += c.first.n_clusters
+            contested0[c.shard.ids] = c.contested_now()
 
     # 5. hand-down cascade m-1 .. 0, final re-clustering
     inbox: List[List[Tuple[int, dist.Shard, np.ndarray]]] = [[] for _ in range(m)]
-    location = np.eye(m, dtype=bool)  # location[k, b]: features of cell k are held by agent b
-    location_at: Dict[int, np.ndarray] = {}  # the location map each sender decided with
+    moves: Dict[int, np.ndarray] = {}
     holder = np.full(n, -1, np.int64)
     handed_to = np.full(n, -1, np.int64)
     final_labels = np.full(n, -1, np.int64)
     label_offset = 0
     arrival_failures = 0
     for a in range(m - 1, -1, -1):
-        received = [s for _, s, _ in inbox[a]]
-        for sender, s_in, u_in in inbox[a]:  # arrival check of every received batch
-            rch_in = dist.reach(s_in.sigma, cfg.mode, cfg.rho, cfg.halo)
-            H_in = bounds(a, s_in, rch_in)
-            C_in = dist.contested_with(s_in, H_in, rch_in, minima)
-            arrival_failures += dist.arrival_check(u_in, C_in, a, sender, location_at[sender], cfg.mode)
-        cur = dist.Shard.concat([shards[a]] + received) if received else shards[a]
-        t = time.perf_counter()
-        if received or a == m - 1:
-            res, sig = dist.cluster_shard(cur, cfg.mode, cfg.rho, cfg.kernel)
-        else:
-            res, sig = first[a], cur.sigma
-        if cfg.mode == "paper" and len(cur):
-            cur.sigma = sig
-        tc = time.perf_counter() - t
-        keep = np.arange(len(cur))
-        if a > 0 and len(cur):
-            rch = dist.reach(cur.sigma, cfg.mode, cfg.rho, cfg.halo)
-            H = bounds(a, cur, rch)
-            C = dist.contested_with(cur, H, rch, minima)
-            location_at[a] = location.copy()
-            target, units = dist.hand_down(cur, res, C, a, cfg.mode, location)
-            for b in np.unique(target[target != a]).tolist():
-                sel = np.flatnonzero(target == b)
-                sh = cur.take(sel)
-                for k, msg in enumerate(_feature_messages(cfg, a, sh, units[sel], "handdown", 0)):
-                    traffic.add(a, b, "features", msg)
-                    traffic.add(b, a, "ack", messages.encode("ack", cfg.job, b, seq=k, dst=a))
-                traffic.features_moved += len(sel)
-                inbox[b].append((a, sh, units[sel]))
-                first_time = handed_to[sh.ids] < 0
-                handed_to[sh.ids[first_time]] = b
-            moved = target != a
-            dist.record_moves(location, cur.cells[moved], target[moved])
-            pairs_moved = np.unique(np.stack([cur.cells[moved], target[moved]]), axis=1)
-            for b in range(a):
-                traffic.add(a, b, "phase_end", messages.encode(
-                    "phase_end", cfg.job, a, phase="handdown", dst=b, messages=int((target == b).any()),
-                    features=int((target == b).sum()), moved=pairs_moved.reshape(-1).astype(np.int64)))
-            keep = np.flatnonzero(target == a)
-            if len(keep) < len(cur):  # final re-clustering of what stays
-                cur = cur.take(keep)
-                t = time.perf_counter()
-                res, _ = dist.cluster_shard(cur, "default" if cfg.mode == "default" else "paper",
-                                            cfg.rho, cfg.kernel) if len(cur) else (None, None)
-                tc += time.perf_counter() - t
-        per_agent[a]["time_cluster"] += tc
-        per_agent[a]["features_final"] = float(len(cur))
+        out = cores[a].cascade(inbox[a], moves)
+        arrival_failures += out.arrival_failures
+        sent = {}
+        for b, (sh, units) in out.sends.items():
+            sent[b] = _send_features(traffic, cfg, a, b, "handdown", sh, units, seqs)
+            traffic.features_moved += len(sh)
+            inbox[b].append((a, sh, units))
+            first_time = handed_to[sh.ids] < 0
+            handed_to[sh.ids[first_time]] = b
+        moves[a] = out.moved
+        for b in range(a):
+            traffic.add(a, b, "phase_end", protocol.phase_end(
+                cfg.job, a, b, "handdown", sent.get(b, 0), len(out.sends[b][0]) if b in out.sends else 0,
+                out.moved))
+        cur, res = out.final, out.final_result
+        per_agent[a].update(features_final=float(len(cur)), time_cluster=cores[a].time_cluster,
+                            time_boundary=cores[a].time_boundary)
         if len(cur):
             holder[cur.ids] = a
             final_labels[cur.ids] = res.labels + label_offset

@@ -200,3 +200,168 @@ def timed(fn, *args, **kwargs):
     t = time.perf_counter()
     out = fn(*args, **kwargs)
     return out, time.perf_counter() - t
+
+
+@dataclass(frozen=True)
+class DQMConfig:
+    """Parameters of a distributed job (identical in the simulator and the runtime)."""
+
+    agents: int
+    seed: int = 0
+    partition: str = "kmeans"
+    mode: str = "default"
+    rho: float = DEFAULT_RHO
+    kernel: str = "quadratic"
+    samples_per_agent: int = 64
+    halo: float = 1.0
+    seed_norm: float = 512.0
+    job: str = "job"
+
+    def validated(self, n_features: Optional[int] = None) -> "DQMConfig":
+        from ..validation import InputError, check_choice, check_positive
+        from . import partition
+        from .clustering import KERNELS
+
+        partition.check_agents(self.agents, n_features)
+        partition.check_seed(self.seed)
+        check_choice(self.partition, "partition", partition.PARTITION_MODES)
+        check_choice(self.mode, "mode", DQM_MODES)
+        check_choice(self.kernel, "kernel", KERNELS)
+        check_positive(self.rho, "rho")
+        check_positive(self.halo, "halo")
+        check_positive(self.seed_norm, "seed_norm")
+        if isinstance(self.samples_per_agent, bool) or not isinstance(self.samples_per_agent, int) \
+                or self.samples_per_agent < 1:
+            raise InputError(f"samples_per_agent must be a positive integer, got {self.samples_per_agent!r}")
+        return self
+
+
+@dataclass
+class CascadeOutcome:
+    """What agent ``me`` decides at its turn of the hand-down cascade."""
+
+    sends: Dict[int, Tuple[Shard, np.ndarray]]  # target agent -> (features, their units)
+    moved: np.ndarray  # flattened (cell, target) pairs (dqm.protocol.moved_pairs)
+    final: Shard  # what the agent keeps
+    final_result: Optional[QuickMatchResult]  # its final clusters
+    arrival_failures: int = 0
+
+
+class AgentCore:
+    """One agent's algorithm state: what it holds and what it decided. No I/O.
+
+    The simulator drives m of these in one process; the runtime drives one per
+    process from messages. Call order: :meth:`route` (source side),
+    :meth:`set_shard`, :meth:`local_step`, then :meth:`cascade` with the
+    hand-downs and moves of the higher agents.
+    """
+
+    def __init__(self, me: int, cfg: DQMConfig):
+        self.me = me
+        self.cfg = cfg
+        self.m = cfg.agents
+        self.shard: Optional[Shard] = None
+        self.first: Optional[QuickMatchResult] = None
+        self.seeds: Optional[np.ndarray] = None
+        self.minima: Optional[np.ndarray] = None
+        self.time_cluster = 0.0
+        self.time_boundary = 0.0
+        self._H: Dict[int, np.ndarray] = {}
+        self._Hreach: Dict[int, float] = {}
+
+    # -- source side ---------------------------------------------------------------
+    def route(self, ids, image_ids, descriptors, seeds: np.ndarray) -> Dict[int, Shard]:
+        """Split this agent's source features by cell; default mode computes exact sigma first."""
+        from . import partition
+
+        X = np.asarray(descriptors)
+        Xf = X.astype(np.float64)
+        cells = partition.route(Xf, seeds)
+        sigma = source_sigma(Xf, image_ids) if self.cfg.mode == "default" else np.zeros(len(X))
+        whole = Shard(np.asarray(ids, np.int64), np.asarray(image_ids, np.int64), X, sigma, cells)
+        return {b: whole.take(np.flatnonzero(cells == b)) for b in range(self.m)}
+
+    # -- cell side -----------------------------------------------------------------
+    def set_shard(self, parts, seeds: np.ndarray) -> None:
+        self.seeds = np.asarray(seeds, dtype=np.float64)
+        self.shard = Shard.concat(parts)
+
+    def bounds(self, shard: Shard, rch: np.ndarray) -> np.ndarray:
+        """Boundary distances, kept per feature (they depend on the descriptor and seeds only)."""
+        todo = [k for k, i in enumerate(shard.ids.tolist()) if self._Hreach.get(i, -1.0) < rch[k]]
+        if todo:
+            sub = shard.take(np.array(todo))
+            H, tb = timed(boundary_distances, sub, self.seeds, self.cfg.mode, rch[todo])
+            self.time_boundary += tb
+            for k, i in enumerate(sub.ids.tolist()):
+                self._H[i] = H[k]
+                self._Hreach[i] = float(rch[todo[k]])
+        if len(shard) == 0:
+            return np.zeros((0, self.m))
+        return np.stack([self._H[i] for i in shard.ids.tolist()])
+
+    def _cluster(self, shard: Shard) -> Optional[QuickMatchResult]:
+        (res, sig), tc = timed(cluster_shard, shard, self.cfg.mode, self.cfg.rho, self.cfg.kernel)
+        self.time_cluster += tc
+        if self.cfg.mode == "paper" and len(shard):
+            shard.sigma = sig
+        return res
+
+    def _reach(self, shard: Shard) -> np.ndarray:
+        return reach(shard.sigma, self.cfg.mode, self.cfg.rho, self.cfg.halo)
+
+    def local_step(self) -> np.ndarray:
+        """Cluster the cell, compute boundary distances; returns the minima to broadcast."""
+        self.first = self._cluster(self.shard)
+        H = self.bounds(self.shard, self._reach(self.shard))
+        return minima_for_broadcast(H, self.me, self.m)
+
+    def set_minima(self, minima: np.ndarray) -> None:
+        self.minima = np.asarray(minima, dtype=np.float64)
+
+    def contested_now(self) -> np.ndarray:
+        """Initial contested flag of every held feature (for statistics and pictures)."""
+        rch = self._reach(self.shard)
+        return contested_with(self.shard, self.bounds(self.shard, rch), rch, self.minima).any(axis=1)
+
+    @staticmethod
+    def location_from(moves_by_agent: Dict[int, np.ndarray], m: int, above: int) -> np.ndarray:
+        """Location map from the moves reported by agents with index > ``above``."""
+        loc = np.eye(m, dtype=bool)
+        for a, flat in moves_by_agent.items():
+            if a > above and len(flat):
+                pairs = np.asarray(flat, np.int64).reshape(2, -1)
+                record_moves(loc, pairs[0], pairs[1])
+        return loc
+
+    def cascade(self, received, moves_by_agent: Dict[int, np.ndarray]) -> CascadeOutcome:
+        """This agent's turn: ``received`` is [(sender, Shard, units)] from higher agents,
+        ``moves_by_agent`` the (cell, target) moves every higher agent reported."""
+        a = self.me
+        failures = 0
+        for sender, s_in, u_in in received:
+            rch_in = self._reach(s_in)
+            C_in = contested_with(s_in, self.bounds(s_in, rch_in), rch_in, self.minima)
+            failures += arrival_check(u_in, C_in, a, sender,
+                                      self.location_from(moves_by_agent, self.m, sender), self.cfg.mode)
+        parts = [s for _, s, _ in received]
+        cur = Shard.concat([self.shard] + parts) if parts else self.shard
+        res = self._cluster(cur) if parts else self.first
+        sends: Dict[int, Tuple[Shard, np.ndarray]] = {}
+        moved = np.zeros(0, np.int64)
+        if a > 0 and len(cur):
+            from .. import protocol
+
+            rch = self._reach(cur)
+            C = contested_with(cur, self.bounds(cur, rch), rch, self.minima)
+            location = self.location_from(moves_by_agent, self.m, a)
+            target, units = hand_down(cur, res, C, a, self.cfg.mode, location)
+            for b in np.unique(target[target != a]).tolist():
+                sel = np.flatnonzero(target == b)
+                sends[b] = (cur.take(sel), units[sel])
+            out = target != a
+            moved = protocol.moved_pairs(cur.cells[out], target[out])
+            if out.any():  # final re-clustering of what stays
+                cur = cur.take(np.flatnonzero(~out))
+                res = self._cluster(cur) if len(cur) else None
+        return CascadeOutcome(sends=sends, moved=moved, final=cur, final_result=res, arrival_failures=failures)

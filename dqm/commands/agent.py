@@ -1,0 +1,37 @@
+"""Run one Distributed QuickMatch agent: an OS process holding its own images' features.
+
+    dqm agent --id 0 --agents 4 --connect tcp/ROUTER:7447 --job J features0.npz
+
+FEATURES files as for `dqm match` (docs/formats.md), optionally with a
+`feature_ids` array of global ids (else ids are (agent << 32) + row).
+"""
+from .runtime_options import add_algorithm, add_tls, config_from, tls_from
+
+NAME = "agent"
+HELP = "run one distributed agent process"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--id", type=int, required=True, help="agent index 0..M-1")
+    p.add_argument("--agents", type=int, required=True, help="number of agents M")
+    p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
+    p.add_argument("--phase-timeout", type=float, default=120.0, help="longest wait in one protocol phase")
+    p.add_argument("features", nargs="+", help="FEATURES.npz file(s) of this agent's images")
+    add_algorithm(p)
+    add_tls(p)
+
+
+def run(args) -> int:
+    from ..runtime.agent import main_agent
+    from ..runtime.bus import RouterUnreachable
+    from ..validation import InputError
+
+    if not 0 <= args.id < args.agents:
+        raise InputError(f"--id must be in 0..{args.agents - 1}, got {args.id}")
+    cfg = config_from(args, args.agents).validated()
+    try:
+        return main_agent(args.id, cfg, args.connect, args.features, tls_from(args, listen=False),
+                          connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout)
+    except RouterUnreachable as exc:
+        raise InputError(str(exc)) from None
