@@ -17,6 +17,7 @@ def add_arguments(p) -> None:
     p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
     p.add_argument("--phase-timeout", type=float, default=120.0, help="longest wait in one protocol phase")
+    p.add_argument("--max-message-bytes", type=int, default=64 << 20, help="reject larger messages")
     p.add_argument("features", nargs="+", help="FEATURES.npz file(s) of this agent's images")
     add_algorithm(p)
     add_tls(p)
@@ -32,6 +33,7 @@ def run(args) -> int:
     cfg = config_from(args, args.agents).validated()
     try:
         return main_agent(args.id, cfg, args.connect, args.features, tls_from(args, listen=False),
-                          connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout)
+                          connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout,
+                          max_message_bytes=args.max_message_bytes)
     except RouterUnreachable as exc:
         raise InputError(str(exc)) from None

@@ -28,7 +28,14 @@ def add_arguments(p) -> None:
     add_algorithm(p)
 
 
+def _terminate(signum, frame):
+    raise KeyboardInterrupt()
+
+
 def run(args) -> int:
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminate)  # clean up children on SIGTERM as on Ctrl-C
     from .. import evaluation, io, synthetic
     from ..runtime.coordinator import traffic_table
     from ..runtime.launcher import run_job

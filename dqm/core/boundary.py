@@ -84,32 +84,54 @@ class CellGeometry:
         return G, h
 
 
+def _dual_nnls(G: np.ndarray, h: np.ndarray, u: np.ndarray) -> Optional[float]:
+    """Distance from u to {z : G z <= h} through the dual NNLS (exact active set); None if G is singular."""
+    from scipy.optimize import nnls
+
+    if np.all(G @ u <= h):
+        return 0.0
+    try:
+        v = u - np.linalg.solve(G, h)
+    except np.linalg.LinAlgError:
+        return None
+    lam, _ = nnls(G.T, v)
+    z = u - G.T @ lam
+    return float(np.linalg.norm(z - u))
+
+
 def _solve_batch(geom: CellGeometry, U: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """Exact distances of points (span coordinates ``U``) to cells ``targets`` with piqp.
 
     Batched by target cell: one solver is set up per cell (its constraint
     matrix is shared by every point) and only the linear term is updated per
-    point, so the factorisation structure is reused.
+    point, so the factorisation structure is reused. A problem piqp does not
+    solve is solved again through its dual (non-negative least squares, exact
+    active set); should that fail too, the bisector bound is kept (a lower
+    bound, so the contested test stays conservative).
     """
     import piqp
 
     B, r = U.shape
-    out = np.zeros(B)
+    out = np.full(B, np.nan)
     if B == 0 or r == 0:
-        return out
+        return np.zeros(B)
     eye = np.asfortranarray(np.eye(r))
     for a in np.unique(targets).tolist():
         rows = np.flatnonzero(targets == a)
         G, h = geom.constraints(int(a))
         solver = piqp.DenseSolver()
         solver.settings.verbose = False
+        solver.settings.max_iter = 500
         solver.setup(eye, -U[rows[0]], None, None, np.asfortranarray(G), None, h, None, None)
         for k in rows.tolist():
             solver.update(c=-U[k])
             status = solver.solve()
-            if status != piqp.PIQP_SOLVED:
-                raise RuntimeError(f"piqp failed on a cell-distance QP (cell {a}): {status}")
-            out[k] = np.linalg.norm(solver.result.x - U[k])
+            if status == piqp.PIQP_SOLVED:
+                out[k] = np.linalg.norm(solver.result.x - U[k])
+            else:
+                d = _dual_nnls(G, h, U[k]) if G.shape[0] == r else None
+                if d is not None:
+                    out[k] = d
     return out
 
 
@@ -155,6 +177,8 @@ def cell_distances(
         geom = CellGeometry(P)
         Uc = geom.coords(X[k_idx[hard]])
         out = _solve_batch(geom, Uc, a_idx[hard])
+        ok = np.isfinite(out)  # unsolved problems keep the bisector bound (conservative)
+        kk, aa = k_idx[hard][ok], a_idx[hard][ok]
         # numerical safety: never below the bisector bound
-        H[k_idx[hard], a_idx[hard]] = np.maximum(out, H[k_idx[hard], a_idx[hard]])
+        H[kk, aa] = np.maximum(out[ok], H[kk, aa])
     return H

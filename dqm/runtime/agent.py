@@ -8,6 +8,7 @@ coordinator or an abort message ends the process with a clear error.
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import time
@@ -25,6 +26,19 @@ from .bus import Bus, open_client
 
 class JobAborted(RuntimeError):
     pass
+
+
+def _fault_hook(me: int, state: str) -> None:
+    """Test hook: with DQM_FAULT_PAUSE="<agent>:<state>" the agent stops (writing the
+    file named by DQM_FAULT_MARKER) when it enters that state, so a test can kill it there."""
+    spec = os.environ.get("DQM_FAULT_PAUSE")
+    if not spec or spec != f"{me}:{state}":
+        return
+    marker = os.environ.get("DQM_FAULT_MARKER")
+    if marker:
+        with open(marker, "w") as fh:
+            fh.write(f"{os.getpid()}\n")
+    time.sleep(float(os.environ.get("DQM_FAULT_SECONDS", "60")))
 
 
 class Terminated(BaseException):
@@ -57,6 +71,7 @@ class AgentProcess:
         self.ends: Dict[Tuple[int, str], dict] = {}
         self.minima_rows: Dict[int, np.ndarray] = {}
         self.finished = False
+        _fault_hook(me, "wait_start")
         self.times: Dict[str, float] = {}
 
     # ------------------------------------------------------------------ messages
@@ -114,6 +129,7 @@ class AgentProcess:
         self.times[f"time_{self.state}"] = now - self.phase_started
         self.state = state
         self.phase_started = now
+        _fault_hook(self.me, state)
 
     # ------------------------------------------------------------------ protocol steps
     def advance(self) -> None:
@@ -242,13 +258,14 @@ def load_agent_features(paths, me: int):
 
 
 def main_agent(me: int, cfg: dist.DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,
-               connect_timeout_s: float = 5.0, phase_timeout_s: float = 120.0) -> int:
+               connect_timeout_s: float = 5.0, phase_timeout_s: float = 120.0,
+               max_message_bytes: int = messages.MAX_MESSAGE_BYTES) -> int:
     """Entry point of ``dqm agent``: returns the process exit code."""
     signal.signal(signal.SIGTERM, _on_sigterm)
     keys.check_job(cfg.job)
     ids, imgs, desc = load_agent_features(paths, me)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
-    bus = Bus(session, cfg.job, me, cfg.agents, dim=desc.shape[1])
+    bus = Bus(session, cfg.job, me, cfg.agents, dim=desc.shape[1], max_bytes=max_message_bytes)
     agent = AgentProcess(me, cfg, bus, ids, imgs, desc, phase_timeout_s=phase_timeout_s)
     try:
         agent.run()

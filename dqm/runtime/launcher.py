@@ -95,7 +95,7 @@ class Processes:
 
 
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
-            env=None, keep_logs: bool = False, on_started=None) -> dict:
+            env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
     Raises RuntimeError with the coordinator's / agents' last log lines on failure.
@@ -114,7 +114,8 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
         router = procs.start(["router", "--listen", endpoint], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
         agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", endpoint,
-                               *algorithm_args(cfg), str(files[a])], wd / f"agent{a}.log", env)
+                               *algorithm_args(cfg), *(agent_args or []), str(files[a])],
+                              wd / f"agent{a}.log", env)
                   for a in range(cfg.agents)]
         report_path = wd / "report.json"
         coord = procs.start(["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed),

@@ -1,0 +1,189 @@
+"""The multi-process runtime on this host: equality with the simulator, metering, faults, bad messages."""
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dqm import messages
+from dqm.core.distributed import DQMConfig
+from dqm.runtime import keys
+from dqm.runtime.launcher import run_job
+from dqm.simulator import simulate
+from dqm.synthetic import sift_like
+
+pytest.importorskip("zenoh")
+
+
+@pytest.fixture(scope="module")
+def data():
+    ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
+    return ds.descriptors, ds.image_ids
+
+
+def alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is not alive for our purposes
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("partition", ["kmeans", "seeded"])
+def test_runtime_equals_simulator_and_meters_traffic(data, partition):
+    X, ids = data
+    cfg = DQMConfig(agents=3, seed=2, partition=partition, job=f"eq-{partition}")
+    rep = run_job(X, ids, cfg, timeout_s=120)
+    sim = simulate(X, ids, cfg)
+    np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
+    assert rep["agent_exit_codes"] == [0, 0, 0]
+    # metered bytes against the kernel's TCP counters of the router's sockets
+    wire = rep["wire_bytes_received_by_router"]
+    assert wire is not None and wire > 0
+    assert abs(rep["total_bytes"] - wire) / wire < 0.10, (rep["total_bytes"], wire)
+    # the feature traffic the runtime sent is what the simulator metered
+    assert rep["kinds"]["features"]["messages"] == sim.traffic.messages("features")
+    assert rep["kinds"]["minima"]["messages"] == 3 * 2
+    links = {(e["src"], e["dst"]) for e in rep["links"]}
+    assert ("coordinator", "agent0") in links and ("agent2", "coordinator") in links
+
+
+def test_no_router_gives_a_clear_error(tmp_path):
+    from dqm.runtime.launcher import free_port, write_agent_files
+
+    X = np.random.default_rng(0).integers(0, 255, size=(20, 128)).astype(np.uint8)
+    f = write_agent_files(X, np.repeat([0, 1], 10), 1, tmp_path)[0]
+    port = free_port()
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-m", "dqm", "agent", "--id", "0", "--agents", "1", "--connect",
+                        f"tcp/127.0.0.1:{port}", "--connect-timeout", "1", str(f)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert f"no zenoh router reachable at tcp/127.0.0.1:{port}" in p.stderr
+    assert time.monotonic() - t0 < 30
+
+
+@pytest.mark.parametrize("state", ["wait_start", "wait_routed", "wait_minima", "wait_handdown", "wait_finish"])
+def test_agent_killed_in_each_phase(data, tmp_path, state):
+    """SIGKILL an agent while it sits in a phase: the job fails with a clear message fast, nothing hangs."""
+    X, ids = data
+    victim = 1
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE=f"{victim}:{state}", DQM_FAULT_MARKER=str(marker))
+    started = {}
+    outcome = {}
+
+    cfg = DQMConfig(agents=3, seed=1, job=f"kill-{state}")
+
+    def go():
+        try:
+            outcome["ok"] = run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update)
+        except RuntimeError as exc:
+            outcome["error"] = str(exc)
+
+    th = threading.Thread(target=go)
+    th.start()
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    assert marker.exists(), "the agent never reached the phase"
+    pid = started["agents"][victim].pid
+    os.kill(pid, signal.SIGKILL)
+    t_kill = time.monotonic()
+    th.join(timeout=60)
+    assert not th.is_alive()
+    assert time.monotonic() - t_kill < 20
+    if state == "wait_finish":
+        # the victim had delivered its result and statistics: the job completes correctly
+        np.testing.assert_array_equal(np.asarray(outcome["ok"]["labels"]), simulate(X, ids, cfg).labels)
+    else:
+        assert "error" in outcome
+        assert f"agent {victim} died" in outcome["error"]
+    for p in [started["router"], started["coordinator"], *started["agents"]]:
+        assert not alive(p.pid)
+
+
+def _inject(endpoint, job, n_agents, dim, ready):
+    """A foreign client that sends hostile messages to every agent's inbox."""
+    import zenoh
+
+    from dqm.runtime.bus import open_client
+
+    s = open_client(endpoint)
+    seen = set()
+    watcher = s.liveliness().declare_subscriber(keys.alive_all(job), lambda smp: seen.add(str(smp.key_expr)),
+                                                history=True)
+    try:
+        t0 = time.monotonic()
+        while not all(keys.alive_agent(job, a) in seen for a in range(n_agents)) and time.monotonic() - t0 < 30:
+            time.sleep(0.02)
+        good = dict(phase="route", seq=999999, ids=np.arange(2, dtype=np.int64), image_ids=np.zeros(2, np.int64),
+                    sigma=np.ones(2), unit=np.zeros(2, np.int64))
+        bad = [
+            b"\x00garbage\xff",
+            messages.encode("start", job, -1, seed=1, agents=n_agents, mode="kmeans").replace(b"\xa1v\x01", b"\xa1v\x07"),
+            messages.encode("features", job, 0, descriptors=np.zeros((2, dim // 2), np.uint8), **good),
+            messages.encode("features", "another-job", 0, descriptors=np.zeros((2, dim), np.uint8), **good),
+            b"\x91" + b"\x00" * (3 << 20),  # larger than the agents' limit
+        ]
+        ready.set()
+        for payload in bad:
+            for a in range(n_agents):
+                s.put(keys.agent_inbox(job, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+    finally:
+        watcher.undeclare()
+        s.close()
+
+
+def test_hostile_messages_are_rejected_and_counted(data):
+    X, ids = data
+    cfg = DQMConfig(agents=2, seed=3, job="hostile")
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_SECONDS="3")
+    ready = threading.Event()
+
+    def on_started(info):
+        threading.Thread(target=_inject, args=(f"tcp/127.0.0.1:{info['port']}", cfg.job, 2, X.shape[1], ready),
+                         daemon=True).start()
+
+    rep = run_job(X, ids, cfg, timeout_s=120, env=env, on_started=on_started,
+                  agent_args=["--max-message-bytes", str(1 << 21)])
+    assert ready.is_set()
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
+    rejected = {}
+    for st in rep["per_agent"].values():
+        for k, v in st.items():
+            if k.startswith("rejected:"):
+                rejected[k] = rejected.get(k, 0) + v
+    text = " ".join(rejected)
+    assert "not valid msgpack" in text
+    assert "schema version" in text
+    assert "descriptor dimension" in text
+    assert "another-job" in text
+    assert "exceeds the maximum" in text
+    assert sum(rejected.values()) >= 5 * 2
+
+
+def test_sigterm_to_dqm_run_leaves_no_process(tmp_path):
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_minima", DQM_FAULT_MARKER=str(marker))
+    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "sigterm-test"],
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    assert marker.exists()
+    p.send_signal(signal.SIGTERM)
+    p.wait(timeout=30)
+    time.sleep(0.5)
+    left = subprocess.run(["pgrep", "-f", "job sigterm-test"], capture_output=True, text=True).stdout.split()
+    assert left == [], f"processes left behind: {left}"
