@@ -72,6 +72,10 @@ class Coordinator:
         # readiness: every agent's token before anything is sent
         while not all(self.bus.agent_alive(a) for a in range(self.m)):
             self.bus.receive(timeout=0.1)
+            gone = [a for a in range(self.m) if self.bus.agent_alive(a) is False]
+            if gone:
+                self._abort(f"agent {gone[0]} died (its liveliness token vanished) before the job started; "
+                            "job aborted")
             if time.monotonic() - t0 > self.ready_timeout_s:
                 missing = [a for a in range(self.m) if not self.bus.agent_alive(a)]
                 self._abort(f"agents {missing} not ready after {self.ready_timeout_s:.0f} s")
