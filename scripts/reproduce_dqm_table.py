@@ -58,7 +58,8 @@ def row(X, ids, m, mode, ref_q, ref_g, halo=1.0):
     links = r.traffic.per_link()
     agent_links = [v for (s, d), v in links.items() if s >= 0 and d >= 0]
     raw = X.shape[0] * X.shape[1] * X.dtype.itemsize
-    control = sum(r.traffic.total(k) for k in ("start", "seeds", "minima", "phase_end", "ack", "sample"))
+    control = sum(r.traffic.total(k) for k in ("start", "minima", "phase_end", "ack"))
+    setup = sum(r.traffic.total(k) for k in ("seeds", "sample"))
     return {
         "m": m, "mode": mode, "halo": halo, "wall_s": wall,
         "time_per_agent_mean_s": float(tc.mean()), "time_per_agent_max_s": float(tc.max()),
@@ -73,7 +74,8 @@ def row(X, ids, m, mode, ref_q, ref_g, halo=1.0):
         "bytes_total": r.traffic.total(), "bytes_per_raw": r.traffic.total() / raw,
         "bytes_per_link_mean": float(np.mean(agent_links)) if agent_links else 0.0,
         "bytes_per_link_max": float(np.max(agent_links)) if agent_links else 0.0,
-        "control_bytes": control, "final_largest_share": float(max(p["features_final"] for p in r.per_agent) / len(X)),
+        "control_bytes": control, "setup_bytes": setup,
+        "bytes_by_kind": {k: v[0] for k, v in r.traffic.per_kind().items()}, "final_largest_share": float(max(p["features_final"] for p in r.per_agent) / len(X)),
         "arrival_check_failures": r.stats["arrival_check_failures"],
     }
 
@@ -81,7 +83,7 @@ def row(X, ids, m, mode, ref_q, ref_g, halo=1.0):
 def markdown(rows):
     head = ("| mode | m | time/agent s (mean/max) | boundary ms/agent (mean/max) | % contested clusters | clusters "
             "(multi) | % contested found | F1 vs central (same kernel) P/R/F1 | F1 vs Gaussian | moves/feature "
-            "(hand-down) | bytes/raw | bytes per link mean/max | control bytes | largest agent share |")
+            "(hand-down) | bytes/raw | bytes per link mean/max | control bytes (seeds setup) | largest agent share |")
     out = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         mode = r["mode"] + (f" halo={r['halo']:g}" if r["halo"] != 1.0 else "")
@@ -92,7 +94,7 @@ def markdown(rows):
             f"{r['pct_contested_found']:.2f} | {r['P_same']:.4f}/{r['R_same']:.4f}/{r['F1_same']:.4f} | "
             f"{r['F1_gauss']:.4f} | {r['transfers_per_feature']:.2f} ({r['handdown_per_feature']:.2f}) | "
             f"{r['bytes_per_raw']:.2f} | {r['bytes_per_link_mean']:.0f}/{r['bytes_per_link_max']:.0f} | "
-            f"{r['control_bytes']} | {r['final_largest_share']:.2f} |")
+            f"{r['control_bytes']} ({r.get('setup_bytes', 0)}) | {r['final_largest_share']:.2f} |")
     return "\n".join(out)
 
 
