@@ -11,6 +11,7 @@ bytes with the kernel's counters on the veths, then deletes the namespaces.
     sudo .venv/bin/python scripts/multihost_demo.py                 # 4 agents on 3 hosts
     sudo .venv/bin/python scripts/multihost_demo.py --agents 6 --hosts 2 --points 500
     sudo .venv/bin/python scripts/multihost_demo.py --features my.npz --keep out/multihost
+    sudo .venv/bin/python scripts/multihost_demo.py --tls          # mutual TLS (certificates by openssl)
 
 Needs root (ip netns). Exit code 0: identical clusters; 1: different; 2: cannot run here.
 """
@@ -30,7 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dqm import io, synthetic  # noqa: E402
 from dqm.core.distributed import DQMConfig  # noqa: E402
 from dqm.runtime.coordinator import traffic_table  # noqa: E402
-from dqm.runtime.multihost import NamespacesUnavailable, netns_unavailable_reason, run_across_namespaces  # noqa: E402
+from dqm.runtime.multihost import (NamespacesUnavailable, Namespaces, make_certs, netns_unavailable_reason,  # noqa: E402
+                                   run_across_namespaces)
 from dqm.simulator import simulate  # noqa: E402
 
 
@@ -46,6 +48,7 @@ def main(argv=None) -> int:
     p.add_argument("--job", default="multihost")
     p.add_argument("--timeout", type=float, default=120.0)
     p.add_argument("--keep", help="keep the agents' files and logs in this folder")
+    p.add_argument("--tls", action="store_true", help="mutual TLS on every link (certificates made with openssl)")
     args = p.parse_args(argv)
 
     reason = netns_unavailable_reason()
@@ -62,7 +65,12 @@ def main(argv=None) -> int:
     wd = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dqm-multihost-"))
     t0 = time.perf_counter()
     try:
-        res = run_across_namespaces(X, ids, cfg, wd, hosts=args.hosts, timeout_s=args.timeout,
+        certs = None
+        if args.tls:
+            router_names = [Namespaces(hosts=args.hosts).router_addr(h) for h in range(args.hosts)]
+            certs = make_certs(wd / "certs", router_names, [f"agent{a}" for a in range(cfg.agents)] + ["coordinator"])
+            print(f"  certificates (CA, router naming {', '.join(router_names)}, clients) in {certs}")
+        res = run_across_namespaces(X, ids, cfg, wd, hosts=args.hosts, timeout_s=args.timeout, tls_certs=certs,
                                     log=lambda t: print(f"  {t}", flush=True))
     except NamespacesUnavailable as exc:
         print(f"multihost_demo: cannot run here: {exc}", file=sys.stderr)
@@ -78,7 +86,8 @@ def main(argv=None) -> int:
     labels = np.asarray(rep["labels"])
     sim = simulate(X, ids, cfg)
     same = np.array_equal(sim.labels, labels)
-    print(f"\n{len(labels)} features of {len(np.unique(ids))} images, {cfg.agents} agents on {args.hosts} hosts: "
+    print(f"\n{len(labels)} features of {len(np.unique(ids))} images, {cfg.agents} agents on {args.hosts} hosts"
+          f"{' over mutual TLS' if args.tls else ''}: "
           f"{rep['clusters']} clusters; {wall:.1f} s wall including namespace set-up "
           f"(job {rep['wall_s']:.1f} s). Simulator: {'identical clusters' if same else 'DIFFERENT clusters'}.")
     print(f"Namespaces {', '.join(res.namespaces)} deleted.\n")
@@ -93,7 +102,8 @@ def main(argv=None) -> int:
     k = res.kernel_totals()
     print(f"| total | {rep['total_bytes']} | {k['to_router']} | {k['to_router'] / rep['total_bytes']:.3f} "
           f"| {rep['total_bytes']} | {k['from_router']} | {k['from_router'] / rep['total_bytes']:.3f} |")
-    print("\n(kernel bytes include Ethernet/IP/TCP headers, TCP acks, zenoh framing, handshakes and keep-alives)")
+    print("\n(kernel bytes include Ethernet/IP/TCP headers, TCP acks, zenoh framing, handshakes and keep-alives"
+          + (", TLS records" if args.tls else "") + ")")
     return 0 if same else 1
 
 

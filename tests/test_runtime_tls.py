@@ -5,7 +5,6 @@ import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,15 +12,10 @@ import pytest
 from dqm import synthetic
 from dqm.core.distributed import DQMConfig
 from dqm.runtime.launcher import Processes, free_port, write_agent_files
-from dqm.runtime.multihost import finish_job, start_job, start_router
+from dqm.runtime.multihost import finish_job, make_certs, start_job, start_router, tls_options as tls_args
 from dqm.simulator import simulate
 
-MAKE_CERTS = Path(__file__).resolve().parents[1] / "deploy" / "make-certs.sh"
 M = 3
-
-
-def tls_args(d: Path, name: str):
-    return ["--tls-ca", str(d / "ca.pem"), "--tls-cert", str(d / f"{name}.pem"), "--tls-key", str(d / f"{name}.key")]
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +24,9 @@ def certs(tmp_path_factory):
         pytest.skip("mutual-TLS test needs openssl to make certificates (not installed)")
     if shutil.which("sh") is None:
         pytest.skip("mutual-TLS test needs a POSIX sh to run deploy/make-certs.sh")
-    ours = tmp_path_factory.mktemp("certs")
-    other = tmp_path_factory.mktemp("other-ca")
-    for d, names in ((ours, ["127.0.0.1,localhost"] + [f"agent{a}" for a in range(M)] + ["coordinator"]),
-                     (other, ["127.0.0.1", "intruder"])):
-        r = subprocess.run(["sh", str(MAKE_CERTS), str(d), *names], capture_output=True, text=True, timeout=60)
-        assert r.returncode == 0, r.stderr
+    ours = make_certs(tmp_path_factory.mktemp("certs"), ["127.0.0.1", "localhost"],
+                      [f"agent{a}" for a in range(M)] + ["coordinator"])
+    other = make_certs(tmp_path_factory.mktemp("other-ca"), ["127.0.0.1"], ["intruder"])
     return ours, other
 
 

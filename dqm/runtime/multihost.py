@@ -257,12 +257,37 @@ class MultihostResult:
                 "packets": sum(c["rx_packets"] + c["tx_packets"] for c in self.counters.values())}
 
 
+def tls_options(certs: Path, name: str) -> List[str]:
+    """--tls-* options for the certificate ``name`` (router, agent<i>, coordinator) in ``certs``
+    (as made by deploy/make-certs.sh)."""
+    certs = Path(certs)
+    return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"),
+            "--tls-key", str(certs / f"{name}.key")]
+
+
+def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -> Path:
+    """Run deploy/make-certs.sh (openssl): CA, router certificate naming ``router_names``, client certificates."""
+    script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
+    if not script.exists():
+        raise RuntimeError(f"{script} is missing (it ships with the source checkout, not the wheel)")
+    if shutil.which("openssl") is None:
+        raise RuntimeError("making certificates needs openssl (not installed)")
+    r = subprocess.run(["sh", str(script), str(out), ",".join(router_names), *clients],
+                       capture_output=True, text=True, timeout=120)
+    if r.returncode != 0:
+        raise RuntimeError(f"make-certs.sh failed: {r.stderr.strip()}")
+    return Path(out)
+
+
 def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path, hosts: int = 3,
-                          timeout_s: float = 120.0, tag: Optional[str] = None, log=None) -> MultihostResult:
+                          timeout_s: float = 120.0, tag: Optional[str] = None, log=None,
+                          tls_certs: Optional[Path] = None) -> MultihostResult:
     """Router in its own namespace, agent a on host a mod ``hosts``, coordinator on host 0.
 
     Builds the namespaces, runs the job, stops every process and deletes the
     namespaces (also on failure). Raises NamespacesUnavailable if they cannot be built.
+    With ``tls_certs`` (a folder from :func:`make_certs` with certificates
+    router, agent<i>, coordinator) every link is mutual TLS.
     """
     log = log or (lambda text: None)
     cfg = cfg.validated(len(descriptors))
@@ -276,13 +301,17 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
         names = [nss.router_ns] + [nss.host_ns(h) for h in range(hosts)]
         log(f"namespaces: {', '.join(names)}")
         try:
-            endpoints = [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(hosts)]
-            start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns))
+            proto = "tls" if tls_certs else "tcp"
+            endpoints = [f"{proto}/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(hosts)]
+            start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns),
+                         tls_args=tls_options(tls_certs, "router") if tls_certs else ())
             log(f"router in {nss.router_ns} listening on {', '.join(endpoints)}")
             before = nss.counters()
             job = start_job(procs, cfg, files, workdir,
-                            connect=lambda a: f"tcp/{nss.router_addr(host_of(a))}:{ROUTER_PORT}",
+                            connect=lambda a: f"{proto}/{nss.router_addr(host_of(a))}:{ROUTER_PORT}",
                             prefix=lambda a: nss.prefix(nss.host_ns(host_of(a))),
+                            client_args=lambda a: (tls_options(tls_certs, "coordinator" if a < 0 else f"agent{a}")
+                                                   if tls_certs else []),
                             job_timeout_s=timeout_s)
             for a in range(cfg.agents):
                 log(f"agent {a} in {nss.host_ns(host_of(a))} ({nss.host_addr(host_of(a))})")
