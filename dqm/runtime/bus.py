@@ -74,10 +74,28 @@ def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = R
         except Exception as exc:  # zenoh raises ZError (or others) when nothing listens
             last = exc
         if time.monotonic() - t0 > deadline_s:
-            raise RouterUnreachable(
-                f"no zenoh router reachable at {endpoint} after {deadline_s:.0f} s of retries ({last})")
+            raise RouterUnreachable(_unreachable_message(endpoint, deadline_s, last))
         time.sleep(delay)
         delay = min(0.5, delay * 2)
+
+
+def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
+    """Why ``open_client`` gave up: nothing listens, or something listens but refused the session (TLS)."""
+    import socket
+
+    base = f"no zenoh router reachable at {endpoint} after {deadline_s:.0f} s of retries ({last})"
+    proto, _, addr = endpoint.split("#")[0].split("?")[0].partition("/")
+    host, _, port = addr.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=1.0):
+            pass
+    except (OSError, ValueError):
+        return base  # nothing listens there (or the endpoint is not HOST:PORT)
+    if proto == "tls":
+        return (f"{base}; something listens at {addr} but refused the TLS session: check that --tls-ca is the CA "
+                f"that signed the router's certificate, that the router's certificate names {host} "
+                f"(subjectAltName), and that --tls-cert/--tls-key were issued by the CA the router trusts")
+    return f"{base}; something listens at {addr} but refused a {proto} zenoh session (a tls/ router?)"
 
 
 class Meter:

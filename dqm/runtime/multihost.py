@@ -1,0 +1,325 @@
+"""Run a job across "hosts": network namespaces joined to a router namespace by veth pairs.
+
+Used by ``scripts/multihost_demo.py`` (by hand) and ``tests/test_runtime_multihost.py``;
+the job helpers (:func:`start_job`, :func:`finish_job`) also serve the TLS and
+concurrent-job tests, where every process runs on loopback.
+
+Topology (needs root and network namespaces; nothing leaves the machine)::
+
+    <tag>-h1  eth0 10.213.1.2/24 ---- r-h1 10.213.1.1/24 \
+    <tag>-h2  eth0 10.213.2.2/24 ---- r-h2 10.213.2.1/24  >  <tag>-router  (dqm router)
+    <tag>-h3  eth0 10.213.3.2/24 ---- r-h3 10.213.3.1/24 /
+
+The router listens on each of its veth addresses; the processes of host i
+connect to 10.213.i.1. Every agent-to-agent message crosses two veths (sender
+host -> router -> receiver host), so the router-side counters of the veths
+(``ip -s -j link``) are the kernel's view of the traffic the runtime meters.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence
+
+from ..core.distributed import DQMConfig
+from .launcher import Processes, algorithm_args, wait_listening, write_agent_files
+
+SUBNET = "10.213"
+ROUTER_PORT = 7447
+
+
+class NamespacesUnavailable(RuntimeError):
+    """Network namespaces / veth pairs cannot be created here (not root, no ip, a sandbox)."""
+
+
+def _ip(*args: str, check: bool = True, timeout: float = 10.0) -> subprocess.CompletedProcess:
+    r = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=timeout)
+    if check and r.returncode != 0:
+        raise subprocess.CalledProcessError(r.returncode, ["ip", *args], r.stdout, r.stderr)
+    return r
+
+
+def netns_unavailable_reason() -> Optional[str]:
+    """None if this process may create network namespaces, else why not (for a skip message)."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        return "network namespaces need root (run as root, e.g. sudo)"
+    if shutil.which("ip") is None:
+        return "the 'ip' command (iproute2) is not installed"
+    probe = f"dqmprobe{os.getpid()}"
+    try:
+        r = _ip("netns", "add", probe, check=False)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"'ip netns add' failed: {exc}"
+    if r.returncode != 0:
+        return f"network namespaces are not permitted here ('ip netns add' said: {r.stderr.strip()})"
+    _ip("netns", "del", probe, check=False)
+    return None
+
+
+@dataclass
+class Namespaces:
+    """A router namespace and ``hosts`` host namespaces, each joined to the router by a veth pair.
+
+    Use as a context manager: the namespaces (and with them the veths) are
+    deleted on exit, also after an error. Processes started in them must be
+    stopped before (``Processes.stop_all``); :meth:`delete` kills stragglers.
+    """
+
+    hosts: int = 3
+    tag: str = field(default_factory=lambda: f"dqm{os.getpid() % 100000}")
+    subnet: str = SUBNET
+    created: List[str] = field(default_factory=list)
+
+    @property
+    def router_ns(self) -> str:
+        return f"{self.tag}-router"
+
+    def host_ns(self, h: int) -> str:
+        return f"{self.tag}-h{h + 1}"
+
+    def router_addr(self, h: int) -> str:
+        """The router's address on host h's link (what host h connects to)."""
+        return f"{self.subnet}.{h + 1}.1"
+
+    def host_addr(self, h: int) -> str:
+        return f"{self.subnet}.{h + 1}.2"
+
+    def router_veth(self, h: int) -> str:
+        return f"r-h{h + 1}"
+
+    @staticmethod
+    def prefix(ns: str) -> List[str]:
+        """Command prefix that runs a program inside namespace ``ns``."""
+        return ["ip", "netns", "exec", ns]
+
+    def create(self) -> "Namespaces":
+        try:
+            for ns in [self.router_ns] + [self.host_ns(h) for h in range(self.hosts)]:
+                _ip("netns", "add", ns)
+                self.created.append(ns)
+                # IPv6 off: no router solicitations / MLD reports in the counters
+                for key in ("all", "default"):
+                    subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w",
+                                    f"net.ipv6.conf.{key}.disable_ipv6=1"], capture_output=True, timeout=10)
+                _ip("-n", ns, "link", "set", "lo", "up")
+            for h in range(self.hosts):
+                hn, rv = self.host_ns(h), self.router_veth(h)
+                _ip("link", "add", rv, "netns", self.router_ns, "type", "veth", "peer", "name", "eth0", "netns", hn)
+                _ip("-n", self.router_ns, "addr", "add", f"{self.router_addr(h)}/24", "dev", rv)
+                _ip("-n", hn, "addr", "add", f"{self.host_addr(h)}/24", "dev", "eth0")
+                _ip("-n", self.router_ns, "link", "set", rv, "up")
+                _ip("-n", hn, "link", "set", "eth0", "up")
+        except (subprocess.CalledProcessError, OSError, subprocess.TimeoutExpired) as exc:
+            detail = getattr(exc, "stderr", "") or str(exc)
+            self.delete()
+            raise NamespacesUnavailable(f"cannot build the namespace topology: {detail.strip()}") from None
+        return self
+
+    def delete(self) -> None:
+        for ns in reversed(self.created):
+            # no process may keep a namespace alive after we are gone
+            pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout.split()
+            for pid in pids:
+                try:
+                    os.kill(int(pid), 9)
+                except (ProcessLookupError, ValueError):
+                    pass
+            _ip("netns", "del", ns, check=False)
+        self.created.clear()
+
+    def __enter__(self) -> "Namespaces":
+        return self.create()
+
+    def __exit__(self, *exc) -> None:
+        self.delete()
+
+    def counters(self) -> Dict[int, Dict[str, int]]:
+        """Kernel byte/packet counters of each host's veth, seen from the router side:
+        ``rx`` = what host h sent to the router, ``tx`` = what the router sent to host h."""
+        out = {}
+        for h in range(self.hosts):
+            info = json.loads(_ip("-n", self.router_ns, "-s", "-j", "link", "show", "dev", self.router_veth(h)).stdout)
+            st = info[0]["stats64"]
+            out[h] = {"rx_bytes": st["rx"]["bytes"], "rx_packets": st["rx"]["packets"],
+                      "tx_bytes": st["tx"]["bytes"], "tx_packets": st["tx"]["packets"]}
+        return out
+
+
+# ---------------------------------------------------------------------- jobs over any endpoint layout
+@dataclass
+class Job:
+    cfg: DQMConfig
+    workdir: Path
+    agents: List[subprocess.Popen]
+    coordinator: subprocess.Popen
+    report_path: Path
+    started: float
+
+
+def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
+              connect: Callable[[int], str], prefix: Callable[[int], Optional[List[str]]] = lambda a: None,
+              client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
+              phase_timeout_s: float = 60.0, tag: str = "") -> Job:
+    """Start the agents and the coordinator of one job (the router is already running).
+
+    ``connect(a)``, ``prefix(a)`` and ``client_args(a)`` give the endpoint, the
+    command prefix (e.g. ``ip netns exec NS``) and extra options (TLS) of agent
+    ``a``; ``a = -1`` is the coordinator.
+    """
+    env = dict(os.environ if env is None else env)
+    env.setdefault("DQM_THREADS", "1")
+    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
+                           "--phase-timeout", str(phase_timeout_s), *algorithm_args(cfg), *client_args(a),
+                           str(files[a])], workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
+              for a in range(cfg.agents)]
+    report_path = workdir / f"{tag}report.json"
+    coord = procs.start(["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed),
+                         "--partition", cfg.partition, "--connect", connect(-1), "--job", cfg.job,
+                         "--out", str(report_path), "--job-timeout", str(job_timeout_s), *client_args(-1)],
+                        workdir / f"{tag}coordinator.log", env, prefix=prefix(-1))
+    return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
+
+
+def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
+    """Wait for the coordinator's report and for the agents to exit; RuntimeError with log tails on failure."""
+    try:
+        rc = job.coordinator.wait(timeout=max(1.0, timeout_s - (time.monotonic() - job.started)))
+    except subprocess.TimeoutExpired:
+        rc = None
+    for p in job.agents:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            pass
+    if rc != 0 or not job.report_path.exists():
+        logs = "\n".join(f"--- {f.name}\n" + "".join(f.read_text().splitlines(True)[-6:])
+                         for f in sorted(job.workdir.glob("*.log")))
+        raise RuntimeError(f"job {job.cfg.job} failed (coordinator exit code {rc}); last log lines:\n{logs}")
+    report = json.loads(job.report_path.read_text())
+    report["agent_exit_codes"] = [p.returncode for p in job.agents]
+    report["wall_s"] = time.monotonic() - job.started
+    return report
+
+
+def start_router(procs: Processes, endpoints: Sequence[str], workdir: Path, wait_addr, *,
+                 prefix: Optional[List[str]] = None, tls_args: Sequence[str] = (), env=None,
+                 deadline_s: float = 15.0, log_name: str = "router.log") -> subprocess.Popen:
+    """Start ``dqm router`` and wait until it listens. ``wait_addr``: (host, port) to probe, or a
+    callable that returns when the router is ready (e.g. one that probes inside a namespace)."""
+    args = ["router"]
+    for e in endpoints:
+        args += ["--listen", e]
+    ready = workdir / (log_name + ".ready")
+    router = procs.start(args + ["--ready-file", str(ready), *tls_args], workdir / log_name,
+                         dict(os.environ if env is None else env), prefix=prefix)
+    if callable(wait_addr):
+        wait_addr(router, ready, deadline_s)
+    else:
+        wait_listening(wait_addr[0], wait_addr[1], deadline_s, router)
+    return router
+
+
+def _wait_ready_file(router: subprocess.Popen, ready: Path, deadline_s: float) -> None:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < deadline_s:
+        if router.poll() is not None:
+            raise RuntimeError(f"the router exited with code {router.returncode} before listening")
+        if ready.exists():
+            return
+        time.sleep(0.05)
+    raise RuntimeError(f"the router was not ready within {deadline_s:.0f} s")
+
+
+# ---------------------------------------------------------------------- the whole multi-host run
+@dataclass
+class MultihostResult:
+    report: dict
+    placement: Dict[str, int]            # process name -> host index
+    counters: Dict[int, Dict[str, int]]  # per host: kernel bytes/packets during the job (router side)
+    namespaces: List[str]
+
+    def metered_per_host(self) -> Dict[int, Dict[str, int]]:
+        """Metered bytes sent from / delivered to the processes of each host."""
+        out = {h: {"sent": 0, "received": 0} for h in self.counters}
+        for e in self.report["links"]:
+            out[self.placement[e["src"]]]["sent"] += e["bytes"]
+            out[self.placement[e["dst"]]]["received"] += e["bytes"]
+        return out
+
+    def kernel_totals(self) -> Dict[str, int]:
+        return {"to_router": sum(c["rx_bytes"] for c in self.counters.values()),
+                "from_router": sum(c["tx_bytes"] for c in self.counters.values()),
+                "packets": sum(c["rx_packets"] + c["tx_packets"] for c in self.counters.values())}
+
+
+def tls_options(certs: Path, name: str) -> List[str]:
+    """--tls-* options for the certificate ``name`` (router, agent<i>, coordinator) in ``certs``
+    (as made by deploy/make-certs.sh)."""
+    certs = Path(certs)
+    return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"),
+            "--tls-key", str(certs / f"{name}.key")]
+
+
+def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -> Path:
+    """Run deploy/make-certs.sh (openssl): CA, router certificate naming ``router_names``, client certificates."""
+    script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
+    if not script.exists():
+        raise RuntimeError(f"{script} is missing (it ships with the source checkout, not the wheel)")
+    if shutil.which("openssl") is None:
+        raise RuntimeError("making certificates needs openssl (not installed)")
+    r = subprocess.run(["sh", str(script), str(out), ",".join(router_names), *clients],
+                       capture_output=True, text=True, timeout=120)
+    if r.returncode != 0:
+        raise RuntimeError(f"make-certs.sh failed: {r.stderr.strip()}")
+    return Path(out)
+
+
+def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path, hosts: int = 3,
+                          timeout_s: float = 120.0, tag: Optional[str] = None, log=None,
+                          tls_certs: Optional[Path] = None) -> MultihostResult:
+    """Router in its own namespace, agent a on host a mod ``hosts``, coordinator on host 0.
+
+    Builds the namespaces, runs the job, stops every process and deletes the
+    namespaces (also on failure). Raises NamespacesUnavailable if they cannot be built.
+    With ``tls_certs`` (a folder from :func:`make_certs` with certificates
+    router, agent<i>, coordinator) every link is mutual TLS.
+    """
+    log = log or (lambda text: None)
+    cfg = cfg.validated(len(descriptors))
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    files = write_agent_files(descriptors, image_ids, cfg.agents, workdir)
+    nss = Namespaces(hosts=hosts, **({"tag": tag} if tag else {}))
+    procs = Processes()
+    host_of = lambda a: 0 if a < 0 else a % hosts  # noqa: E731
+    with nss:
+        names = [nss.router_ns] + [nss.host_ns(h) for h in range(hosts)]
+        log(f"namespaces: {', '.join(names)}")
+        try:
+            proto = "tls" if tls_certs else "tcp"
+            endpoints = [f"{proto}/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(hosts)]
+            start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns),
+                         tls_args=tls_options(tls_certs, "router") if tls_certs else ())
+            log(f"router in {nss.router_ns} listening on {', '.join(endpoints)}")
+            before = nss.counters()
+            job = start_job(procs, cfg, files, workdir,
+                            connect=lambda a: f"{proto}/{nss.router_addr(host_of(a))}:{ROUTER_PORT}",
+                            prefix=lambda a: nss.prefix(nss.host_ns(host_of(a))),
+                            client_args=lambda a: (tls_options(tls_certs, "coordinator" if a < 0 else f"agent{a}")
+                                                   if tls_certs else []),
+                            job_timeout_s=timeout_s)
+            for a in range(cfg.agents):
+                log(f"agent {a} in {nss.host_ns(host_of(a))} ({nss.host_addr(host_of(a))})")
+            log(f"coordinator in {nss.host_ns(host_of(-1))}")
+            report = finish_job(job, timeout_s + 15)
+            after = nss.counters()
+        finally:
+            procs.stop_all()
+    placement = {"coordinator": host_of(-1), **{f"agent{a}": host_of(a) for a in range(cfg.agents)}}
+    counters = {h: {k: after[h][k] - before[h][k] for k in after[h]} for h in after}
+    return MultihostResult(report, placement, counters, names)
