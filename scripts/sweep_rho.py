@@ -23,20 +23,27 @@ def main(argv=None):
     ap.add_argument("--shared", default=str(ROOT.parent / "shared"))
     ap.add_argument("--rhos", default="0.4,0.5,0.6,0.67,0.75,0.8,0.9,1.0,1.1,1.25,1.5")
     ap.add_argument("--tol", type=float, default=5.0, help="homography tolerance in pixels")
+    ap.add_argument("--sets", default="synthetic,hotel,graf,wall,boat,bikes")
     args = ap.parse_args(argv)
     rhos = [float(r) for r in args.rhos.split(",")]
     data = Path(args.shared) / "data"
+    want = set(args.sets.split(","))
     sets = []
     ds = synthetic.sift_like(n_images=8, n_points=500, noise=0.35, seed=0)
-    sets.append(("synthetic", ds.descriptors, ds.image_ids,
-                 lambda a, b, ds=ds: evaluation.landmark_scores(a, b, ds.point_ids, ds.image_ids)))
-    if (data / "cmu_hotel").exists():
+    if "synthetic" in want:
+        sets.append(("synthetic", ds.descriptors, ds.image_ids,
+                     lambda a, b, ds=ds: evaluation.landmark_scores(a, b, ds.point_ids, ds.image_ids)))
+    if "hotel" not in want:
+        pass
+    elif (data / "cmu_hotel").exists():
         seq = datasets.load_landmark_sequence(data / "cmu_hotel")
         D, ids, lm, _ = features.landmark_descriptors(seq)
         sets.append(("hotel", D, ids, lambda a, b, lm=lm, ids=ids: evaluation.landmark_scores(a, b, lm, ids)))
     else:
         print(f"note: {data / 'cmu_hotel'} absent, hotel skipped", file=sys.stderr)
     for name in ("graf", "wall", "boat", "bikes"):
+        if name not in want:
+            continue
         if not (data / "oxford" / name).exists():
             print(f"note: oxford/{name} absent, skipped", file=sys.stderr)
             continue
