@@ -117,6 +117,7 @@ def pairwise_candidates(descriptors, image_ids, matcher: str = "bf", *, seed: in
             ok = idx >= 0
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = np.where(d2 > 0, d1 / d2, np.where(d1 > 0, np.inf, 1.0))
+            ratio[np.isinf(d2)] = np.inf  # no second neighbour: the test cannot be applied
             Q.append(qa[ok])
             T.append(ta[idx[ok]])
             D.append(d1[ok])
