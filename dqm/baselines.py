@@ -99,7 +99,9 @@ def pairwise_candidates(descriptors, image_ids, matcher: str = "bf", *, seed: in
     """Two-nearest-neighbour search for every image pair (i < j, queries from image i).
 
     ``matcher``: ``"bf"`` (exact, OpenCV brute force) or ``"flann"`` (OpenCV
-    FLANN kd-trees, approximate; ``seed`` fixes OpenCV's RNG so results repeat).
+    FLANN kd-trees, approximate; FLANN draws its trees from OpenCV's global RNG,
+    so this seeds it with ``cv2.setRNGSeed(seed)`` before each index: results
+    repeat, and the caller's OpenCV RNG state changes).
     """
     check_choice(matcher, "matcher", MATCHERS)
     X = check_descriptors(descriptors).astype(np.float32)
