@@ -308,6 +308,15 @@ class PRCurve:
     def auc(self) -> float:
         return pr_auc(self.recall, self.precision)
 
+    def best_f1(self) -> Tuple[float, float]:
+        """Highest F1 along the curve and the threshold that gives it (the lowest one on ties)."""
+        if len(self.thresholds) == 0:
+            return 0.0, float("nan")
+        f1 = self.f1
+        order = np.argsort(self.thresholds, kind="stable")
+        k = order[int(np.argmax(f1[order]))]
+        return float(f1[k]), float(self.thresholds[k])
+
     def as_dict(self) -> Dict[str, object]:
         return dict(method=self.method, threshold_name=self.threshold_name,
                     thresholds=[float(t) for t in self.thresholds],

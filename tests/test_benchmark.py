@@ -42,7 +42,8 @@ LOSES_TO_THEIA = ("QuickMatch at rho 0.75 trades recall for precision: Theia-sty
                   "(drop the later feature) keep more correct matches at a lower precision and "
                   "win F1 by 0.01-0.02 here; at rho 0.85-1.0 QuickMatch wins (docs/evaluation-notes.md)")
 HOTEL = ("hotel: QuickMatch splits 5 of 30 landmarks into an early-frame and a late-frame cluster "
-         "(the joining edge exceeds rho x the merged clusters' min sigma); tracks chain the 101 frames "
+         "(two density modes; the joining edge is missing or longer than rho x the merged clusters' min "
+         "sigma); tracks chain the 101 frames "
          "and reach recall 0.93-0.95 (docs/evaluation-notes.md)")
 
 
