@@ -17,6 +17,9 @@ from .validation import InputError
 COMMANDS = [
     "dqm.commands.match",
     "dqm.commands.demo",
+    "dqm.commands.evaluate",
+    "dqm.commands.plot",
+    "dqm.commands.scene",
     "dqm.commands.run",
     "dqm.commands.router",
     "dqm.commands.agent",

@@ -14,11 +14,22 @@ Definitions used everywhere in dqm:
   fraction of those correspondences that were predicted (a correct predicted
   pair outside the one-to-one matching, e.g. a second keypoint at the same
   spot, counts for precision only).
+* **Consistency** of a set of matches (:func:`consistency_violations`): the
+  tracks are the connected components of the match graph. C1 (every feature in
+  exactly one cluster) holds iff matching is transitive: any two features of
+  different images in one track are matched. C2 holds iff no track holds two
+  features of one image. Clusters (QuickMatch, tracks) satisfy both by
+  construction; raw pairwise matches need not.
+* **PR curve** (:class:`PRCurve`): precision and recall at each value of a
+  method's threshold; its area (:func:`pr_auc`) is the trapezoid integral of
+  precision over recall, extended from the lowest recall reached down to
+  recall 0 at that point's precision (and 0 beyond the highest recall), so a
+  method that reaches more recall gains area.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict, Sequence, Tuple
 
 import numpy as np
 
@@ -129,38 +140,201 @@ def one_to_one_truth(H: np.ndarray, xa: np.ndarray, xb: np.ndarray, tol: float) 
     return np.array(A, np.int64), np.array(B, np.int64)
 
 
+class HomographyTruth:
+    """Ground truth of a planar scene, computed once and reused to score many match sets.
+
+    ``keypoints_xy``: (n, >=2) pixel positions; ``homography(i, j)``: 3x3 map
+    from image ``i`` pixels to image ``j`` pixels; ``tol``: pixels. See the
+    module doc for the definitions of correct pairs and of recall.
+    """
+
+    def __init__(self, keypoints_xy, image_ids, homography: Callable[[int, int], np.ndarray], tol: float = 5.0):
+        xy = np.asarray(keypoints_xy, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] < 2:
+            raise ValueError(f"keypoints must be (n, 2..4), got shape {xy.shape}")
+        self.xy = xy[:, :2]
+        self.image_ids = np.asarray(image_ids)
+        if self.image_ids.shape != (len(xy),):
+            raise ValueError(f"image_ids must have one entry per keypoint ({len(xy)})")
+        if not tol > 0:
+            raise ValueError(f"tol must be positive, got {tol}")
+        self.tol = float(tol)
+        self.n = len(xy)
+        imgs = np.unique(self.image_ids)
+        idx_of = {int(i): np.flatnonzero(self.image_ids == i) for i in imgs}
+        self.H: Dict[Tuple[int, int], np.ndarray] = {}
+        keys = []
+        for x, i in enumerate(imgs):
+            for j in imgs[x + 1:]:
+                H = np.asarray(homography(int(i), int(j)), dtype=np.float64)
+                self.H[(int(i), int(j))] = H
+                ga, gb = one_to_one_truth(H, self.xy[idx_of[int(i)]], self.xy[idx_of[int(j)]], self.tol)
+                keys.append(idx_of[int(i)][ga] * self.n + idx_of[int(j)][gb])
+        self.truth_keys = np.sort(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+    @property
+    def n_truth(self) -> int:
+        return int(len(self.truth_keys))
+
+    def correct(self, a, b) -> Tuple[np.ndarray, np.ndarray]:
+        """Per predicted pair: (correct within tol, one of the one-to-one truth pairs)."""
+        a = np.asarray(a, np.int64)
+        b = np.asarray(b, np.int64)
+        ia, ib = self.image_ids[a], self.image_ids[b]
+        swap = ia > ib
+        u, v = np.where(swap, b, a), np.where(swap, a, b)  # u in the lower image
+        iu, iv = self.image_ids[u], self.image_ids[v]
+        good = np.zeros(len(a), bool)
+        for (i, j), H in self.H.items():
+            m = np.flatnonzero((iu == i) & (iv == j))
+            if len(m):
+                good[m] = reprojection_error(H, self.xy[u[m]], self.xy[v[m]]) <= self.tol
+        key = u * self.n + v
+        pos = np.searchsorted(self.truth_keys, key)
+        pos = np.minimum(pos, max(len(self.truth_keys) - 1, 0))
+        in_truth = good & (self.truth_keys[pos] == key) if len(self.truth_keys) else np.zeros(len(a), bool)
+        return good, in_truth
+
+    def score(self, a, b) -> Scores:
+        a = np.asarray(a, np.int64)
+        if len(a) != len(np.asarray(b)):
+            raise ValueError("a and b must have equal length")
+        good, in_truth = self.correct(a, b)
+        return _scores(len(a), int(good.sum()), self.n_truth, int(in_truth.sum()))
+
+
 def homography_scores(a, b, keypoints_xy, image_ids, homography: Callable[[int, int], np.ndarray],
                       tol: float = 5.0) -> Scores:
-    """Pairwise precision/recall of predicted pairs on a planar scene (see module doc)."""
-    a = np.asarray(a)
-    b = np.asarray(b)
-    xy = np.asarray(keypoints_xy, dtype=np.float64)[:, :2]
+    """Pairwise precision/recall of predicted pairs on a planar scene (see module doc).
+
+    To score many match sets on one scene, build a :class:`HomographyTruth` once.
+    """
+    return HomographyTruth(keypoints_xy, image_ids, homography, tol).score(a, b)
+
+
+@dataclass(frozen=True)
+class Violations:
+    """C1/C2 violations of a set of matches (see module doc).
+
+    ``n_tracks``: connected components with two or more features;
+    ``c1_features``: features not matched to every feature of another image in
+    their track; ``c1_pairs``: such missing (transitively implied) pairs;
+    ``c2_tracks``: tracks holding two features of one image; ``c2_features``:
+    features sharing their track with another feature of their image.
+    """
+
+    n_matches: int
+    n_tracks: int
+    c1_features: int
+    c1_pairs: int
+    c2_tracks: int
+    c2_features: int
+
+    def as_dict(self) -> Dict[str, int]:
+        return dict(n_matches=self.n_matches, n_tracks=self.n_tracks, c1_features=self.c1_features,
+                    c1_pairs=self.c1_pairs, c2_tracks=self.c2_tracks, c2_features=self.c2_features)
+
+
+def consistency_violations(a, b, image_ids) -> Violations:
+    """Count C1 and C2 violations of the matches (a[k], b[k]) (duplicates and self-pairs ignored)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     image_ids = np.asarray(image_ids)
-    imgs = np.unique(image_ids)
-    n_correct = 0
-    n_correct_recall = 0
-    n_truth = 0
-    idx_of = {i: np.flatnonzero(image_ids == i) for i in imgs}
-    ia_all, ib_all = image_ids[a], image_ids[b]
-    for x, i in enumerate(imgs):
-        for j in imgs[x + 1:]:
-            H = homography(int(i), int(j))
-            ga, gb = one_to_one_truth(H, xy[idx_of[i]], xy[idx_of[j]], tol)
-            truth = set(zip(idx_of[i][ga].tolist(), idx_of[j][gb].tolist()))
-            n_truth += len(truth)
-            # predicted pairs between i and j, oriented (feature in i, feature in j)
-            m1 = (ia_all == i) & (ib_all == j)
-            m2 = (ia_all == j) & (ib_all == i)
-            pa = np.r_[a[m1], b[m2]]
-            pb = np.r_[b[m1], a[m2]]
-            if len(pa) == 0:
-                continue
-            err = reprojection_error(H, xy[pa], xy[pb])
-            good = err <= tol
-            n_correct += int(good.sum())
-            in_truth = np.array([(u, v) in truth for u, v in zip(pa[good].tolist(), pb[good].tolist())], bool)
-            n_correct_recall += int(in_truth.sum())
-    return _scores(len(a), n_correct, n_truth, n_correct_recall)
+    n = len(image_ids)
+    a = np.asarray(a, np.int64)
+    b = np.asarray(b, np.int64)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"a and b must be 1-D of equal length, got {a.shape} and {b.shape}")
+    if len(a) and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= n):
+        raise ValueError(f"match indices must lie in 0..{n - 1}")
+    if n == 0:
+        return Violations(0, 0, 0, 0, 0, 0)
+    keep = (a != b) & (image_ids[a] != image_ids[b])
+    lo, hi = np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep])
+    edges = np.unique(np.stack([lo, hi]), axis=1) if len(lo) else np.zeros((2, 0), np.int64)
+    g = coo_matrix((np.ones(edges.shape[1], np.int8), (edges[0], edges[1])), shape=(n, n))
+    _, comp = connected_components(g, directed=False)
+    _, img = np.unique(image_ids, return_inverse=True)
+    img = img.ravel().astype(np.int64)
+    size = np.bincount(comp)
+    key = comp * (img.max() + 1) + img
+    ukey, kinv, kcnt = np.unique(key, return_inverse=True, return_counts=True)
+    same_img = kcnt[kinv.ravel()]  # features of my image in my track, me included
+    degree = np.bincount(edges[0], minlength=n) + np.bincount(edges[1], minlength=n)
+    should = size[comp] - same_img  # features of other images in my track
+    c1_feat = int((degree < should).sum())
+    c1_pairs = int((should - degree).sum() // 2)
+    c2_tracks = len(np.unique(ukey[kcnt > 1] // (img.max() + 1)))
+    return Violations(
+        n_matches=int(edges.shape[1]), n_tracks=int((size > 1).sum()), c1_features=c1_feat,
+        c1_pairs=c1_pairs, c2_tracks=int(c2_tracks), c2_features=int((same_img > 1).sum()),
+    )
+
+
+def pr_auc(recall: Sequence[float], precision: Sequence[float]) -> float:
+    """Area under a precision-recall curve given as points (see module doc)."""
+    r = np.asarray(recall, dtype=np.float64)
+    p = np.asarray(precision, dtype=np.float64)
+    if r.shape != p.shape or r.ndim != 1:
+        raise ValueError(f"recall and precision must be 1-D of equal length, got {r.shape} and {p.shape}")
+    if len(r) == 0:
+        return 0.0
+    if not (np.isfinite(r).all() and np.isfinite(p).all()) or (r < 0).any() or (r > 1).any() \
+            or (p < 0).any() or (p > 1).any():
+        raise ValueError("recall and precision must lie in [0, 1]")
+    order = np.lexsort((-p, r))
+    r, p = r[order], p[order]
+    r = np.r_[0.0, r]
+    p = np.r_[p[0], p]
+    return float(np.sum(np.diff(r) * (p[1:] + p[:-1]) / 2.0))
+
+
+@dataclass(frozen=True)
+class PRCurve:
+    """Precision and recall of one method at each value of its threshold."""
+
+    method: str
+    threshold_name: str
+    thresholds: np.ndarray
+    precision: np.ndarray
+    recall: np.ndarray
+
+    @property
+    def f1(self) -> np.ndarray:
+        s = self.precision + self.recall
+        return np.where(s > 0, 2 * self.precision * self.recall / np.where(s > 0, s, 1), 0.0)
+
+    def auc(self) -> float:
+        return pr_auc(self.recall, self.precision)
+
+    def best_f1(self) -> Tuple[float, float]:
+        """Highest F1 along the curve and the threshold that gives it (the lowest one on ties)."""
+        if len(self.thresholds) == 0:
+            return 0.0, float("nan")
+        f1 = self.f1
+        order = np.argsort(self.thresholds, kind="stable")
+        k = order[int(np.argmax(f1[order]))]
+        return float(f1[k]), float(self.thresholds[k])
+
+    def as_dict(self) -> Dict[str, object]:
+        return dict(method=self.method, threshold_name=self.threshold_name,
+                    thresholds=[float(t) for t in self.thresholds],
+                    precision=[float(v) for v in self.precision], recall=[float(v) for v in self.recall],
+                    auc=self.auc())
+
+    @classmethod
+    def from_dict(cls, d: Dict[str, object]) -> "PRCurve":
+        return cls(str(d["method"]), str(d["threshold_name"]), np.asarray(d["thresholds"], float),
+                   np.asarray(d["precision"], float), np.asarray(d["recall"], float))
+
+
+def pr_curve(method: str, threshold_name: str, thresholds: Sequence[float], scores: Sequence[Scores]) -> PRCurve:
+    """Build a :class:`PRCurve` from the scores at each threshold."""
+    if len(thresholds) != len(scores):
+        raise ValueError("one Scores per threshold needed")
+    return PRCurve(method, threshold_name, np.asarray(thresholds, float),
+                   np.array([s.precision for s in scores], float), np.array([s.recall for s in scores], float))
 
 
 def comembership_scores(labels: np.ndarray, reference: np.ndarray) -> Scores:

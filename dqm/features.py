@@ -2,12 +2,18 @@
 
 Keypoints travel as a float32 (n, 4) array with columns x, y, size, angle
 (OpenCV conventions: pixels, 0-based, angle in degrees, -1 = not set).
+
+Images come as paths or arrays; :func:`collect_images` turns a folder, a glob
+pattern or a list of files into a naturally sorted list of image paths
+(``img2`` before ``img10``).
 """
 from __future__ import annotations
 
+import glob
+import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Tuple
+from typing import Dict, Iterable, List, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -31,6 +37,56 @@ class ImageFeatures:
         return len(self.descriptors)
 
 
+#: file suffixes treated as images (case-insensitive)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+
+
+def natural_key(path: Union[str, Path]) -> tuple:
+    """Sort key that orders embedded numbers by value: img2 < img10, seq9 < seq10."""
+    parts = re.split(r"(\d+)", str(path))
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts)
+
+
+def collect_images(inputs: Union[str, Path, Iterable[Union[str, Path]]]) -> List[Path]:
+    """Expand folders, glob patterns and files into a naturally sorted list of image paths.
+
+    Each item: a folder (its image files, not recursive), a glob pattern
+    (``'photos/*.jpg'``) or an image file. Order: items in the order given,
+    each item's images in natural order. Raises InputError naming a missing item,
+    a pattern that matches no image, or when nothing is found at all.
+    """
+    items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    if not items:
+        raise InputError("no image inputs given")
+    out: List[Path] = []
+    for item in items:
+        text = str(item)
+        p = Path(text)
+        if p.is_dir():
+            found = sorted((q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES),
+                           key=natural_key)
+            if not found:
+                raise InputError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in folder {p}")
+            out += found
+        elif p.exists():
+            out.append(p)
+        elif any(ch in text for ch in "*?["):
+            found = sorted((Path(q) for q in glob.glob(text) if Path(q).suffix.lower() in IMAGE_SUFFIXES),
+                           key=natural_key)
+            if not found:
+                raise InputError(f"no image files match {text!r}")
+            out += found
+        else:
+            raise InputError(f"input not found: {text}")
+    seen, unique = set(), []
+    for q in out:
+        r = q.resolve()
+        if r not in seen:
+            seen.add(r)
+            unique.append(q)
+    return unique
+
+
 def read_gray(path) -> np.ndarray:
     """Read an image file as 8-bit grayscale; clear error if it cannot be read."""
     import cv2
@@ -44,7 +100,8 @@ def read_gray(path) -> np.ndarray:
     return img
 
 
-def _as_gray(image) -> np.ndarray:
+def as_gray(image) -> np.ndarray:
+    """An image (path, grayscale or BGR(A) array, any numeric dtype) as a 2-D uint8 array."""
     if isinstance(image, (str, Path)):
         return read_gray(image)
     img = np.asarray(image)
@@ -66,7 +123,7 @@ def create_sift(preset: str = "opencv", max_features: int = 0):
 
     if preset not in PRESETS:
         raise InputError(f"unknown SIFT preset {preset!r}; choose from {sorted(PRESETS)}")
-    if max_features < 0:
+    if int(max_features) != max_features or max_features < 0:
         raise InputError(f"max_features must be >= 0 (0 = no limit), got {max_features}")
     return cv2.SIFT_create(nfeatures=int(max_features), **PRESETS[preset])
 
@@ -77,7 +134,7 @@ def _kp_array(kps) -> np.ndarray:
 
 def extract(image, preset: str = "opencv", max_features: int = 0) -> ImageFeatures:
     """Detect and describe SIFT features of an image (path or array)."""
-    img = _as_gray(image)
+    img = as_gray(image)
     kps, desc = create_sift(preset, max_features).detectAndCompute(img, None)
     if desc is None:
         desc = np.zeros((0, 128), np.float32)
@@ -86,22 +143,32 @@ def extract(image, preset: str = "opencv", max_features: int = 0) -> ImageFeatur
 
 def describe_at(image, points, size: float = 24.0, angle: float = 0.0,
                 preset: str = "opencv") -> ImageFeatures:
-    """SIFT descriptors at given points (x, y; 0-based pixels), all of one size and angle.
+    """SIFT descriptors at given points: (n, 2) x, y (0-based pixels) or (n, 4) x, y, size, angle.
 
+    With (n, 2) points every patch has ``size`` pixels and orientation ``angle``
+    (degrees); (n, 4) keypoints (e.g. from :func:`extract`) carry their own.
     Points whose patch OpenCV drops (too close to the border) raise an error
     naming them, so descriptors always line up with the points given.
     """
     import cv2
 
-    img = _as_gray(image)
+    img = as_gray(image)
     pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise InputError(f"points must be (n, 2) x, y, got shape {pts.shape}")
-    kps = [cv2.KeyPoint(float(x), float(y), float(size), float(angle)) for x, y in pts]
+    if pts.ndim != 2 or pts.shape[1] not in (2, 4):
+        raise InputError(f"points must be (n, 2) x, y or (n, 4) x, y, size, angle; got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise InputError("points contain NaN or inf")
+    if pts.shape[1] == 2:
+        pts = np.c_[pts, np.full(len(pts), float(size)), np.full(len(pts), float(angle))]
+    if (pts[:, 2] <= 0).any():
+        raise InputError("keypoint sizes must be positive")
+    if len(pts) == 0:
+        return ImageFeatures(np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8))
+    kps = [cv2.KeyPoint(float(x), float(y), float(sz), float(a)) for x, y, sz, a in pts]
     out_kps, desc = create_sift(preset).compute(img, kps)
     if desc is None or len(out_kps) != len(kps):
         kept = {(round(k.pt[0], 3), round(k.pt[1], 3)) for k in (out_kps or [])}
-        lost = [i for i, (x, y) in enumerate(pts) if (round(x, 3), round(y, 3)) not in kept]
+        lost = [i for i, (x, y) in enumerate(pts[:, :2]) if (round(x, 3), round(y, 3)) not in kept]
         raise InputError(f"OpenCV could not describe points {lost[:10]} (outside the image?)")
     return ImageFeatures(_kp_array(out_kps), np.clip(np.round(desc), 0, 255).astype(np.uint8))
 
@@ -123,19 +190,44 @@ def landmark_descriptors(seq, size: float = 24.0) -> Tuple[np.ndarray, np.ndarra
     return np.vstack(descs), np.concatenate(ids), np.concatenate(lms), np.vstack(kps)
 
 
-def extract_many(images, preset: str = "opencv", max_features: int = 0,
+def extract_many(images: Sequence, preset: str = "opencv", max_features: int = 0,
                  progress=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Extract from a list of images: ``(descriptors, image_ids, keypoints)`` stacked."""
+    """Extract from a list of images (paths or arrays): ``(descriptors, image_ids, keypoints)`` stacked.
+
+    Image ids are positions in ``images`` (0, 1, ...); an image without
+    features simply has no rows. ``progress``: callable ``(done, total)``
+    called after each image (e.g. a :class:`dqm.progress.ProgressBar`).
+    """
     descs, ids, kps = [], [], []
     images = list(images)
+    create_sift(preset, max_features)  # validate the settings before any work
     for k, im in enumerate(images):
         f = extract(im, preset, max_features)
         descs.append(f.descriptors)
         kps.append(f.keypoints)
-        ids.append(np.full(len(f), k))
+        ids.append(np.full(len(f), k, np.int64))
         if progress is not None:
             progress(k + 1, len(images))
     if not descs:
         return np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.zeros((0, 4), np.float32)
     return np.vstack(descs), np.concatenate(ids).astype(np.int64), np.vstack(kps)
 
+
+def extract_images(inputs, preset: str = "opencv", max_features: int = 0, progress=None, min_images: int = 2):
+    """SIFT of every image in folders / globs / files: a :class:`dqm.io.FeatureSet` with keypoints and names.
+
+    Raises InputError when fewer than ``min_images`` images are found or fewer
+    than ``min_images`` of them have any feature (nothing to match).
+    """
+    from .io import FeatureSet
+
+    paths = collect_images(inputs)
+    if len(paths) < min_images:
+        raise InputError(f"need at least {min_images} images to match, got {len(paths)}: "
+                         + ", ".join(str(p) for p in paths))
+    D, ids, kp = extract_many(paths, preset=preset, max_features=max_features, progress=progress)
+    with_features = len(np.unique(ids))
+    if with_features < min_images:
+        raise InputError(f"SIFT found features in only {with_features} of {len(paths)} images "
+                         f"(blank or tiny images?); matching needs at least {min_images}")
+    return FeatureSet(D, ids, kp, np.array([str(p) for p in paths]))

@@ -17,9 +17,16 @@ plus::
     parent           (n,) int64    tree parent within reach, -1 if none
     parent_distance  (n,) float64  inf if no parent
     params           ()   str      JSON: rho, ratio_density, kernel, parent mode, dqm version
+
+TRACKS CSV (``dqm match --tracks-csv``): one row per feature of every cluster
+with at least two features, sorted by track then image; columns ``track``
+(0, 1, ... in order of cluster label), ``label`` (the CLUSTERS label),
+``image_id``, ``image`` (name, if known), ``feature`` (row in the FEATURES
+arrays), ``x``, ``y``, ``size``, ``angle`` (empty if no keypoints).
 """
 from __future__ import annotations
 
+import csv
 import json
 import os
 import tempfile
@@ -130,3 +137,33 @@ def load_clusters(path) -> dict:
         out = {k: z[k] for k in z.files}
     out["params"] = json.loads(str(out["params"])) if "params" in out else {}
     return out
+
+
+def save_tracks_csv(path, labels, image_ids, keypoints=None, image_names=None, min_size: int = 2) -> int:
+    """Write the clusters with ``min_size`` or more features as a TRACKS CSV; returns the track count."""
+    labels = np.asarray(labels)
+    image_ids = np.asarray(image_ids)
+    if labels.shape != image_ids.shape or labels.ndim != 1:
+        raise InputError("labels and image_ids must be 1-D arrays of equal length")
+    if min_size < 1:
+        raise InputError(f"min_size must be >= 1, got {min_size}")
+    kp = None if keypoints is None else np.asarray(keypoints, dtype=np.float64)
+    sizes = np.bincount(labels) if len(labels) else np.zeros(0, np.int64)
+    keep = np.flatnonzero(sizes[labels] >= min_size) if len(labels) else np.zeros(0, np.int64)
+    order = keep[np.lexsort((keep, image_ids[keep], labels[keep]))]
+    track_of = {lab: k for k, lab in enumerate(np.unique(labels[order]).tolist())}
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["track", "label", "image_id", "image", "feature", "x", "y", "size", "angle"])
+        for f in order.tolist():
+            img = int(image_ids[f])
+            name = str(image_names[img]) if image_names is not None and 0 <= img < len(image_names) else ""
+            geo = [""] * 4
+            if kp is not None:
+                geo = [f"{v:.3f}" for v in kp[f, :4]] + [""] * (4 - min(4, kp.shape[1]))
+            w.writerow([track_of[int(labels[f])], int(labels[f]), img, name, f, *geo[:4]])
+    os.replace(tmp, p)
+    return len(track_of)

@@ -87,7 +87,8 @@ def test_agent_killed_in_each_phase(data, tmp_path, state):
 
     def go():
         try:
-            outcome["ok"] = run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update)
+            outcome["ok"] = run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update,
+                                    ready_timeout_s=8)
         except RuntimeError as exc:
             outcome["error"] = str(exc)
 
@@ -106,6 +107,10 @@ def test_agent_killed_in_each_phase(data, tmp_path, state):
     if state == "wait_finish":
         # the victim had delivered its result and statistics: the job completes correctly
         np.testing.assert_array_equal(np.asarray(outcome["ok"]["labels"]), simulate(X, ids, cfg).labels)
+    elif state == "wait_start":
+        # the coordinator either saw the victim's token vanish or never saw it at all
+        assert "error" in outcome
+        assert f"agent {victim} died" in outcome["error"] or f"agents [{victim}] not ready" in outcome["error"]
     else:
         assert "error" in outcome
         assert f"agent {victim} died" in outcome["error"]

@@ -6,16 +6,19 @@ features are extracted first (OpenCV; --preset, --max-features).
 
     dqm match features.npz --out clusters.npz
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
+    dqm match photos/ --out clusters.npz --max-features 2000 --tracks-csv tracks.csv
+
+The CLUSTERS file keeps every feature's keypoint (x, y, size, angle) and the
+image paths, so the tracks can be used directly (see dqm/io.py for the fields).
 """
 from __future__ import annotations
 
-import glob
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .. import io
+from ..features import PRESETS
 from ..core import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
 from ..progress import ProgressBar
 from ..validation import InputError
@@ -34,46 +37,27 @@ def add_arguments(p) -> None:
     p.add_argument("--parent", choices=PARENT_MODES, default="any",
                    help="'other-image': a feature's tree parent must come from another image")
     p.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
-    p.add_argument("--preset", default="opencv", help="SIFT preset when INPUT are images: opencv | paper")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="opencv",
+                   help="SIFT settings when INPUT are images: OpenCV defaults, or the seed paper's "
+                        "(nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, sigma=1.0)")
     p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
+    p.add_argument("--tracks-csv", default=None, metavar="CSV",
+                   help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
-
-
-def image_paths(inputs) -> list:
-    """Expand folders / globs / files to a sorted list of image paths; error if none."""
-    out = []
-    for item in inputs:
-        p = Path(item)
-        if p.is_dir():
-            out += sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES)
-        elif any(ch in item for ch in "*?["):
-            out += sorted(Path(q) for q in glob.glob(item) if Path(q).suffix.lower() in IMAGE_SUFFIXES)
-        elif p.exists():
-            out.append(p)
-        else:
-            raise InputError(f"input not found: {item}")
-    if not out:
-        raise InputError(f"no images found in {' '.join(inputs)}")
-    return out
-
-
 def load_input(args) -> io.FeatureSet:
+    """A FEATURES .npz as is, or SIFT of the images named by the inputs (progress bar per image)."""
     if len(args.inputs) == 1 and args.inputs[0].endswith(".npz"):
         return io.load_features(args.inputs[0])
-    from ..features import extract_many
+    from ..features import extract_images
 
-    paths = image_paths(args.inputs)
-    if len(paths) < 2:
-        raise InputError(f"need at least two images to match, got {len(paths)}: {paths[0]}")
     bar = ProgressBar("sift", force=False if args.quiet else None)
-    D, ids, kp = extract_many(paths, preset=args.preset, max_features=args.max_features, progress=bar)
-    empty = [str(paths[k]) for k in range(len(paths)) if not (ids == k).any()]
+    fs = extract_images(args.inputs, preset=args.preset, max_features=args.max_features, progress=bar)
+    empty = [str(fs.image_names[k]) for k in range(len(fs.image_names)) if not (fs.image_ids == k).any()]
     if empty:
         print(f"note: no SIFT features in {len(empty)} image(s): {', '.join(empty[:5])}")
-    return io.FeatureSet(D, ids, kp, np.array([str(p) for p in paths]))
+    return fs
 
 
 def run(args) -> int:
@@ -89,5 +73,8 @@ def run(args) -> int:
                         kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar)
     io.save_clusters(args.out, fs, result)
     print(result.summary())
+    if args.tracks_csv:
+        n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+        print(f"wrote {n} tracks to {args.tracks_csv}")
     print(f"wrote {args.out} ({time.perf_counter() - t0:.2f} s in all)")
     return 0

@@ -95,7 +95,8 @@ class Processes:
 
 
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
-            env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None) -> dict:
+            env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
+            ready_timeout_s: float = 30.0) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
     Raises RuntimeError with the coordinator's / agents' last log lines on failure.
@@ -121,7 +122,8 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
         coord = procs.start(["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed),
                              "--partition", cfg.partition, "--connect", endpoint, "--job", cfg.job,
                              "--out", str(report_path), "--tcp-port", str(port),
-                             "--job-timeout", str(timeout_s)], wd / "coordinator.log", env)
+                             "--job-timeout", str(timeout_s), "--ready-timeout", str(ready_timeout_s)],
+                            wd / "coordinator.log", env)
         if on_started is not None:
             on_started({"router": router, "agents": agents, "coordinator": coord, "workdir": wd, "port": port})
         try:

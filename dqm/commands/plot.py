@@ -1,0 +1,154 @@
+"""Draw matches and evaluation results as PNG (or PDF / SVG, from --out's suffix).
+
+    dqm plot pair CLUSTERS.npz --images 0 1 --out pair.png [--truth SEQ_FOLDER]
+    dqm plot clusters CLUSTERS.npz --out clusters.png [--count 6] [--min-size 3]
+    dqm plot sizes CLUSTERS.npz --out sizes.png
+    dqm plot pr EVALUATION.json --out-dir plots/
+
+pair: two images side by side with a line per match implied by the clusters
+(with --truth, an Oxford-layout folder, lines are green when the homography
+maps one keypoint within --tol pixels of the other, red otherwise).
+clusters: the largest clusters, one row each, a patch around every feature.
+sizes: histogram of cluster sizes. pr: the PR curves of every dataset of a
+``dqm evaluate`` run.
+
+pair and clusters need the images: a CLUSTERS file made by ``dqm match`` from
+images records their paths (image_names); --image-dir resolves relative ones.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import io, plots
+from ..evaluation import PRCurve, cluster_pairs, reprojection_error
+from ..validation import InputError
+
+NAME = "plot"
+HELP = "draw matches (pair, clusters), cluster sizes or PR curves"
+
+
+def add_arguments(p) -> None:
+    sub = p.add_subparsers(dest="what", metavar="WHAT", required=True)
+    a = sub.add_parser("pair", help="two images with lines between matched features")
+    a.add_argument("clusters", metavar="CLUSTERS.npz")
+    a.add_argument("--images", type=int, nargs=2, default=(0, 1), metavar=("I", "J"), help="image ids (default 0 1)")
+    a.add_argument("--out", required=True)
+    a.add_argument("--truth", default=None, help="Oxford-layout folder with H1toNp: colour lines by correctness")
+    a.add_argument("--tol", type=float, default=5.0, help="pixels, with --truth")
+    a.add_argument("--max-lines", type=int, default=300)
+    a.add_argument("--image-dir", default=None, help="folder for relative image names")
+    c = sub.add_parser("clusters", help="patches of the features of the largest clusters")
+    c.add_argument("clusters", metavar="CLUSTERS.npz")
+    c.add_argument("--out", required=True)
+    c.add_argument("--count", type=int, default=6, help="clusters to draw (largest first)")
+    c.add_argument("--min-size", type=int, default=2)
+    c.add_argument("--radius", type=int, default=32, help="patch half-size in pixels")
+    c.add_argument("--image-dir", default=None, help="folder for relative image names")
+    s = sub.add_parser("sizes", help="histogram of cluster sizes")
+    s.add_argument("clusters", metavar="CLUSTERS.npz")
+    s.add_argument("--out", required=True)
+    r = sub.add_parser("pr", help="PR curves from a dqm evaluate JSON")
+    r.add_argument("evaluation", metavar="EVALUATION.json")
+    r.add_argument("--out-dir", required=True)
+
+
+def _images(cl: dict, image_dir) -> list:
+    if "image_names" not in cl:
+        raise InputError("this clusters file records no image names (made from a FEATURES file without them); "
+                         "pair and clusters plots need the images")
+    out = []
+    for name in cl["image_names"].tolist():
+        p = Path(name)
+        if not p.is_absolute() and image_dir is not None:
+            p = Path(image_dir) / p
+        if not p.exists():
+            raise InputError(f"image {p} not found (use --image-dir to say where the images are)")
+        out.append(p)
+    return out
+
+
+def _keypoints(cl: dict) -> np.ndarray:
+    if "keypoints" not in cl:
+        raise InputError("this clusters file has no keypoints; pair and clusters plots need them")
+    return np.asarray(cl["keypoints"], float)
+
+
+def _pair(args) -> int:
+    cl = io.load_clusters(args.clusters)
+    ids = np.asarray(cl["image_ids"])
+    images = _images(cl, args.image_dir)
+    i, j = args.images
+    for k in (i, j):
+        if not 0 <= k < len(images):
+            raise InputError(f"image id {k} out of range 0..{len(images) - 1}")
+    if i == j:
+        raise InputError("--images needs two different image ids")
+    kp = _keypoints(cl)
+    a, b = cluster_pairs(cl["labels"], ids)
+    sel = ((ids[a] == i) & (ids[b] == j)) | ((ids[a] == j) & (ids[b] == i))
+    pa = np.where(ids[a[sel]] == i, a[sel], b[sel])
+    pb = np.where(ids[a[sel]] == i, b[sel], a[sel])
+    correct = None
+    if args.truth:
+        from ..datasets import load_homography_sequence
+
+        seq = load_homography_sequence(args.truth)
+        if len(seq.image_paths) != len(images):
+            raise InputError(f"--truth has {len(seq.image_paths)} images, the clusters {len(images)}")
+        correct = reprojection_error(seq.homography(i, j), kp[pa, :2], kp[pb, :2]) <= args.tol
+    fig = plots.pair_figure(images[i], images[j], kp[pa, :2], kp[pb, :2], correct, max_lines=args.max_lines,
+                            title=f"{Path(images[i]).name} - {Path(images[j]).name}")
+    print(f"wrote {plots.save(fig, args.out)} ({len(pa)} matches)")
+    return 0
+
+
+def _clusters(args) -> int:
+    cl = io.load_clusters(args.clusters)
+    if args.count < 1 or args.min_size < 2 or args.radius < 4:
+        raise InputError("--count must be >= 1, --min-size >= 2 and --radius >= 4")
+    labels = np.asarray(cl["labels"])
+    sizes = np.bincount(labels)
+    big = [k for k in np.argsort(-sizes, kind="stable") if sizes[k] >= args.min_size][:args.count]
+    if not big:
+        raise InputError(f"no cluster has {args.min_size} or more features")
+    members = [np.flatnonzero(labels == k) for k in big]
+    fig = plots.clusters_figure(_images(cl, args.image_dir), _keypoints(cl), cl["image_ids"], members,
+                                radius=args.radius, point_ids=cl.get("point_ids"),
+                                title=f"{len(members)} largest clusters")
+    print(f"wrote {plots.save(fig, args.out)}")
+    return 0
+
+
+def _sizes(args) -> int:
+    cl = io.load_clusters(args.clusters)
+    fig = plots.cluster_sizes_figure(cl["labels"], cl["image_ids"])
+    print(f"wrote {plots.save(fig, args.out)}")
+    return 0
+
+
+def _pr(args) -> int:
+    p = Path(args.evaluation)
+    if not p.exists():
+        raise InputError(f"evaluation file not found: {p}")
+    try:
+        data = json.loads(p.read_text())
+        sets = data["datasets"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{p}: not a dqm evaluate JSON ({exc})") from None
+    from ..benchmark import METHODS
+
+    for name, d in sets.items():
+        rows = d["methods"]
+        curves = [PRCurve.from_dict(r["curve"]) for r in rows]
+        points = {r["method"]: (r["scores"]["recall"], r["scores"]["precision"]) for r in rows}
+        fig = plots.pr_figure(curves, points, labels=METHODS,
+                              title=f"{name}: {d['n_features']} features, {d['n_images']} images")
+        print(f"wrote {plots.save(fig, Path(args.out_dir) / f'pr_{name}.png')}")
+    return 0
+
+
+def run(args) -> int:
+    return {"pair": _pair, "clusters": _clusters, "sizes": _sizes, "pr": _pr}[args.what](args)

@@ -1,0 +1,148 @@
+"""QuickMatch against pairwise BF / FLANN tracks on ground truth (dqm.benchmark).
+
+The seed paper's claim, tested as stated: QuickMatch at its default rho has a
+higher F1 than BF and FLANN union-find tracks, on the CMU hotel landmarks and on
+generated scenes. Where the claim does not hold the test is marked xfail
+(strict: it fails loudly if the behaviour changes) with the measured reason;
+docs/evaluation-notes.md explains it. The tests after it pin down that reason.
+"""
+import numpy as np
+import pytest
+
+import dqm
+from dqm import benchmark as BM
+from dqm.baselines import MATCHERS, TRACK_POLICIES
+from conftest import assert_consistent, require_data
+
+TRACKS = [f"{m}-{p}" for m in MATCHERS for p in TRACK_POLICIES]
+SCENES = ("scene:0", "scene:1", "scene:2")
+
+_cache = {}
+
+
+def bench(spec):
+    if spec not in _cache:
+        if spec == "hotel":
+            require_data("cmu_hotel")
+            _cache[spec] = BM.load_benchmark("hotel", require_data())
+        else:
+            _cache[spec] = BM.load_benchmark(spec)
+    return _cache[spec]
+
+
+def operating_points(spec, rho=dqm.DEFAULT_RHO):
+    key = (spec, rho)
+    if key not in _cache:
+        rows = BM.evaluate(bench(spec), ["quickmatch"] + TRACKS, rho=rho, curves=False)
+        _cache[key] = {r.method: r for r in rows}
+    return _cache[key]
+
+
+LOSES_TO_THEIA = ("QuickMatch at rho 0.75 trades recall for precision: Theia-style tracks "
+                  "(drop the later feature) keep more correct matches at a lower precision and "
+                  "win F1 by 0.01-0.02 here; at rho 0.85-1.0 QuickMatch wins (docs/evaluation-notes.md)")
+HOTEL = ("hotel: QuickMatch splits 5 of 30 landmarks into an early-frame and a late-frame cluster "
+         "(two density modes; the joining edge is missing or longer than rho x the merged clusters' min "
+         "sigma); tracks chain the 101 frames "
+         "and reach recall 0.93-0.95 (docs/evaluation-notes.md)")
+
+
+@pytest.mark.parametrize("spec, xfail_reason", [
+    ("scene:0", LOSES_TO_THEIA),
+    ("scene:1", None),
+    ("scene:2", LOSES_TO_THEIA),
+    ("hotel", HOTEL),
+])
+def test_quickmatch_default_beats_bf_and_flann_tracks_in_f1(spec, xfail_reason, request):
+    if xfail_reason:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=xfail_reason))
+    res = operating_points(spec)
+    qm = res["quickmatch"].scores.f1
+    for m in TRACKS:
+        assert qm > res[m].scores.f1, (spec, m, qm, res[m].scores.f1)
+
+
+@pytest.mark.parametrize("spec", SCENES + ("hotel",))
+def test_quickmatch_default_is_at_least_as_precise_as_every_track_variant(spec):
+    res = operating_points(spec)
+    for m in TRACKS:
+        assert res["quickmatch"].scores.precision >= res[m].scores.precision, (spec, m)
+
+
+@pytest.mark.parametrize("spec", SCENES)
+def test_quickmatch_default_beats_openmvg_tracks_on_scenes(spec):
+    res = operating_points(spec)
+    for m in ("bf-drop-track", "flann-drop-track"):
+        assert res["quickmatch"].scores.f1 > res[m].scores.f1, (spec, m)
+
+
+@pytest.mark.parametrize("spec", SCENES)
+def test_quickmatch_at_rho_1_beats_every_track_variant_on_scenes(spec):
+    qm = operating_points(spec, rho=1.0)["quickmatch"].scores.f1
+    res = operating_points(spec)
+    for m in TRACKS:
+        assert qm > res[m].scores.f1, (spec, m)
+
+
+def test_hotel_loss_is_split_landmarks_not_mixed_ones():
+    b = bench("hotel")
+    r = dqm.quickmatch(b.descriptors, b.image_ids)
+    res = operating_points("hotel")
+    assert res["quickmatch"].scores.precision == 1.0  # no cluster mixes two landmarks
+    split = [L for L in range(30) if len(np.unique(r.labels[b.point_ids == L])) > 1]
+    assert 0 < len(split) <= 10
+    # each split landmark falls apart into earlier and later frames of the sequence
+    for L in split:
+        m = np.flatnonzero(b.point_ids == L)
+        parts = [np.median(b.image_ids[m][r.labels[m] == k]) for k in np.unique(r.labels[m])]
+        assert max(parts) - min(parts) > 20, (L, parts)
+    # the tracks' advantage is recall, not precision
+    assert res["quickmatch"].scores.recall < res["bf-drop-later"].scores.recall
+
+
+def test_rho_path_equals_direct_runs():
+    b = bench("scene:1")
+    rhos = [0.4, 0.6, 0.75, 0.9, 1.1]
+    big = dqm.quickmatch(b.descriptors, b.image_ids, rho=1.1)
+    for rho, labels in zip(rhos, BM.quickmatch_rho_path(big, rhos)):
+        np.testing.assert_array_equal(labels, dqm.quickmatch(b.descriptors, b.image_ids, rho=rho).labels)
+    with pytest.raises(dqm.InputError, match="exceeds"):
+        BM.quickmatch_rho_path(big, [1.5])
+
+
+def test_full_evaluation_of_a_scene():
+    b = bench("scene:1")
+    rows = BM.evaluate(b, rhos=(0.5, 0.75, 1.0), ratios=(0.6, 0.75, 0.9))
+    by = {r.method: r for r in rows}
+    assert list(by) == list(BM.METHODS)
+    for m, r in by.items():
+        assert 0 < r.scores.precision <= 1 and 0 < r.scores.recall <= 1 and r.time_s >= 0
+        assert len(r.curve.thresholds) == 3 and 0 < r.curve.auc() <= 1
+        if m in ("bf", "flann"):  # raw pairwise matches are not consistent
+            assert r.violations.c1_features > 0 and r.violations.c2_tracks > 0
+        else:  # clusters and tracks are partitions without two features of one image
+            assert r.violations.c1_features == 0 and r.violations.c2_tracks == 0
+    # recall grows along the sweeps of QuickMatch and raw pairs (more matches accepted); tracks
+    # need not: at a loose ratio their components chain into conflicting giants that get dropped
+    for r in rows:
+        if r.method in ("quickmatch", "bf", "flann"):
+            assert np.all(np.diff(r.curve.recall[np.argsort(r.curve.thresholds)]) >= 0), r.method
+    assert by["bf-drop-track"].curve.recall[-1] < by["bf-drop-track"].curve.recall[1]
+    table = BM.markdown_table({"scene": rows}, {"scene": b})
+    assert table.count("\n") == 2 + len(rows) and "QuickMatch" in table
+
+
+def test_tracks_from_evaluate_are_consistent():
+    b = bench("scene:1")
+    from dqm import baselines
+
+    cand = baselines.pairwise_candidates(b.descriptors, b.image_ids, "bf")
+    for policy in TRACK_POLICIES:
+        assert_consistent(baselines.build_tracks(*cand.select(0.75), b.image_ids, policy), b.image_ids)
+
+
+def test_unknown_dataset_and_method():
+    with pytest.raises(dqm.InputError, match="not found"):
+        BM.load_benchmark("/nonexistent/folder")
+    with pytest.raises(dqm.InputError, match="unknown method"):
+        BM.evaluate(bench("scene:1"), ["quickmatch", "orb"])
