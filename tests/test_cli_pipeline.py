@@ -3,6 +3,8 @@ import csv
 import json
 
 import numpy as np
+
+import dqm
 import pytest
 
 from dqm import io, plots, scenes
@@ -33,7 +35,7 @@ def test_match_images_writes_clusters_with_keypoints(pipeline):
     assert [n.rsplit("/", 1)[-1] for n in cl["image_names"].tolist()] == ["img1.png", "img2.png", "img3.png"]
     assert np.bincount(cl["image_ids"]).max() <= 410
     assert_consistent(cl["labels"], cl["image_ids"])
-    assert cl["params"]["rho"] == 0.75
+    assert cl["params"]["rho"] == dqm.DEFAULT_RHO
 
 
 def test_tracks_csv_lists_every_multi_image_cluster(pipeline):
@@ -72,7 +74,7 @@ def test_evaluate_and_plot_pr(pipeline, capsys):
     data = json.loads((out / "evaluation.json").read_text())
     rows = data["datasets"]["scene"]["methods"]
     assert [r["method"] for r in rows] == ["quickmatch", "bf", "bf-drop-track"]
-    assert PRCurve.from_dict(rows[0]["curve"]).thresholds.tolist() == [0.5, 0.75, 1.0]
+    assert PRCurve.from_dict(rows[0]["curve"]).thresholds.tolist() == sorted([0.5, dqm.DEFAULT_RHO, 1.0])
     assert png_ok(out / "pr_scene.png")
     capsys.readouterr()
     assert main(["plot", "pr", str(out / "evaluation.json"), "--out-dir", str(out / "again")]) == 0

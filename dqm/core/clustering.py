@@ -49,7 +49,7 @@ from . import pairs, tree
 KERNELS = ("gaussian", "quadratic")
 PARENT_MODES = ("any", "other-image")
 #: default merge ratio, chosen by the sweep in scripts/sweep_rho.py (docs/quickmatch.md)
-DEFAULT_RHO = 0.75
+DEFAULT_RHO = 0.9
 DEFAULT_RATIO_DENSITY = 0.25
 
 
@@ -231,6 +231,9 @@ def quickmatch(
     if zero.any():
         zcount = np.bincount(groups[zero], minlength=len(gsize))
         dens_o = dens_o + zcount[groups] - zero
+    if len(cr) > 64 * n:
+        warnings.warn(f"quickmatch: rho={rho:g} puts {len(cr) / n:.0f} candidate edges per feature within reach; "
+                      "memory and time grow with rho on dense data (docs/quickmatch.md)", stacklevel=2)
     # candidate edges, exact distances, within the child's radius
     d = pairs.exact_distances(aug.exact, cr, cc)
     keep = d < radius[cr]
