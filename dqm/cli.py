@@ -20,6 +20,7 @@ COMMANDS = [
     "dqm.commands.evaluate",
     "dqm.commands.plot",
     "dqm.commands.scene",
+    "dqm.commands.experiment",
 ]
 
 

@@ -1,0 +1,1 @@
+"""The camera-network experiment: simulated cameras detect and localize a moving target."""
