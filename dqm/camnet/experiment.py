@@ -40,7 +40,7 @@ from .pipeline import (METHODS, Detection, PipelineConfig, detect, match_all, pa
                        quickmatch_matches)
 from .simulator import FrameTruth, SimConfig, World, build_world
 
-DEFAULT_RHOS = (0.5, 0.6, 0.75, 0.9, 1.0, 1.1, 1.2)
+DEFAULT_RHOS = (0.5, 0.6, 0.75, 0.9, 1.0, 1.1, 1.2, 1.4, 1.6)
 DEFAULT_RATIOS = (0.6, 0.7, 0.75, 0.8, 0.85, 0.9)
 
 
@@ -121,7 +121,11 @@ class ExperimentResult:
         return int(sum(t.visible for t in self.truths.values()))
 
     def arrays(self, method: str) -> Dict[str, np.ndarray]:
-        """Per-detection arrays of a method: score, visible, estimate (n, 2; NaN = none), truth (n, 2)."""
+        """Per-frame arrays of a method (frames in step-major order).
+
+        ``score``, ``visible``, ``estimate`` (n, 2; NaN = none), ``truth`` (n, 2),
+        ``camera``, ``step``, ``decoy`` and ``target_px`` (pixels of decoy / target in view).
+        """
         check_choice(method, "method", self.methods)
         dets = self.detections[method]
         tr = [self.truths[(d.step, d.camera)] for d in dets]
@@ -134,6 +138,7 @@ class ExperimentResult:
             "camera": np.array([d.camera for d in dets], np.int64),
             "step": np.array([d.step for d in dets], np.int64),
             "decoy": np.array([t.decoy_px for t in tr], np.int64),
+            "target_px": np.array([t.target_px for t in tr], np.int64),
         }
 
 
@@ -278,7 +283,9 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     feature-discovery figures (-1: the step where the target is visible in the
     most cameras; None: keep none; needs ``"quickmatch"`` in ``methods``).
     ``sweep``: also keep every frame's score at each of ``rhos`` (QuickMatch,
-    re-run per rho) and ``ratios`` (BF, FLANN): :class:`Sweep`.
+    re-run per rho) and ``ratios`` (BF, FLANN): :class:`Sweep`; plus the
+    ablation ``sweeps["quickmatch-per-camera"]``: QuickMatch over the references
+    and one camera at a time (no help from the other cameras), at ``rho``.
     """
     sim = sim if sim is not None else SimConfig()
     pipeline = pipeline if pipeline is not None else PipelineConfig()
@@ -311,6 +318,7 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     dets: Dict[str, List[Detection]] = {m: [] for m in methods}
     sweep_scores: Dict[str, Dict[float, List[int]]] = {m: {} for m in methods}
     sweep_visible: List[bool] = []
+    per_cam: List[int] = []
     n_feat: List[int] = []
     best_vis, snap = -1, None
     want_snap = snapshot_step is not None and "quickmatch" in methods
@@ -346,6 +354,9 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
                         cands = extra["candidates"]
                         row = [max(int((cd.ratio < q).sum()) for cd in cands[c]) for c in range(len(cams))]
                     sweep_scores[method].setdefault(float(q), []).extend(row)
+                if method == "quickmatch":  # ablation: each camera clustered with the references alone
+                    per_cam.extend(max(len(m[0]) for m in quickmatch_matches(refs, [cam_f], pipeline.rho)[0][0])
+                                   for cam_f in cams)
                 timings[f"sweep_{method}"] = timings.get(f"sweep_{method}", 0.0) + time.perf_counter() - t
             if method == "quickmatch" and want_snap:
                 nvis = sum(tr.visible for _, tr in views)
@@ -360,6 +371,10 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     sweeps = {m: Sweep(m, "rho" if m == "quickmatch" else "ratio",
                        {q: np.array(v, np.int64) for q, v in sweep_scores[m].items()}, np.array(sweep_visible, bool))
               for m in methods} if sweep else {}
+    if per_cam:
+        sweeps["quickmatch-per-camera"] = Sweep("quickmatch-per-camera", "rho",
+                                                {float(pipeline.rho): np.array(per_cam, np.int64)},
+                                                np.array(sweep_visible, bool))
     nf = np.array(n_feat, float)
     return ExperimentResult(sim, pipeline, methods, world, calib, truths, dets, sweeps, snap, timings,
                             {"per_camera_image_mean": float(nf.mean()) if len(nf) else 0.0,

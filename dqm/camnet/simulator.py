@@ -202,8 +202,9 @@ class FrameTruth:
     """Ground truth of one camera at one time step.
 
     ``visible_px[k]``: pixels showing target side k (after occlusion and the
-    image border); ``box``: bounding box (x0, y0, x1, y1) of those pixels
-    (None when none); ``position``: the target centre (x, y); ``depth`` and
+    image border); ``box``: bounding box (x0, y0, x1, y1) of those pixels in
+    continuous coordinates (pixel centres at integers; None when none);
+    ``position``: the target centre (x, y); ``depth`` and
     ``bearing``: of the target centre in this camera; ``decoy_px``: pixels
     showing the decoy poster.
     """
@@ -447,7 +448,8 @@ class World:
         box = None
         if tmask.any():
             ys, xs = np.nonzero(tmask)
-            box = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
+            # pixel centres are integers: pixel i covers [i - 0.5, i + 0.5]
+            box = (float(xs.min()) - 0.5, float(ys.min()) - 0.5, float(xs.max()) + 0.5, float(ys.max()) + 0.5)
         if target is not None:
             tc = np.r_[target.centre, target.elevation + target.size[2] / 2]
         else:

@@ -19,6 +19,7 @@ import time
 from typing import List
 
 from ..baselines import DEFAULT_RATIO
+from ..camnet.experiment import DEFAULT_RATIOS, DEFAULT_RHOS
 from ..core import DEFAULT_RHO
 from ..features import PRESETS
 from ..progress import ProgressBar
@@ -53,8 +54,10 @@ def add_arguments(p) -> None:
     p.add_argument("--min-matches", type=int, default=10, help="matches for a detection (default 10)")
     p.add_argument("--ransac", type=float, default=10.0, help="RANSAC threshold in pixels (default 10)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="SIFT settings (default paper)")
-    p.add_argument("--rhos", default="0.5,0.6,0.75,0.9,1,1.1,1.2", help="QuickMatch rho values of the sweep")
-    p.add_argument("--ratios", default="0.6,0.7,0.75,0.8,0.85,0.9", help="ratio values of the sweep")
+    p.add_argument("--rhos", default=",".join(f"{r:g}" for r in DEFAULT_RHOS),
+                   help="QuickMatch rho values of the sweep (first seed)")
+    p.add_argument("--ratios", default=",".join(f"{r:g}" for r in DEFAULT_RATIOS),
+                   help="BF / FLANN ratio values of the sweep (first seed)")
     p.add_argument("--no-sweep", action="store_true", help="skip the rho / ratio sweep (faster)")
     p.add_argument("--quick", action="store_true",
                    help="small run: 10 time steps over the same 30 s loop (rate 1/3 Hz), no sweep")
