@@ -615,6 +615,18 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
         L.append("")
         L += list(notes)
         L.append("")
+    L.append("## Limits of this reproduction")
+    L.append("")
+    L += [
+        "- Simulated, not the paper's robots and images; the paper's PR construction, positives and ground truth "
+        "could not be retrieved, so absolute numbers are not comparable, only the ranking and the error patterns.",
+        "- Cameras are static and level (the range model assumes a level camera); the paper's robots could move.",
+        "- Every frame is judged alone: no tracking over time and no fusion of the cameras' estimates.",
+        "- Localization uses the reference with the most matches only; a target side seen very obliquely or "
+        "mostly cut by the image border still yields a box for the whole side, through its homography.",
+        "- Only centralized QuickMatch is run; the distributed variant (NetMatch) is not part of this experiment.",
+    ]
+    L.append("")
     if len(seed_rows) > 1:
         L.append("## Other seeds")
         L.append("")
