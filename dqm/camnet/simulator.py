@@ -490,11 +490,17 @@ def _draw(canvas: np.ndarray, ids: np.ndarray, cam: Camera, s: Surface, pyramid:
     H = plane_homography(cam, s.origin, s.axis_u, s.axis_v)
     # on-screen scale (pixels per texel) at the visible part's centre -> mip-map level
     c = np.clip(uv.mean(axis=0), [x0, y0], [x1 - 1, y1 - 1])
-    p = np.linalg.solve(H, np.r_[c, 1.0])
-    p = p[:2] / p[2]
-    wden = H[2, 0] * p[0] + H[2, 1] * p[1] + H[2, 2]
-    J = (H[:2, :2] - np.outer(c, H[2, :2])) / wden
-    scale = math.sqrt(abs(float(np.linalg.det(J)))) if np.isfinite(J).all() else 1.0
+    scale = 1.0
+    try:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = np.linalg.solve(H, np.r_[c, 1.0])
+            p = p[:2] / p[2]
+            wden = H[2, 0] * p[0] + H[2, 1] * p[1] + H[2, 2]
+            J = (H[:2, :2] - np.outer(c, H[2, :2])) / wden
+            if np.isfinite(J).all():
+                scale = math.sqrt(abs(float(np.linalg.det(J))))
+    except np.linalg.LinAlgError:  # plane seen edge-on: any level will do
+        pass
     level = 0
     if 0 < scale < 1:
         level = min(len(pyramid) - 1, int(math.floor(math.log2(1.0 / scale))))
