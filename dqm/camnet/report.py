@@ -532,8 +532,9 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
              "(calibrated on the target at a known distance) gives the depth and whose centre gives the "
              "bearing; with the camera's pose that is a position on the ground, compared with the truth.")
     L.append("")
-    L.append(f"Reproduce: `{command}` (seeded; {data['timings_s']['total']:.0f} s on this machine, "
-             f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}).")
+    L.append(f"Reproduce: `{command}` (seeded; the run shown here took {data['timings_s']['total']:.0f} s on "
+             f"this machine, {os.cpu_count()} cores, {platform.processor() or platform.machine()}"
+             + (", each further seed less, without the parameter sweep" if len(seed_rows) > 1 else "") + ").")
     L.append("")
     L.append("## Results")
     L.append("")
