@@ -24,6 +24,7 @@ COMMANDS = [
     "dqm.commands.router",
     "dqm.commands.agent",
     "dqm.commands.coordinator",
+    "dqm.commands.experiment",
 ]
 
 
