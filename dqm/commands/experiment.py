@@ -20,7 +20,7 @@ from typing import List
 
 from ..baselines import DEFAULT_RATIO
 from ..camnet.experiment import DEFAULT_RATIOS, DEFAULT_RHOS
-from ..core import DEFAULT_RHO
+from ..camnet.pipeline import DETECTION_RHO
 from ..features import PRESETS
 from ..progress import ProgressBar
 from ..validation import InputError
@@ -49,7 +49,8 @@ def add_arguments(p) -> None:
     p.add_argument("--duration", type=float, default=30.0, help="seconds of trajectory (default 30)")
     p.add_argument("--rate", type=float, default=2.0, help="frames per second (default 2)")
     p.add_argument("--cameras", type=int, default=5, help="number of cameras (default 5)")
-    p.add_argument("--rho", type=float, default=DEFAULT_RHO, help=f"QuickMatch's rho (default {DEFAULT_RHO:g})")
+    p.add_argument("--rho", type=float, default=DETECTION_RHO,
+                   help=f"QuickMatch's rho for detection (default {DETECTION_RHO:g}; see docs/camnet.md)")
     p.add_argument("--ratio", type=float, default=DEFAULT_RATIO, help="Lowe ratio of BF / FLANN (default 0.75)")
     p.add_argument("--min-matches", type=int, default=10, help="matches for a detection (default 10)")
     p.add_argument("--ransac", type=float, default=10.0, help="RANSAC threshold in pixels (default 10)")
