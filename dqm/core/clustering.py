@@ -231,9 +231,10 @@ def quickmatch(
     if zero.any():
         zcount = np.bincount(groups[zero], minlength=len(gsize))
         dens_o = dens_o + zcount[groups] - zero
-    if len(cr) > 64 * n:
-        warnings.warn(f"quickmatch: rho={rho:g} puts {len(cr) / n:.0f} candidate edges per feature within reach; "
-                      "memory and time grow with rho on dense data (docs/quickmatch.md)", stacklevel=2)
+    if len(cr) > 20_000_000:  # ~0.5 GB of edge arrays: tell the user why memory is growing
+        warnings.warn(f"quickmatch: rho={rho:g} puts {len(cr)} candidate edges ({len(cr) / n:.0f} per feature) "
+                      "within reach; memory and time grow with rho on dense data (docs/quickmatch.md)",
+                      stacklevel=2)
     # candidate edges, exact distances, within the child's radius
     d = pairs.exact_distances(aug.exact, cr, cc)
     keep = d < radius[cr]
