@@ -110,7 +110,9 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     endpoint = f"tcp/127.0.0.1:{port}"
     procs = Processes()
     env = dict(os.environ if env is None else env)
-    env.setdefault("DQM_THREADS", "1")  # M agents share the cores
+    # every agent may use all cores: apart from the local step, the hand-down
+    # cascade runs one agent at a time (measured: M = 8 on graf 5.9 s with one
+    # thread per agent, 4.8 s with two)
     try:
         router = procs.start(["router", "--listen", endpoint], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
