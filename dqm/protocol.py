@@ -33,6 +33,11 @@ from . import messages
 CHUNK_ROWS = 4096
 
 
+def chunk_count(n_rows: int) -> int:
+    """Number of ``features`` chunks for ``n_rows`` features."""
+    return (int(n_rows) + CHUNK_ROWS - 1) // CHUNK_ROWS
+
+
 def wire_descriptors(descriptors: np.ndarray) -> np.ndarray:
     """Descriptors as they travel: uint8 stays uint8, anything else becomes float32."""
     d = np.asarray(descriptors)

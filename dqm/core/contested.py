@@ -42,17 +42,6 @@ def exchanged_minima(H: np.ndarray, me: int, m: int) -> np.ndarray:
     return out
 
 
-def contested_matrix(H: np.ndarray, reach: np.ndarray, minima_to_me: np.ndarray, me: int) -> np.ndarray:
-    """(n, m) bool: feature k contested with agent a (never with itself).
-
-    ``minima_to_me[a]`` is ``e[a, me]``: agent a's minimum distance to my cell.
-    """
-    C = (H + minima_to_me[None, :]) < reach[:, None]
-    if len(C):
-        C[:, me] = False
-    return C
-
-
 def units_from_clusters(labels: np.ndarray) -> np.ndarray:
     """Paper mode: a unit is a local cluster."""
     return np.asarray(labels, dtype=np.int64).copy()

@@ -25,7 +25,7 @@ Protocol (m agents, agent i owns Voronoi cell i of the seeds):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -64,16 +64,6 @@ class Shard:
                       ("ids", "image_ids", "descriptors", "sigma", "cells")))
         order = np.argsort(out.ids, kind="stable")  # canonical order: results independent of arrival order
         return out.take(order)
-
-
-@dataclass
-class LocalStep:
-    """What an agent computed at one step (kept for statistics and pictures)."""
-
-    result: Optional[QuickMatchResult]
-    time_cluster: float = 0.0
-    time_boundary: float = 0.0
-    extra: Dict[str, float] = field(default_factory=dict)
 
 
 def source_sigma(descriptors: np.ndarray, image_ids: np.ndarray) -> np.ndarray:

@@ -15,11 +15,10 @@ Two ways to get the seeds, both from one integer broadcast by the coordinator:
   agents send a small deterministic sample of their own descriptors to the
   leader (agent 0), which runs k-means++ and Lloyd on the pooled sample seeded
   by the integer and broadcasts the m seeds. Bytes: the sample plus m x dim
-  seeds to each agent (:func:`kmeans_traffic`).
+  seeds to each agent (metered by the simulator and the runtime).
 """
 from __future__ import annotations
 
-from typing import List, Sequence, Tuple
 
 import numpy as np
 
@@ -113,15 +112,3 @@ def route(X: np.ndarray, seeds: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     d2 = (seeds ** 2).sum(1)[None, :] - 2.0 * X @ seeds.T  # |x|^2 is common to all cells
     return np.argmin(d2, axis=1).astype(np.int64)  # argmin returns the first (lowest) index on ties
-
-
-def kmeans_traffic(m: int, dim: int, per_agent: int, desc_bytes: int) -> List[Tuple[int, int, int]]:
-    """(src, dst, bytes) of the k-means seed protocol: samples to agent 0, seeds back."""
-    out = [(a, 0, per_agent * (desc_bytes + 8)) for a in range(1, m)]
-    out += [(0, b, m * dim * 8) for b in range(1, m)]
-    return out
-
-
-def balance(labels: np.ndarray, m: int) -> Sequence[int]:
-    """Features per cell."""
-    return np.bincount(labels, minlength=m).tolist()

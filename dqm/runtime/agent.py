@@ -117,9 +117,9 @@ class AgentProcess:
         return shard, np.concatenate([c["unit"] for c in ch])
 
     def _send_features(self, dst: int, phase: str, shard: dist.Shard, units: np.ndarray) -> int:
+        seq0 = self.bus.next_seq(dst, protocol.chunk_count(len(shard)))
         msgs = protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids,
-                                         shard.descriptors, shard.sigma, units, seq0=self.bus.next_seq(dst, 0))
-        seq0 = self.bus.next_seq(dst, len(msgs))
+                                         shard.descriptors, shard.sigma, units, seq0=seq0)
         for k, payload in enumerate(msgs):
             self.bus.send(dst, "features", payload, seq=seq0 + k)
         return len(msgs)

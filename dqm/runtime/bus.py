@@ -170,15 +170,18 @@ class Bus:
         self._next_seq[dst] += count
         return s
 
+    def _put(self, dst: int, kind: str, payload: bytes) -> None:
+        key = keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
+        self.session.put(key, payload, congestion_control=self._zenoh.CongestionControl.BLOCK)
+        self.meter.add(self.me, dst, kind, len(payload) + len(key))
+
     def send(self, dst: int, kind: str, payload: bytes, seq: Optional[int] = None) -> None:
         """Put a message to agent ``dst`` (or the coordinator, dst = -1), metered.
 
         With ``seq`` the message is kept until acknowledged and resent by
         :meth:`resend_due`.
         """
-        key = keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
-        self.session.put(key, payload, congestion_control=self._zenoh.CongestionControl.BLOCK)
-        self.meter.add(self.me, dst, kind, len(payload) + len(key))
+        self._put(dst, kind, payload)
         if seq is not None:
             self._pending[(dst, seq)] = (time.monotonic(), 1, payload, kind)
 
@@ -196,9 +199,7 @@ class Bus:
                 continue
             if tries >= max_tries:
                 raise TimeoutError(f"agent {dst} did not acknowledge message {seq} after {tries} sends")
-            key = keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
-            self.session.put(key, payload, congestion_control=self._zenoh.CongestionControl.BLOCK)
-            self.meter.add(self.me, dst, kind, len(payload) + len(key))
+            self._put(dst, kind, payload)
             self.meter.resent += 1
             self._pending[(dst, seq)] = (now, tries + 1, payload, kind)
 
