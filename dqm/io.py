@@ -78,13 +78,18 @@ def _atomic_savez(path: Path, arrays: dict) -> None:
         raise
 
 
-def save_features(path, fs: FeatureSet) -> None:
+def _feature_arrays(fs: FeatureSet) -> dict:
+    """The FEATURES arrays of a feature set (optional ones only when present)."""
     arrays = {"descriptors": fs.descriptors, "image_ids": np.asarray(fs.image_ids, np.int64)}
     for name in ("keypoints", "image_names", "point_ids"):
         v = getattr(fs, name)
         if v is not None:
             arrays[name] = np.asarray(v)
-    _atomic_savez(Path(path), arrays)
+    return arrays
+
+
+def save_features(path, fs: FeatureSet) -> None:
+    _atomic_savez(Path(path), _feature_arrays(fs))
 
 
 def load_features(path) -> FeatureSet:
@@ -114,16 +119,11 @@ def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = N
     params = {"rho": result.rho, "ratio_density": result.ratio_density, "kernel": result.kernel,
               "parent": result.parent_mode, "dqm_version": __version__}
     params.update(extra_params or {})
-    arrays = {
-        "descriptors": fs.descriptors, "image_ids": np.asarray(fs.image_ids, np.int64),
-        "labels": result.labels, "sigma": result.sigma, "density": result.density,
-        "parent": result.parent, "parent_distance": result.parent_distance,
-        "params": np.array(json.dumps(params)),
-    }
-    for name in ("keypoints", "image_names", "point_ids"):
-        v = getattr(fs, name)
-        if v is not None:
-            arrays[name] = np.asarray(v)
+    arrays = _feature_arrays(fs)
+    arrays.update(
+        labels=result.labels, sigma=result.sigma, density=result.density, parent=result.parent,
+        parent_distance=result.parent_distance, params=np.array(json.dumps(params)),
+    )
     _atomic_savez(Path(path), arrays)
 
 

@@ -87,3 +87,16 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
 
 def ack(job: str, src: int, dst: int, seq: int) -> bytes:
     return messages.encode("ack", job, src, seq=int(seq), dst=int(dst))
+
+
+def traffic_table(report: dict) -> str:
+    """Markdown tables of a traffic report (``links``: src, dst, bytes, messages; ``kinds``;
+    ``total_bytes``), the shape both the coordinator and the simulator produce."""
+    lines = ["| link | bytes | messages |", "|---|---|---|"]
+    for e in report["links"]:
+        lines.append(f"| {e['src']} -> {e['dst']} | {e['bytes']} | {e['messages']} |")
+    lines.append(f"| total | {report['total_bytes']} | {sum(e['messages'] for e in report['links'])} |")
+    lines += ["", "| kind | bytes | messages |", "|---|---|---|"]
+    for k, v in report["kinds"].items():
+        lines.append(f"| {k} | {v['bytes']} | {v['messages']} |")
+    return "\n".join(lines)

@@ -66,22 +66,22 @@ class Traffic:
             "total_bytes": self.total(), "total_messages": self.messages(),
         }
 
-    def table(self) -> str:
-        name = lambda i: "coord" if i == COORDINATOR else f"a{i}"  # noqa: E731
-        lines = ["| link | bytes | messages |", "|---|---|---|"]
-        links = defaultdict(lambda: [0, 0])
+    def report(self) -> dict:
+        """Per-link and per-kind totals in the runtime report's shape (dqm.protocol.traffic_table)."""
+        name = lambda i: "coordinator" if i == COORDINATOR else f"agent{i}"  # noqa: E731
+        links: Dict[Tuple[int, int], List[int]] = defaultdict(lambda: [0, 0])
         for (s, d, k), v in self.bytes.items():
             links[(s, d)][0] += v
             links[(s, d)][1] += self.count[(s, d, k)]
-        for (s, d), (b, c) in sorted(links.items()):
-            lines.append(f"| {name(s)} -> {name(d)} | {b} | {c} |")
-        lines.append(f"| total | {self.total()} | {self.messages()} |")
-        lines.append("")
-        lines.append("| kind | bytes | messages |")
-        lines.append("|---|---|---|")
-        for k, (b, c) in sorted(self.per_kind().items()):
-            lines.append(f"| {k} | {b} | {c} |")
-        return "\n".join(lines)
+        return {
+            "links": [{"src": name(s), "dst": name(d), "bytes": b, "messages": c}
+                      for (s, d), (b, c) in sorted(links.items())],
+            "kinds": {k: {"bytes": b, "messages": c} for k, (b, c) in sorted(self.per_kind().items())},
+            "total_bytes": self.total(),
+        }
+
+    def table(self) -> str:
+        return protocol.traffic_table(self.report())
 
 
 @dataclass

@@ -37,7 +37,7 @@ def run(args) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)  # clean up children on SIGTERM as on Ctrl-C
     from .. import evaluation, io, synthetic
-    from ..runtime.coordinator import traffic_table
+    from ..protocol import traffic_table
     from ..runtime.launcher import run_job
 
     truth = None

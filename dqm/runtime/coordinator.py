@@ -155,17 +155,6 @@ class Coordinator:
         }
 
 
-def traffic_table(report: dict) -> str:
-    lines = ["| link | bytes | messages |", "|---|---|---|"]
-    for e in report["links"]:
-        lines.append(f"| {e['src']} -> {e['dst']} | {e['bytes']} | {e['messages']} |")
-    lines.append(f"| total | {report['total_bytes']} | {sum(e['messages'] for e in report['links'])} |")
-    lines += ["", "| kind | bytes | messages |", "|---|---|---|"]
-    for k, v in report["kinds"].items():
-        lines.append(f"| {k} | {v['bytes']} | {v['messages']} |")
-    return "\n".join(lines)
-
-
 def main_coordinator(m: int, seed: int, partition: str, endpoint: str, job: str, out: Optional[str],
                      tls: Optional[dict] = None, tcp_port: Optional[int] = None,
                      ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
