@@ -31,7 +31,7 @@ from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 
-from . import native
+from . import density, native
 
 #: features per block; a tile is BLOCK x BLOCK (4 MiB of float32)
 BLOCK = 1024
@@ -87,11 +87,14 @@ class Augmented:
         return self.gamma * (self.norm2[rows] + self.max_norm2) + 1e-30
 
 
-def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 << 14) -> np.ndarray:
-    """Euclidean distances ``||X[a_k] - X[b_k]||`` by direct differences.
+def exact_sq_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 << 14) -> np.ndarray:
+    """Squared Euclidean distances ``||X[a_k] - X[b_k]||^2`` by direct differences.
 
     Exact for integer-valued descriptors (pass the compact integer copy,
-    :attr:`Augmented.exact`: integer differences and sums), float64 otherwise.
+    :attr:`Augmented.exact`: integer differences and sums). For float data the
+    float64 value depends only on the two vectors (not on the batch, the order
+    of ``a`` and ``b`` or the machine's other work), so every process that holds
+    both features computes the same bits; the distributed mode relies on that.
     """
     out = np.empty(len(a), dtype=np.float64)
     if X.dtype == np.uint8 and X.shape[1] <= 32768:
@@ -102,8 +105,14 @@ def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 
         wide = np.float64
     for s in range(0, len(a), chunk):
         diff = X[a[s:s + chunk]].astype(wide) - X[b[s:s + chunk]]
-        out[s:s + chunk] = np.sqrt(np.einsum("ij,ij->i", diff, diff).astype(np.float64))
+        diff *= diff
+        out[s:s + chunk] = diff.sum(axis=1)
     return out
+
+
+def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 << 14) -> np.ndarray:
+    """Euclidean distances ``||X[a_k] - X[b_k]||``: the square root of :func:`exact_sq_distances`."""
+    return np.sqrt(exact_sq_distances(X, a, b, chunk))
 
 
 def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
@@ -181,6 +190,7 @@ def kernel_pass(
     n_threads: Optional[int] = None,
     progress: ProgressFn = None,
     use_native: bool = True,
+    rows_limit: Optional[int] = None,
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over all pairs: approximate densities and candidate edges.
 
@@ -190,6 +200,11 @@ def kernel_pass(
     the edge search radius of feature ``j`` as a child.
 
     Each unordered block pair is computed once (one GEMM) and used both ways.
+    With ``rows_limit = L`` only pairs with at least one feature among the
+    first L are visited (a distributed agent: its own features first, then
+    copies of other cells' features, whose pairs among themselves are another
+    agent's work). The candidate edges are then exactly those pairs; the
+    approximate densities are not restricted and should not be used.
 
     Returns ``(density_others, density_error, child, cand)``: the density
     without the self term (float32 accuracy), a bound on its absolute error,
@@ -203,7 +218,8 @@ def kernel_pass(
     dens = np.zeros(n, dtype=np.float64)
     err = np.zeros(n, dtype=np.float64)
     starts = list(range(0, n, BLOCK))
-    tasks = [(a, b) for ia, a in enumerate(starts) for b in starts[ia:]]
+    limit = n if rows_limit is None else int(rows_limit)
+    tasks = [(a, b) for ia, a in enumerate(starts) if a < limit for b in starts[ia:]]
     local = threading.local()
 
     def work(task: Tuple[int, int]):
@@ -245,9 +261,13 @@ def kernel_pass(
     # error of a term is |dK/d(d2)| * |error of d2|
     err *= aug.gamma * (aug.norm2 + aug.max_norm2)
     err += 4.0 * _EPS32 * dens + 1e-300  # float32 rounding of the sums themselves
-    if child:
-        return dens, err, np.concatenate(child), np.concatenate(cand)
-    return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if not child:
+        return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    child_a, cand_a = np.concatenate(child), np.concatenate(cand)
+    if limit < n:  # blocks straddling the limit also met pairs beyond it: drop those
+        keep = (child_a < limit) | (cand_a < limit)
+        child_a, cand_a = child_a[keep], cand_a[keep]
+    return dens, err, child_a, cand_a
 
 
 def exact_density_others(
@@ -259,8 +279,14 @@ def exact_density_others(
 ) -> np.ndarray:
     """Float64 densities (without the self term) of the given targets over all contributors.
 
-    Uses a float64 GEMM on the centred data (error ~1e-16 |x|^2 on a squared
-    distance, far below any difference that decides the result).
+    Gaussian: a float64 GEMM on the centred data (error ~1e-16 |x|^2 on a
+    squared distance, far below any difference that decides the result).
+
+    Quadratic: the float64 GEMM only selects the contributors within reach
+    (with a rigorous margin); their terms come from exact squared distances and
+    are summed exactly (:mod:`dqm.core.density`), so the value is the correctly
+    rounded density, the same bits a distributed agent computes from its part
+    of the data.
     """
     targets = np.asarray(targets, dtype=np.int64)
     out = np.zeros(len(targets))
@@ -272,6 +298,8 @@ def exact_density_others(
     wc = np.asarray(weights, dtype=np.float64)[contrib]
     Xcon = Xc[contrib]
     ncon = nrm[contrib]
+    # bound on the float64 GEMM error of a squared distance, relative to |x|^2 + |y|^2
+    gamma64 = 4.0 * (aug.dim + 2) * float(np.finfo(np.float64).eps)
     step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
     for s in range(0, len(targets), step):
         t = targets[s:s + step]
@@ -280,17 +308,22 @@ def exact_density_others(
         d2 += nrm[t][:, None]
         d2 += ncon[None, :]
         np.maximum(d2, 0.0, out=d2)
-        d2 *= wc[None, :]
-        if kernel == "gaussian":
-            np.negative(d2, out=d2)
-            vals = np.exp(d2, out=d2)
-        else:
-            np.subtract(1.0, d2, out=d2)
-            vals = np.maximum(d2, 0.0, out=d2)
-        # exclude the self term
         pos = np.searchsorted(contrib, t)
         hit = (pos < len(contrib)) & (contrib[np.minimum(pos, len(contrib) - 1)] == t)
         rows = np.flatnonzero(hit)
-        vals[rows, pos[rows]] = 0.0
+        if kernel == "quadratic":
+            slack = gamma64 * (nrm[t][:, None] + ncon[None, :])
+            near = (d2 - slack) * wc[None, :] < 1.0
+            near[rows, pos[rows]] = False  # the self term
+            r, c = np.nonzero(near)
+            exact_d2 = exact_sq_distances(aug.exact, t[r], contrib[c])
+            sums = density.ExactSums(len(t))
+            sums.add_terms(r, density.quadratic_terms(exact_d2, wc[c]))
+            out[s:s + step] = sums.values()
+            continue
+        d2 *= wc[None, :]
+        np.negative(d2, out=d2)
+        vals = np.exp(d2, out=d2)
+        vals[rows, pos[rows]] = 0.0  # the self term
         out[s:s + step] = vals.sum(axis=1)
     return out
