@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
 from dqm import synthetic  # noqa: E402
-from dqm.core.distributed import DQMConfig  # noqa: E402
+from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.runtime.launcher import run_job  # noqa: E402
-from dqm.simulator import simulate  # noqa: E402
+from dqm.distributed import simulate  # noqa: E402
 
 
 def datasets(sizes, graf):

@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
-from dqm.core import partition  # noqa: E402
+from dqm.distributed import partition  # noqa: E402
 from dqm.evaluation import comembership_scores  # noqa: E402
-from dqm.simulator import DQMConfig, simulate  # noqa: E402
+from dqm.distributed import DQMConfig, simulate  # noqa: E402
 
 
 def data(seed: int):

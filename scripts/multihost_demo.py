@@ -29,11 +29,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dqm import io, synthetic  # noqa: E402
-from dqm.core.distributed import DQMConfig  # noqa: E402
-from dqm.protocol import traffic_table  # noqa: E402
+from dqm.distributed import DQMConfig  # noqa: E402
+from dqm.distributed.protocol import traffic_table  # noqa: E402
 from dqm.runtime.multihost import (NamespacesUnavailable, Namespaces, make_certs, netns_unavailable_reason,  # noqa: E402
                                    run_across_namespaces)
-from dqm.simulator import simulate  # noqa: E402
+from dqm.distributed import simulate  # noqa: E402
 
 
 def main(argv=None) -> int:

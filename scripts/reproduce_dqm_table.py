@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
 from dqm import datasets, evaluation, features  # noqa: E402
-from dqm.simulator import DQMConfig, simulate  # noqa: E402
+from dqm.distributed import DQMConfig, simulate  # noqa: E402
 
 
 def truly_contested(ref_labels, cells):
@@ -105,7 +105,7 @@ def figure(rows, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-    for mode, style in (("default", "o-"), ("paper", "s--")):
+    for mode, style in (("lean", "o-"), ("paper", "s--")):
         rs = [r for r in rows if r["mode"] == mode and r["halo"] == 1.0]
         if not rs:
             continue
@@ -127,7 +127,7 @@ def figure(rows, path):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--agents", default="1,2,3,4,5,6,7,8,9,10,15,20,25")
-    ap.add_argument("--modes", default="default,paper")
+    ap.add_argument("--modes", default="lean,paper")
     ap.add_argument("--halos", default="0.25", help="extra default-mode rows with these halo widths")
     ap.add_argument("--shared", default=str(ROOT.parent / "shared"))
     ap.add_argument("--out", default=str(ROOT / "docs"))
@@ -144,7 +144,7 @@ def main(argv=None):
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     for h in [float(x) for x in args.halos.split(",") if x]:
         for m in ms:
-            rows.append(row(X, ids, m, "default", ref_q, ref_g, halo=h))
+            rows.append(row(X, ids, m, "lean", ref_q, ref_g, halo=h))
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -9,11 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from dqm import messages
-from dqm.core.distributed import DQMConfig
-from dqm.runtime import keys
+from dqm.distributed import messages
+from dqm.distributed import DQMConfig
+from dqm.distributed import keys
 from dqm.runtime.launcher import run_job
-from dqm.simulator import simulate
+from dqm.distributed import simulate
 from dqm.synthetic import sift_like
 
 pytest.importorskip("zenoh")
@@ -38,10 +38,10 @@ def alive(pid):
         return False
 
 
-@pytest.mark.parametrize("partition", ["kmeans", "seeded"])
-def test_runtime_equals_simulator_and_meters_traffic(data, partition):
+@pytest.mark.parametrize("mode,partition", [("balanced", "kmeans"), ("balanced", "seeded"), ("lean", "kmeans")])
+def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition):
     X, ids = data
-    cfg = DQMConfig(agents=3, seed=2, partition=partition, job=f"eq-{partition}")
+    cfg = DQMConfig(agents=3, seed=2, partition=partition, mode=mode, job=f"eq-{mode}-{partition}")
     rep = run_job(X, ids, cfg, timeout_s=120)
     sim = simulate(X, ids, cfg)
     np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
@@ -51,11 +51,16 @@ def test_runtime_equals_simulator_and_meters_traffic(data, partition):
     wire = rep["wire_bytes_received_by_router"]
     assert wire is not None and wire > 0
     assert abs(rep["total_bytes"] - wire) / wire < 0.10, (rep["total_bytes"], wire)
-    # the feature traffic the runtime sent is what the simulator metered
-    assert rep["kinds"]["features"]["messages"] == sim.traffic.messages("features")
-    assert rep["kinds"]["minima"]["messages"] == 3 * 2
+    # the runtime sent exactly the messages the simulator metered, kind by kind, byte for byte
+    # (the agents' timing reports to the coordinator are the only messages the simulator leaves out)
+    sim_kinds = sim.traffic.per_kind()
+    run_kinds = {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k != "stats"}
+    assert run_kinds == sim_kinds
+    assert rep["kinds"]["stats"]["messages"] == 3
     links = {(e["src"], e["dst"]) for e in rep["links"]}
     assert ("coordinator", "agent0") in links and ("agent2", "coordinator") in links
+    if mode == "balanced":
+        assert all(st["consistency_failures"] == 0 for st in rep["per_agent"].values())
 
 
 def test_no_router_gives_a_clear_error(tmp_path):
@@ -73,8 +78,11 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
-@pytest.mark.parametrize("state", ["wait_start", "wait_routed", "wait_minima", "wait_handdown", "wait_finish"])
-def test_agent_killed_in_each_phase(data, tmp_path, state):
+@pytest.mark.parametrize("mode,state", [
+    ("balanced", "wait_start"), ("balanced", "wait_seeds"), ("balanced", "wait_routed"), ("balanced", "wait_ghost"),
+    ("balanced", "wait_component"), ("balanced", "wait_finish"), ("lean", "wait_minima"), ("lean", "wait_handdown"),
+])
+def test_agent_killed_in_each_phase(data, tmp_path, mode, state):
     """SIGKILL an agent while it sits in a phase: the job fails with a clear message fast, nothing hangs."""
     X, ids = data
     victim = 1
@@ -83,7 +91,7 @@ def test_agent_killed_in_each_phase(data, tmp_path, state):
     started = {}
     outcome = {}
 
-    cfg = DQMConfig(agents=3, seed=1, job=f"kill-{state}")
+    cfg = DQMConfig(agents=3, seed=1, mode=mode, job=f"kill-{mode}-{state}")
 
     def go():
         try:
@@ -136,7 +144,8 @@ def _inject(endpoint, job, n_agents, dim, ready):
                     sigma=np.ones(2), unit=np.zeros(2, np.int64))
         bad = [
             b"\x00garbage\xff",
-            messages.encode("start", job, -1, seed=1, agents=n_agents, mode="kmeans").replace(b"\xa1v\x01", b"\xa1v\x07"),
+            messages.encode("start", job, -1, seed=1, agents=n_agents, mode="kmeans").replace(
+                b"\xa1v" + bytes([messages.VERSION]), b"\xa1v\x7f"),
             messages.encode("features", job, 0, descriptors=np.zeros((2, dim // 2), np.uint8), **good),
             messages.encode("features", "another-job", 0, descriptors=np.zeros((2, dim), np.uint8), **good),
             b"\x91" + b"\x00" * (3 << 20),  # larger than the agents' limit
@@ -180,7 +189,7 @@ def test_hostile_messages_are_rejected_and_counted(data):
 
 def test_sigterm_to_dqm_run_leaves_no_process(tmp_path):
     marker = tmp_path / "paused"
-    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_minima", DQM_FAULT_MARKER=str(marker))
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_bounds", DQM_FAULT_MARKER=str(marker))
     p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "sigterm-test"],
                          env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from dqm import synthetic
-from dqm.core.distributed import DQMConfig
+from dqm.distributed import DQMConfig
 from dqm.runtime.multihost import (Namespaces, NamespacesUnavailable, make_certs, netns_unavailable_reason,
                                    run_across_namespaces)
-from dqm.simulator import simulate
+from dqm.distributed import simulate
 
 
 @pytest.fixture(scope="module")

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from dqm import synthetic
-from dqm.core.distributed import DQMConfig
+from dqm.distributed import DQMConfig
 from dqm.runtime.launcher import Processes, free_port, write_agent_files
 from dqm.runtime.multihost import finish_job, make_certs, start_job, start_router, tls_options as tls_args
-from dqm.simulator import simulate
+from dqm.distributed import simulate
 
 M = 3
 

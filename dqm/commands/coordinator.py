@@ -4,7 +4,7 @@ partition seed integer, collects results, writes the report (JSON).
     dqm coordinator --agents 4 --seed 1 --connect tcp/ROUTER:7447 --job J --out report.json
 """
 from .runtime_options import add_tls, tls_from
-from ..core.partition import PARTITION_MODES
+from ..distributed.partition import PARTITION_MODES
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"
@@ -25,7 +25,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from ..core.partition import check_agents, check_seed
+    from ..distributed.partition import check_agents, check_seed
     from ..runtime.bus import RouterUnreachable
     from ..runtime.coordinator import main_coordinator
     from ..validation import InputError

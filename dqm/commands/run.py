@@ -37,7 +37,7 @@ def run(args) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)  # clean up children on SIGTERM as on Ctrl-C
     from .. import evaluation, io, synthetic
-    from ..protocol import traffic_table
+    from ..distributed.protocol import traffic_table
     from ..runtime.launcher import run_job
 
     truth = None
@@ -70,7 +70,7 @@ def run(args) -> int:
              if rep.get("wire_bytes_received_by_router") else "") + ".")
     print(traffic_table(rep))
     if args.check:
-        from ..simulator import simulate
+        from ..distributed.simulator import simulate
 
         sim = simulate(X, ids, cfg)
         same = np.array_equal(sim.labels, labels)

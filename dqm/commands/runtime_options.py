@@ -4,26 +4,37 @@ from __future__ import annotations
 from typing import Optional
 
 from ..core.clustering import DEFAULT_RHO, KERNELS
-from ..core.distributed import DQM_MODES, DQMConfig
-from ..core.partition import PARTITION_MODES
+from ..distributed.config import DEFAULT_MODE, DEFAULT_SKETCH_DIMS, GHOST_RULES, MODES, DQMConfig
+from ..distributed.partition import PARTITION_MODES
 
 
 def add_algorithm(p) -> None:
     g = p.add_argument_group("algorithm (must be the same for every agent of a job)")
-    g.add_argument("--mode", choices=DQM_MODES, default="default", help="default (improved) or paper (literal)")
+    g.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,
+                   help="balanced (exact, work spread evenly), lean (exact cascade, fewer bytes at small M, work "
+                        "gathers at agent 0) or paper (the seed paper's literal procedure); docs/distributed.md")
     g.add_argument("--partition", choices=PARTITION_MODES, default="kmeans")
     g.add_argument("--rho", type=float, default=DEFAULT_RHO)
     g.add_argument("--kernel", choices=KERNELS, default="quadratic")
-    g.add_argument("--halo", type=float, default=1.0, help="contested-test width factor (1 = safe)")
-    g.add_argument("--samples", type=int, default=64, help="k-means sample descriptors per agent")
+    g.add_argument("--halo", type=float, default=1.0, help="lean/paper: contested-test width factor (1 = safe)")
+    g.add_argument("--samples", type=int, default=64, help="set-up sample descriptors per agent")
     g.add_argument("--seed-norm", type=float, default=512.0, help="descriptor norm for seeded seeds (SIFT: 512)")
+    g.add_argument("--cell-weights", dest="cell_weights", action="store_true", default=None,
+                   help="balance the cells with power-diagram weights (default: on in balanced mode)")
+    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false")
+    g.add_argument("--ghost-rule", choices=GHOST_RULES, default="one-way",
+                   help="balanced: one-way (default) or two-way (the plain bisector halo, for comparison)")
+    g.add_argument("--sketch-dims", type=int, default=DEFAULT_SKETCH_DIMS,
+                   help="balanced: dimension of the lower-bound sketch pre-filter (0 = off)")
+    g.add_argument("--balance-rounds", type=int, default=8, help="most rounds of cell-weight refinement")
     g.add_argument("--job", default="job", help="job id; keeps concurrent jobs on one router apart")
 
 
 def config_from(args, agents: int, seed: int = 0) -> DQMConfig:
     return DQMConfig(agents=agents, seed=seed, partition=args.partition, mode=args.mode, rho=args.rho,
                      kernel=args.kernel, samples_per_agent=args.samples, halo=args.halo,
-                     seed_norm=args.seed_norm, job=args.job)
+                     seed_norm=args.seed_norm, job=args.job, cell_weights=args.cell_weights,
+                     ghost_rule=args.ghost_rule, sketch_dims=args.sketch_dims, balance_rounds=args.balance_rounds)
 
 
 def add_tls(p) -> None:

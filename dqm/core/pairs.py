@@ -295,6 +295,8 @@ def exact_density_others(
     Xc = aug.Xc
     nrm = aug.norm2
     contrib = np.flatnonzero(active > 0)
+    if len(contrib) == 0:  # every sigma is 0: no kernel contributes (duplicates are counted by the caller)
+        return out
     wc = np.asarray(weights, dtype=np.float64)[contrib]
     Xcon = Xc[contrib]
     ncon = nrm[contrib]

@@ -1,5 +1,5 @@
 """The multi-process runtime over eclipse-zenoh: bus, agent, coordinator, router, launcher.
 
 A thin shell around the algorithm core: every agent process runs
-dqm.core.distributed.AgentCore, exactly as the in-process simulator does.
+dqm.distributed (BalancedCore, CascadeCore), exactly as the in-process simulator does.
 """

@@ -2,8 +2,10 @@
 
 It starts with the features of its own images, declares its inbox and its
 liveliness token, waits for the coordinator's seed integer, and then runs the
-protocol of dqm.protocol with the algorithm of dqm.core.distributed.AgentCore
-(the same code the simulator runs). All waiting is bounded; a vanished
+protocol of dqm.distributed.protocol with the same code the simulator runs:
+the set-up of dqm.distributed.seeding, then the balanced rounds
+(dqm.distributed.balanced.BalancedCore) or the lean / paper cascade
+(dqm.distributed.cascade.CascadeCore). All waiting is bounded; a vanished
 coordinator or an abort message ends the process with a clear error.
 """
 from __future__ import annotations
@@ -12,16 +14,19 @@ import os
 import signal
 import sys
 import time
-from collections import defaultdict
-from typing import Dict, List, Optional, Tuple
+from collections import defaultdict, deque
+from typing import Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .. import messages, protocol
-from ..core import distributed as dist
-from ..core import partition
-from . import keys
+from ..distributed import cascade, messages, partition, protocol, seeding
+from ..distributed.balanced import ROUNDS, BalancedCore
+from ..distributed.config import DQMConfig
+from ..distributed.shard import Shard
+from ..distributed import keys
 from .bus import Bus, open_client
+
+LEADER = seeding.LEADER
 
 
 class JobAborted(RuntimeError):
@@ -49,30 +54,42 @@ def _on_sigterm(signum, frame):  # pragma: no cover - exercised by process tests
     raise Terminated()
 
 
+#: message kinds that arrive once per sender and step (kept in arrival order per sender)
+_SINGLE = ("sample", "seeds", "fill", "counts", "weights", "minima")
+
+
 class AgentProcess:
-    def __init__(self, me: int, cfg: dist.DQMConfig, bus: Bus, ids: np.ndarray, image_ids: np.ndarray,
+    """The message loop around one agent's cores. States (for logs and fault tests):
+    ``wait_start``, ``wait_seeds``, ``wait_fill``, ``wait_weights``, ``wait_routed``, then
+    ``wait_<round>`` for every balanced round (or ``wait_minima``, ``wait_handdown`` in the
+    cascade), ``wait_acks``, ``wait_finish``."""
+
+    def __init__(self, me: int, cfg: DQMConfig, bus: Bus, ids: np.ndarray, image_ids: np.ndarray,
                  descriptors: np.ndarray, phase_timeout_s: float = 120.0, log=None):
         self.me = me
         self.cfg = cfg
         self.m = cfg.agents
         self.bus = bus
+        self.desc = protocol.wire_descriptors(descriptors)
+        self.dim = self.desc.shape[1]
         self.ids = np.asarray(ids, np.int64)
         self.image_ids = np.asarray(image_ids, np.int64)
-        self.desc = protocol.wire_descriptors(descriptors)
-        self.core = dist.AgentCore(me, cfg)
         self.state = "wait_start"
         self.phase_timeout_s = phase_timeout_s
         self.phase_started = time.monotonic()
         self.log = log or (lambda text: print(f"[agent {me}] {text}", file=sys.stderr, flush=True))
         self.seed: Optional[int] = None
-        self.seeds: Optional[np.ndarray] = None
-        self.samples: Dict[int, np.ndarray] = {}
+        self.source: Optional[seeding.SourceSide] = None
+        self.leader: Optional[seeding.Leader] = None
+        self.singles: Dict[Tuple[str, int], Deque[dict]] = defaultdict(deque)
+        self.parts: Dict[Tuple[str, int], Dict[int, dict]] = defaultdict(dict)
         self.chunks: Dict[Tuple[int, str], List[dict]] = defaultdict(list)
         self.ends: Dict[Tuple[int, str], dict] = {}
-        self.minima_rows: Dict[int, np.ndarray] = {}
         self.finished = False
-        _fault_hook(me, "wait_start")
         self.times: Dict[str, float] = {}
+        self.cpu0 = time.process_time()
+        self.stats: Dict[str, float] = {}
+        _fault_hook(me, "wait_start")
 
     # ------------------------------------------------------------------ messages
     def handle(self, msg: dict) -> None:
@@ -83,40 +100,62 @@ class AgentProcess:
             if msg["mode"] != self.cfg.partition:
                 raise JobAborted(f"coordinator uses partition {msg['mode']!r}, this agent {self.cfg.partition!r}")
             self.seed = partition.check_seed(msg["seed"])
-        elif kind == "sample" and self.me == 0 and src >= 0:
-            self.samples[src] = msg["descriptors"]
-        elif kind == "seeds" and src == 0:
-            self.seeds = np.array(msg["seeds"], dtype=np.float64)
+        elif kind in _SINGLE and src >= 0:
+            self.singles[(kind, src)].append(msg)
+        elif "parts" in msg and src >= 0:
+            self.parts[(kind, src)][msg["part"]] = msg
         elif kind == "features" and src >= 0:
             self.chunks[(src, msg["phase"])].append(msg)
         elif kind == "phase_end" and src >= 0 and msg["dst"] == self.me:
             self.ends[(src, msg["phase"])] = msg
-        elif kind == "minima" and src >= 0:
-            self.minima_rows[src] = np.array(msg["values"], dtype=np.float64)
         elif kind == "abort" and src == -1:
             raise JobAborted(f"coordinator aborted the job: {msg['reason']}")
         elif kind == "finish" and src == -1:
             self.finished = True
 
+    def _have(self, kind: str, senders) -> bool:
+        return all(self.singles[(kind, a)] for a in senders)
+
+    def _take(self, kind: str, senders) -> Dict[int, dict]:
+        return {a: self.singles[(kind, a)].popleft() for a in senders}
+
+    def _have_parts(self, kind: str, senders) -> bool:
+        for a in senders:
+            got = self.parts.get((kind, a))
+            if not got or len(got) != next(iter(got.values()))["parts"]:
+                return False
+        return True
+
+    def _take_parts(self, kind: str, senders) -> Dict[int, dict]:
+        return {a: protocol.merge_parts(kind, list(self.parts.pop((kind, a)).values())) for a in senders}
+
+    def _send_parts(self, kind: str, dst: int, payload: dict) -> None:
+        k = protocol.part_count(kind, payload)
+        seq0 = self.bus.next_seq(dst, k)
+        for j, msg in enumerate(protocol.data_messages(kind, self.cfg.job, self.me, payload, seq0=seq0)):
+            self.bus.send(dst, kind, msg, seq=seq0 + j)
+
+    def _send_single(self, kind: str, dst: int, **fields) -> None:
+        self.bus.send(dst, kind, messages.encode(kind, self.cfg.job, self.me, **fields))
+
     def _complete(self, src: int, phase: str) -> bool:
         end = self.ends.get((src, phase))
         return end is not None and len(self.chunks[(src, phase)]) == end["messages"]
 
-    def _shard_from(self, src: int, phase: str) -> Tuple[dist.Shard, np.ndarray]:
+    def _shard_from(self, src: int, phase: str) -> Tuple[Shard, np.ndarray]:
         ch = sorted(self.chunks[(src, phase)], key=lambda c: c["seq"])
-        dim = self.desc.shape[1]
         if not ch:
-            return dist.Shard.empty(dim, self.desc.dtype), np.zeros(0, np.int64)
+            return Shard.empty(self.dim, self.desc.dtype), np.zeros(0, np.int64)
         ids = np.concatenate([c["ids"] for c in ch])
         desc = np.concatenate([c["descriptors"] for c in ch])
         if desc.dtype != self.desc.dtype:
             raise JobAborted(f"agent {src} sent {desc.dtype} descriptors, this agent holds {self.desc.dtype}")
-        shard = dist.Shard(ids, np.concatenate([c["image_ids"] for c in ch]), desc,
-                           np.concatenate([c["sigma"] for c in ch]),
-                           partition.route(desc.astype(np.float64), self.seeds))
+        shard = Shard(ids, np.concatenate([c["image_ids"] for c in ch]), desc,
+                      np.concatenate([c["sigma"] for c in ch]),
+                      partition.route(desc.astype(np.float64), self.source.seeds, self.source.weights))
         return shard, np.concatenate([c["unit"] for c in ch])
 
-    def _send_features(self, dst: int, phase: str, shard: dist.Shard, units: np.ndarray) -> int:
+    def _send_features(self, dst: int, phase: str, shard: Shard, units: np.ndarray) -> int:
         seq0 = self.bus.next_seq(dst, protocol.chunk_count(len(shard)))
         msgs = protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids,
                                          shard.descriptors, shard.sigma, units, seq0=seq0)
@@ -126,56 +165,142 @@ class AgentProcess:
 
     def _enter(self, state: str) -> None:
         now = time.monotonic()
-        self.times[f"time_{self.state}"] = now - self.phase_started
+        self.times[f"time_{self.state}"] = self.times.get(f"time_{self.state}", 0.0) + now - self.phase_started
         self.state = state
         self.phase_started = now
         _fault_hook(self.me, state)
 
-    # ------------------------------------------------------------------ protocol steps
-    def advance(self) -> None:
+    def _others(self) -> List[int]:
+        return [b for b in range(self.m) if b != self.me]
+
+    # ------------------------------------------------------------------ set-up (dqm.distributed.seeding)
+    def _after_seeds(self) -> None:
+        src = self.source
+        if src.need_fill:
+            if self.me != LEADER:
+                self._send_parts("sigmas", LEADER, src.sigmas_payload())
+            self._enter("wait_fill")
+        else:
+            self._after_fill()
+
+    def _after_fill(self) -> None:
+        if self.source.final:
+            self._route()
+            return
+        counts = self.source.counts_payload()
+        if self.me == LEADER:
+            self.own_counts = counts
+        else:
+            self._send_single("counts", LEADER, **counts)
+        self._enter("wait_weights")
+
+    def _route(self) -> None:
+        parts = self.source.route()
+        self.own_part = parts[self.me]
+        for b in self._others():
+            k = self._send_features(b, "route", parts[b], np.full(len(parts[b]), -1))
+            self.bus.send(b, "phase_end", protocol.phase_end(self.cfg.job, self.me, b, "route", k, len(parts[b])))
+        self._enter("wait_routed")
+
+    def _setup_step(self) -> bool:
         s = self.state
         if s == "wait_start" and self.seed is not None:
-            if self.cfg.partition == "seeded":
-                self.seeds = partition.seeded_seeds(self.seed, self.m, self.desc.shape[1], norm=self.cfg.seed_norm)
-                self._enter("route")
+            self.cfg = self.cfg.but(seed=self.seed)  # the one integer comes from the coordinator
+            if self.me == LEADER:
+                self.leader = seeding.Leader(self.cfg, self.dim)
+            self.source = seeding.SourceSide(self.me, self.cfg, self.ids, self.image_ids, self.desc)
+            sample = self.source.sample_payload()
+            if self.me == LEADER:
+                self.own_sample = sample
             else:
-                pick = partition.sample_for_seeds(self.desc, self.ids, self.seed, self.cfg.samples_per_agent)
-                if self.me == 0:
-                    self.samples[0] = self.desc[pick]
-                    self._enter("collect_samples")
-                else:
-                    self.bus.send(0, "sample", messages.encode("sample", self.cfg.job, self.me,
-                                                               descriptors=np.ascontiguousarray(self.desc[pick])))
-                    self._enter("wait_seeds")
-        elif s == "collect_samples" and len(self.samples) == self.m:
-            pooled = np.concatenate([self.samples[a] for a in range(self.m)]).astype(np.float64)
-            self.seeds = partition.kmeans_seeds(pooled, self.m, self.seed)
-            payload = messages.encode("seeds", self.cfg.job, 0, seeds=self.seeds)
-            for b in range(1, self.m):
-                self.bus.send(b, "seeds", payload)
-            self._enter("route")
-        elif s == "wait_seeds" and self.seeds is not None:
-            self._enter("route")
-        elif s == "route":
-            parts = self.core.route(self.ids, self.image_ids, self.desc, self.seeds)
-            self.own_part = parts[self.me]
-            for b in range(self.m):
-                if b != self.me:
-                    k = self._send_features(b, "route", parts[b], np.full(len(parts[b]), -1))
-                    self.bus.send(b, "phase_end", protocol.phase_end(self.cfg.job, self.me, b, "route", k,
-                                                                     len(parts[b])))
-            self._enter("wait_routed")
-        elif s == "wait_routed" and all(self._complete(b, "route") for b in range(self.m) if b != self.me):
-            parts = [self.own_part] + [self._shard_from(b, "route")[0] for b in range(self.m) if b != self.me]
-            self.core.set_shard(parts, self.seeds)
-            row = self.core.local_step()
-            self.minima_rows[self.me] = row
-            payload = messages.encode("minima", self.cfg.job, self.me, values=row)
-            for b in range(self.m):
-                if b != self.me:
-                    self.bus.send(b, "minima", payload)
-            self._enter("wait_minima")
-        elif s == "wait_minima" and len(self.minima_rows) == self.m:
+                self._send_single("sample", LEADER, **sample)
+            self._enter("wait_seeds")
+        elif s == "wait_seeds" and self.me == LEADER and self._have("sample", self._others()):
+            samples = {a: {"descriptors": p["descriptors"], "lonely": p["lonely"]}
+                       for a, p in self._take("sample", self._others()).items()}
+            samples[LEADER] = self.own_sample
+            payload = self.leader.seeds_payload(samples)
+            for b in self._others():
+                self._send_single("seeds", b, **payload)
+            self.source.on_seeds(payload)
+            self._after_seeds()
+        elif s == "wait_seeds" and self.me != LEADER and self._have("seeds", [LEADER]):
+            self.source.on_seeds(self._take("seeds", [LEADER])[LEADER])
+            self._after_seeds()
+        elif s == "wait_fill" and self.me == LEADER and self._have_parts("sigmas", self._others()):
+            sig = self._take_parts("sigmas", self._others())
+            sig[LEADER] = self.source.sigmas_payload()
+            value = self.leader.fill_value(sig)
+            for b in self._others():
+                self._send_single("fill", b, value=value)
+            self.source.on_fill(value)
+            self._after_fill()
+        elif s == "wait_fill" and self.me != LEADER and self._have("fill", [LEADER]):
+            self.source.on_fill(self._take("fill", [LEADER])[LEADER]["value"])
+            self._after_fill()
+        elif s == "wait_weights" and self.me == LEADER and self._have("counts", self._others()):
+            counts = self._take("counts", self._others())
+            counts[LEADER] = self.own_counts
+            payload = self.leader.weights_payload(counts)
+            for b in self._others():
+                self._send_single("weights", b, **payload)
+            self.source.on_weights(payload)
+            self._after_fill()
+        elif s == "wait_weights" and self.me != LEADER and self._have("weights", [LEADER]):
+            self.source.on_weights(self._take("weights", [LEADER])[LEADER])
+            self._after_fill()
+        else:
+            return False
+        return True
+
+    # ------------------------------------------------------------------ after routing
+    def _routed(self) -> None:
+        parts = [self.own_part] + [self._shard_from(b, "route")[0] for b in self._others()]
+        seeds, weights = self.source.seeds, self.source.weights
+        if self.cfg.mode == "balanced":
+            self.core = BalancedCore(self.me, self.cfg, self.source.sketch_space())
+            self.core.set_shard(parts, seeds, weights)
+            self._balanced_step({})
+            return
+        self.core = cascade.CascadeCore(self.me, self.cfg)
+        self.core.set_shard(parts, seeds, weights)
+        row = self.core.local_step()
+        self.minima_rows = {self.me: row}
+        for b in self._others():
+            self._send_single("minima", b, values=row)
+        self._enter("wait_minima")
+
+    def _balanced_step(self, inputs: Dict[int, dict]) -> None:
+        r = self.core.round
+        if r == len(ROUNDS):
+            ids, labels = self.core.finish(inputs)
+            self._result(ids, labels, self.core.stats)
+            return
+        name = ROUNDS[r]
+        for dst, payload in self.core.step(inputs).items():
+            self._send_parts(name, dst, payload)
+        self._enter(f"wait_{name}")
+
+    def _result(self, ids: np.ndarray, labels: np.ndarray, stats: Dict[str, float]) -> None:
+        self.bus.send(-1, "result", messages.encode("result", self.cfg.job, self.me, ids=ids,
+                                                    labels=labels.astype(np.int64)))
+        self.stats.update({k: float(v) for k, v in stats.items()})
+        self._enter("wait_acks")
+
+    def advance(self) -> None:
+        s = self.state
+        if self._setup_step():
+            return
+        if s == "wait_routed" and all(self._complete(b, "route") for b in self._others()):
+            self._routed()
+        elif s.startswith("wait_") and s[5:] in ROUNDS and self.cfg.mode == "balanced":
+            name = s[5:]
+            senders = self.core.senders(name)
+            if self._have_parts(name, senders):
+                self._balanced_step(self._take_parts(name, senders))
+        elif s == "wait_minima" and self._have("minima", self._others()):
+            for a, msg in self._take("minima", self._others()).items():
+                self.minima_rows[a] = np.array(msg["values"], dtype=np.float64)
             self.core.set_minima(np.stack([self.minima_rows[a] for a in range(self.m)]))
             self._enter("wait_handdown")
         elif s == "wait_handdown" and all(self._complete(b, "handdown") for b in range(self.me + 1, self.m)):
@@ -192,18 +317,16 @@ class AgentProcess:
                 self.bus.send(b, "phase_end", protocol.phase_end(
                     self.cfg.job, self.me, b, "handdown", k, len(sh) if sh is not None else 0, out.moved))
             labels = out.final_result.labels if out.final_result is not None else np.zeros(0, np.int64)
-            self.bus.send(-1, "result", messages.encode("result", self.cfg.job, self.me, ids=out.final.ids,
-                                                        labels=labels.astype(np.int64)))
-            self._enter("wait_acks")
-            self.stats = {
+            self._result(out.final.ids, labels, {
                 "features_routed": float(len(self.core.shard)), "features_final": float(len(out.final)),
                 "time_cluster": self.core.time_cluster, "time_boundary": self.core.time_boundary,
                 "arrival_check_failures": float(out.arrival_failures),
                 "handed_down": float(sum(len(v[0]) for v in out.sends.values())),
-            }
+            })
         elif s == "wait_acks" and self.bus.unacknowledged() == 0:
             stats = dict(self.stats)
             stats.update(self.times)
+            stats["cpu_s"] = time.process_time() - self.cpu0
             for reason, count in self.bus.meter.rejected.items():
                 stats[f"rejected:{reason}"] = float(count)
             stats["duplicates"] = float(self.bus.meter.duplicates)
@@ -257,7 +380,7 @@ def load_agent_features(paths, me: int):
     return np.concatenate(ids), np.concatenate(imgs), np.concatenate(descs)
 
 
-def main_agent(me: int, cfg: dist.DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,
+def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,
                connect_timeout_s: float = 5.0, phase_timeout_s: float = 120.0,
                max_message_bytes: int = messages.MAX_MESSAGE_BYTES) -> int:
     """Entry point of ``dqm agent``: returns the process exit code."""

@@ -6,8 +6,9 @@ Facts this relies on (docs/runtime.md, shared/notes/zenoh-facts.md):
   scouting and gossip are off; shared memory is off so that bytes on the wire
   are what we count;
 * puts use CongestionControl.BLOCK (the default DROP loses messages silently);
-  on top, ``features`` chunks carry sequence numbers, are acknowledged and are
-  resent until acknowledged, and receivers drop duplicates;
+  on top, every bulk message (``features`` chunks, the parts of the balanced
+  rounds) carries a sequence number, is acknowledged and resent until
+  acknowledged, and receivers drop duplicates;
 * callbacks only push to a queue; all work happens in the process's own thread;
 * the session is closed in ``close()`` (called from ``finally``): a session
   with Python callbacks left open hangs the interpreter at exit.
@@ -21,8 +22,8 @@ import time
 from collections import defaultdict
 from typing import Dict, List, Optional, Tuple
 
-from .. import messages
-from . import keys
+from ..distributed import messages
+from ..distributed import keys
 
 ROUTER_RETRY_S = 5.0
 
@@ -219,7 +220,7 @@ class Bus:
             self.meter.rejected[reason[:80]] += 1
             return None
         msg["_bytes"] = len(raw)
-        if msg["kind"] == "features":
+        if "seq" in msg and msg["kind"] != "ack":
             key = (msg["src"], msg["seq"])
             # acknowledge every copy (the first ack may have been lost), process once
             self.send(msg["src"], "ack", messages.encode("ack", self.job, self.me, seq=msg["seq"], dst=msg["src"]))

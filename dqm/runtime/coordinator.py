@@ -16,9 +16,9 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from .. import messages
+from ..distributed import messages
 from ..core.tree import canonical_labels
-from . import keys
+from ..distributed import keys
 from .agent import Terminated, _on_sigterm
 from .bus import Bus, open_client
 

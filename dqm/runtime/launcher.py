@@ -19,9 +19,9 @@ from typing import List, Optional
 
 import numpy as np
 
-from .. import protocol
-from ..core.distributed import DQMConfig
-from ..simulator import image_owners
+from ..distributed import protocol
+from ..distributed.config import DQMConfig
+from ..distributed.simulator import image_owners
 
 
 def free_port() -> int:
@@ -58,9 +58,14 @@ def write_agent_files(descriptors, image_ids, m: int, workdir: Path) -> List[Pat
 
 
 def algorithm_args(cfg: DQMConfig) -> List[str]:
-    return ["--mode", cfg.mode, "--partition", cfg.partition, "--rho", repr(cfg.rho), "--kernel", cfg.kernel,
+    """Command-line options that give an agent process the same configuration."""
+    args = ["--mode", cfg.mode, "--partition", cfg.partition, "--rho", repr(cfg.rho), "--kernel", cfg.kernel,
             "--halo", repr(cfg.halo), "--samples", str(cfg.samples_per_agent), "--seed-norm", repr(cfg.seed_norm),
-            "--job", cfg.job]
+            "--ghost-rule", cfg.ghost_rule, "--sketch-dims", str(cfg.sketch_dims),
+            "--balance-rounds", str(cfg.balance_rounds), "--job", cfg.job]
+    if cfg.cell_weights is not None:
+        args.append("--cell-weights" if cfg.cell_weights else "--no-cell-weights")
+    return args
 
 
 class Processes:

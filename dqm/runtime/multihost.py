@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
 
-from ..core.distributed import DQMConfig
+from ..distributed.config import DQMConfig
 from .launcher import Processes, algorithm_args, wait_listening, write_agent_files
 
 SUBNET = "10.213"

@@ -1,79 +1,38 @@
-"""Distributed QuickMatch (Serlin et al.): the steps one agent runs on its own data.
+"""The hand-down cascade (lean and paper modes): the steps one agent runs on its own data.
 
-Pure functions on a :class:`Shard` (the features an agent holds); no I/O. The
-in-process simulator (dqm.simulator) and the zenoh runtime (dqm.runtime) call
+Pure functions on a :class:`~dqm.distributed.shard.Shard` (the features an
+agent holds); no I/O. The in-process simulator and the zenoh runtime call
 exactly these, so they cannot drift apart.
 
-Protocol (m agents, agent i owns Voronoi cell i of the seeds):
+Protocol (m agents, agent i owns cell i of the seeds), after the set-up and
+routing shared with the balanced mode (dqm.distributed.protocol):
 
-1. seeds from one integer (dqm.core.partition);
-2. routing: every agent sends each of its source features to the agent of its
-   cell. In the default mode the source agent, which holds whole images, first
-   computes the exact distinctiveness sigma of its features and sends it along;
-   the paper mode recomputes sigma inside each cell (``per-agent sigma``);
-3. every agent clusters its cell with the finite (quadratic) kernel;
-4. boundary distances: bisector distances of held features to all cells; the
+1. every agent clusters its cell with the finite (quadratic) kernel. Lean mode
+   uses the exact sigma computed at the source (which holds whole images);
+   paper mode recomputes sigma inside each cell (``per-agent sigma``);
+2. boundary distances: bisector distances of held features to all cells; the
    exchanged minima ``e[a, i]`` are broadcast (m - 1 scalars per agent);
-5. hand-down cascade from agent m-1 to agent 0: agent a re-clusters what it
+3. hand-down cascade from agent m-1 to agent 0: agent a re-clusters what it
    holds plus what higher agents handed it, tests contested features against
    lower agents, hands every unit with a contested feature to the lowest such
    agent (the receiver checks on arrival that it is that agent), tells the
    lower agents which cells' features went where, and re-clusters the rest:
-   its final clusters. Default mode adds the follow rule: a feature contested
+   its final clusters. Lean mode adds the follow rule: a feature contested
    with a cell whose features were handed further down follows them.
 """
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from . import boundary, contested, pairs
-from .clustering import DEFAULT_RHO, QuickMatchResult, distinctiveness, quickmatch
-
-DQM_MODES = ("default", "paper")
-
-
-@dataclass
-class Shard:
-    """Features held by one agent: global ids, image ids, descriptors, sigma, cell, unit."""
-
-    ids: np.ndarray
-    image_ids: np.ndarray
-    descriptors: np.ndarray
-    sigma: np.ndarray
-    cells: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    @classmethod
-    def empty(cls, dim: int, dtype=np.uint8) -> "Shard":
-        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, dim), dtype),
-                   np.zeros(0), np.zeros(0, np.int64))
-
-    def take(self, idx: np.ndarray) -> "Shard":
-        return Shard(self.ids[idx], self.image_ids[idx], self.descriptors[idx], self.sigma[idx], self.cells[idx])
-
-    @staticmethod
-    def concat(parts) -> "Shard":
-        parts = [p for p in parts if p is not None]
-        out = Shard(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                      ("ids", "image_ids", "descriptors", "sigma", "cells")))
-        order = np.argsort(out.ids, kind="stable")  # canonical order: results independent of arrival order
-        return out.take(order)
-
-
-def source_sigma(descriptors: np.ndarray, image_ids: np.ndarray) -> np.ndarray:
-    """Exact sigma of features of whole images (what a source agent can compute)."""
-    X = np.asarray(descriptors, dtype=np.float64)
-    if len(X) == 0:
-        return np.zeros(0)
-    _, img = np.unique(image_ids, return_inverse=True)
-    img = img.ravel()
-    return distinctiveness(pairs.Augmented(X), img, int(img.max()) + 1)
+from ..core.clustering import DEFAULT_RHO, QuickMatchResult, quickmatch
+from . import boundary, contested
+from .config import DQMConfig
+from .shard import Shard
 
 
 def cluster_shard(shard: Shard, mode: str, rho: float = DEFAULT_RHO, kernel: str = "quadratic",
@@ -82,8 +41,6 @@ def cluster_shard(shard: Shard, mode: str, rho: float = DEFAULT_RHO, kernel: str
     if len(shard) == 0:
         return None, np.zeros(0)
     sigma = None if mode == "paper" else shard.sigma
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a cell holding one image is fine here
         r = quickmatch(shard.descriptors, shard.image_ids, rho=rho, kernel=kernel, sigma=sigma,
@@ -94,7 +51,7 @@ def cluster_shard(shard: Shard, mode: str, rho: float = DEFAULT_RHO, kernel: str
 def reach(sigma: np.ndarray, mode: str, rho: float, halo: float = 1.0) -> np.ndarray:
     """Interaction radius of every feature for the contested test.
 
-    Paper: ``sigma`` (the paper's sigma_p). Default: ``halo * max(rho, 1) * sigma``:
+    Paper: ``sigma`` (the paper's sigma_p). Lean: ``halo * max(rho, 1) * sigma``:
     with ``halo = 1`` it covers both the longest edge that can merge
     (``rho * sigma``) and the quadratic kernel's support (``sigma``), so no
     feature that could change x's density or merge with x is missed by the
@@ -105,17 +62,18 @@ def reach(sigma: np.ndarray, mode: str, rho: float, halo: float = 1.0) -> np.nda
 
 
 def boundary_distances(shard: Shard, seeds: np.ndarray, mode: str,
-                       reach_values: Optional[np.ndarray] = None) -> np.ndarray:
+                       reach_values: Optional[np.ndarray] = None,
+                       weights: Optional[np.ndarray] = None) -> np.ndarray:
     """(n, m) distances of held features to every cell (0 for the feature's own cell).
 
-    Default mode: bisector bounds (closed form). Paper mode: exact cell
+    Lean mode: bisector bounds (closed form). Paper mode: exact cell
     distances (QP, piqp) where the bisector bound is below the reach (beyond
     it the exact distance is larger too and changes nothing).
     """
-    H = boundary.hyperplane_distances(shard.descriptors, seeds, shard.cells)
+    H = boundary.hyperplane_distances(shard.descriptors, seeds, shard.cells, weights)
     if mode == "paper" and len(shard) and len(seeds) > 1:
         need = H < (reach_values[:, None] if reach_values is not None else np.inf)
-        H = boundary.cell_distances(shard.descriptors, seeds, shard.cells, need=need, hyper=H)
+        H = boundary.cell_distances(shard.descriptors, seeds, shard.cells, need=need, hyper=H, weights=weights)
     return H
 
 
@@ -141,7 +99,7 @@ def contested_with(shard: Shard, H: np.ndarray, reach_values: np.ndarray, minima
 def candidate_agents(C: np.ndarray, location: Optional[np.ndarray], mode: str) -> np.ndarray:
     """(n, m) bool: agents a feature may have to meet, from its contested cells.
 
-    Paper mode: the contested cells' own agents. Default mode: every agent
+    Paper mode: the contested cells' own agents. Lean mode: every agent
     that holds features of a contested cell (``location[k, b]``: some features
     of cell k are at agent b), so a feature follows the features it may
     interact with when those were handed further down (the follow rule).
@@ -171,7 +129,7 @@ def record_moves(location: np.ndarray, cells: np.ndarray, targets: np.ndarray) -
 
 
 def arrival_check(units_in: np.ndarray, C_in: np.ndarray, me: int, sender: int,
-                  location: Optional[np.ndarray] = None, mode: str = "default") -> int:
+                  location: Optional[np.ndarray] = None, mode: str = "lean") -> int:
     """Number of arrived units that should not have come to ``me``.
 
     The sender hands a unit to the lowest agent below itself that any member
@@ -192,40 +150,6 @@ def timed(fn, *args, **kwargs):
     return out, time.perf_counter() - t
 
 
-@dataclass(frozen=True)
-class DQMConfig:
-    """Parameters of a distributed job (identical in the simulator and the runtime)."""
-
-    agents: int
-    seed: int = 0
-    partition: str = "kmeans"
-    mode: str = "default"
-    rho: float = DEFAULT_RHO
-    kernel: str = "quadratic"
-    samples_per_agent: int = 64
-    halo: float = 1.0
-    seed_norm: float = 512.0
-    job: str = "job"
-
-    def validated(self, n_features: Optional[int] = None) -> "DQMConfig":
-        from ..validation import InputError, check_choice, check_positive
-        from . import partition
-        from .clustering import KERNELS
-
-        partition.check_agents(self.agents, n_features)
-        partition.check_seed(self.seed)
-        check_choice(self.partition, "partition", partition.PARTITION_MODES)
-        check_choice(self.mode, "mode", DQM_MODES)
-        check_choice(self.kernel, "kernel", KERNELS)
-        check_positive(self.rho, "rho")
-        check_positive(self.halo, "halo")
-        check_positive(self.seed_norm, "seed_norm")
-        if isinstance(self.samples_per_agent, bool) or not isinstance(self.samples_per_agent, int) \
-                or self.samples_per_agent < 1:
-            raise InputError(f"samples_per_agent must be a positive integer, got {self.samples_per_agent!r}")
-        return self
-
-
 @dataclass
 class CascadeOutcome:
     """What agent ``me`` decides at its turn of the hand-down cascade."""
@@ -237,12 +161,12 @@ class CascadeOutcome:
     arrival_failures: int = 0
 
 
-class AgentCore:
-    """One agent's algorithm state: what it holds and what it decided. No I/O.
+class CascadeCore:
+    """One agent's state in the lean and paper modes: what it holds and decided. No I/O.
 
     The simulator drives m of these in one process; the runtime drives one per
-    process from messages. Call order: :meth:`route` (source side),
-    :meth:`set_shard`, :meth:`local_step`, then :meth:`cascade` with the
+    process from messages. Call order: :meth:`set_shard` (after routing),
+    :meth:`local_step`, :meth:`set_minima`, then :meth:`cascade` with the
     hand-downs and moves of the higher agents.
     """
 
@@ -253,35 +177,28 @@ class AgentCore:
         self.shard: Optional[Shard] = None
         self.first: Optional[QuickMatchResult] = None
         self.seeds: Optional[np.ndarray] = None
+        self.weights: Optional[np.ndarray] = None
+        self.pairs_computed = 0  # pairs of all local QuickMatch runs (the busiest agent's pair work)
+        self.max_held = 0
         self.minima: Optional[np.ndarray] = None
         self.time_cluster = 0.0
         self.time_boundary = 0.0
         self._H: Dict[int, np.ndarray] = {}
         self._Hreach: Dict[int, float] = {}
 
-    # -- source side ---------------------------------------------------------------
-    def route(self, ids, image_ids, descriptors, seeds: np.ndarray) -> Dict[int, Shard]:
-        """Split this agent's source features by cell; default mode computes exact sigma first."""
-        from . import partition
-
-        X = np.asarray(descriptors)
-        Xf = X.astype(np.float64)
-        cells = partition.route(Xf, seeds)
-        sigma = source_sigma(Xf, image_ids) if self.cfg.mode == "default" else np.zeros(len(X))
-        whole = Shard(np.asarray(ids, np.int64), np.asarray(image_ids, np.int64), X, sigma, cells)
-        return {b: whole.take(np.flatnonzero(cells == b)) for b in range(self.m)}
-
     # -- cell side -----------------------------------------------------------------
-    def set_shard(self, parts, seeds: np.ndarray) -> None:
+    def set_shard(self, parts, seeds: np.ndarray, weights: Optional[np.ndarray] = None) -> None:
         self.seeds = np.asarray(seeds, dtype=np.float64)
+        self.weights = None if weights is None else np.asarray(weights, dtype=np.float64)
         self.shard = Shard.concat(parts)
+        self.max_held = len(self.shard)
 
     def bounds(self, shard: Shard, rch: np.ndarray) -> np.ndarray:
         """Boundary distances, kept per feature (they depend on the descriptor and seeds only)."""
         todo = [k for k, i in enumerate(shard.ids.tolist()) if self._Hreach.get(i, -1.0) < rch[k]]
         if todo:
             sub = shard.take(np.array(todo))
-            H, tb = timed(boundary_distances, sub, self.seeds, self.cfg.mode, rch[todo])
+            H, tb = timed(boundary_distances, sub, self.seeds, self.cfg.mode, rch[todo], self.weights)
             self.time_boundary += tb
             for k, i in enumerate(sub.ids.tolist()):
                 self._H[i] = H[k]
@@ -293,6 +210,8 @@ class AgentCore:
     def _cluster(self, shard: Shard) -> Optional[QuickMatchResult]:
         (res, sig), tc = timed(cluster_shard, shard, self.cfg.mode, self.cfg.rho, self.cfg.kernel)
         self.time_cluster += tc
+        self.pairs_computed += len(shard) * (len(shard) - 1) // 2
+        self.max_held = max(self.max_held, len(shard))
         if self.cfg.mode == "paper" and len(shard):
             shard.sigma = sig
         return res
@@ -340,7 +259,7 @@ class AgentCore:
         sends: Dict[int, Tuple[Shard, np.ndarray]] = {}
         moved = np.zeros(0, np.int64)
         if a > 0 and len(cur):
-            from .. import protocol
+            from . import protocol
 
             rch = self._reach(cur)
             C = contested_with(cur, self.bounds(cur, rch), rch, self.minima)

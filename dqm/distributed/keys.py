@@ -1,4 +1,6 @@
-"""The zenoh key space of a dqm job (documented in docs/runtime.md).
+"""The key space of a dqm job (documented in docs/runtime.md): where every message goes.
+
+The runtime puts on these zenoh keys; the simulator meters their length too.
 
 Everything of one job lives under ``dqm/<job>/``, so concurrent jobs on one
 router never see each other's traffic:

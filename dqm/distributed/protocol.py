@@ -4,26 +4,40 @@ Both the in-process simulator (to meter) and the runtime agents (to send) build
 their messages with these functions, so the bytes the simulator counts are the
 bytes the runtime sends.
 
-Phases and messages (``src -> dst``):
+Set-up (every mode; ``src -> dst``):
 
 =============  ===========================  ==========================================
 phase          message kind                 content
 =============  ===========================  ==========================================
 start          coordinator -> every agent   ``start``: the partition seed integer
-seeds          agent a -> agent 0           ``sample``: a deterministic sample (kmeans)
-               agent 0 -> every agent       ``seeds``: the m seeds (kmeans)
+sample         agent a -> agent 0           ``sample``: a deterministic descriptor sample
+                                            (may be empty) and the count of own
+                                            features alone in their image
+seeds          agent 0 -> every agent       ``seeds``: seeds (empty when they follow
+                                            from the integer), power weights, int8
+                                            sketch basis, ``final``, ``fill``
+fill           (only if ``fill``)           ``sigmas`` to agent 0; ``fill`` (the median)
+balance        (until ``final``)            ``counts`` to agent 0; ``weights`` back
 route          agent a -> agent b           ``features`` chunks (seq 0..k-1), then
                                             ``phase_end`` with k (also when k = 0)
-minima         agent a -> every agent       ``minima``: e[a, .]
-handdown       agent a -> agent b < a       ``features`` chunks, then ``phase_end``
-                                            with k and the (cell, target) moves
-result         agent a -> coordinator       ``result`` (ids, labels), ``stats``
-any            receiver -> sender           ``ack`` of every ``features`` chunk
 =============  ===========================  ==========================================
+
+Lean / paper (cascade): ``minima`` all-to-all, then ``features`` hand-downs with
+``phase_end`` (and the (cell, target) moves) from agent m-1 down to 0.
+
+Balanced: the rounds of dqm.distributed.balanced.ROUNDS, one message kind each
+(``bounds``, ``sketch``, ``ghost``, ``sums``, ``density``, ``proposal``, ``notify``,
+``fragments``, ``assign``, ``component``), each a payload of arrays split into
+parts of at most :data:`PART_BYTES` (every part carries ``seq``, ``part`` and
+``parts``; the receiver has a sender's round when it holds all parts).
+
+Every agent then sends ``result`` (ids, labels) and ``stats`` to the coordinator.
+Every ``features`` chunk and every data part is acknowledged (``ack``) and resent
+until it is.
 """
 from __future__ import annotations
 
-from typing import List
+from typing import Dict, List, Sequence
 
 import numpy as np
 
@@ -31,6 +45,8 @@ from . import messages
 
 #: feature rows per features message (keeps messages well under the size limit)
 CHUNK_ROWS = 4096
+#: largest row payload of one part of a round message
+PART_BYTES = 1 << 20
 
 
 def chunk_count(n_rows: int) -> int:
@@ -87,6 +103,56 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
 
 def ack(job: str, src: int, dst: int, seq: int) -> bytes:
     return messages.encode("ack", job, src, seq=int(seq), dst=int(dst))
+
+
+def _row_fields(kind: str, payload: Dict[str, np.ndarray]) -> List[str]:
+    rows = list(messages.ROW_FIELDS.get(kind, ()))
+    n = len(payload[rows[0]]) if rows else 0
+    rows += [f for f in messages.OPTIONAL_ROW_FIELDS.get(kind, ()) if len(payload[f]) == n and n]
+    return rows
+
+
+def part_count(kind: str, payload: Dict[str, np.ndarray]) -> int:
+    """Number of parts the payload of a round message is split into (at least 1)."""
+    rows = _row_fields(kind, payload)
+    if not rows:
+        return 1
+    n = len(payload[rows[0]])
+    row_bytes = sum(np.asarray(payload[f]).itemsize * int(np.prod(np.shape(payload[f])[1:])) for f in rows)
+    per = max(1, PART_BYTES // max(1, row_bytes))
+    return max(1, (n + per - 1) // per)
+
+
+def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray], seq0: int = 0) -> List[bytes]:
+    """The parts of one round message from ``src``, numbered ``seq0, seq0 + 1, ...``.
+
+    Row fields (one row per feature) are split across the parts; other fields
+    (a sketch's scales, say) are repeated in every part.
+    """
+    rows = _row_fields(kind, payload)
+    k = part_count(kind, payload)
+    n = len(payload[rows[0]]) if rows else 0
+    per = (n + k - 1) // k if n else 0
+    out = []
+    for p in range(k):
+        fields = {}
+        for f, v in payload.items():
+            if f in rows:
+                v = np.ascontiguousarray(np.asarray(v)[p * per:(p + 1) * per])
+            fields[f] = v
+        out.append(messages.encode(kind, job, src, seq=seq0 + p, part=p, parts=k, **fields))
+    return out
+
+
+def merge_parts(kind: str, parts: Sequence[dict]) -> Dict[str, np.ndarray]:
+    """One payload from all decoded parts of a round message (any arrival order)."""
+    parts = sorted(parts, key=lambda msg: msg["part"])
+    fields = [f for f in messages.SCHEMAS[kind] if f not in messages.ENVELOPE]
+    if len(parts) == 1:
+        return {f: parts[0][f] for f in fields}
+    rows = set(messages.ROW_FIELDS.get(kind, ())) | {
+        f for f in messages.OPTIONAL_ROW_FIELDS.get(kind, ()) if len(parts[0][f])}
+    return {f: (np.concatenate([p[f] for p in parts]) if f in rows else parts[0][f]) for f in fields}
 
 
 def traffic_table(report: dict) -> str:

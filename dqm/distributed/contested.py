@@ -11,13 +11,13 @@ Then x may interact with some feature of a; otherwise it provably cannot
 within ``reach(x)``. ``reach`` is the interaction radius:
 
 * paper mode: ``sigma_x`` (the paper's sigma_p);
-* default mode: ``halo * max(rho, 1) * sigma_x``: the longest tree edge of x
+* lean mode: ``halo * max(rho, 1) * sigma_x``: the longest tree edge of x
   that can merge (``rho * min(scale) <= rho * sigma_x``) and the support of
   x's quadratic kernel (``sigma_x``); ``halo = 1`` is safe.
 
 A *unit* (what is handed down whole) is a local cluster (paper) or a local
 tree component: clusters joined by any candidate tree edge, merged or not
-(default), because the merge decisions inside a component depend on each
+(lean), because the merge decisions inside a component depend on each
 other. A unit with a contested feature goes to the lowest index among its
 holder and the agents its features are contested with.
 """
@@ -27,9 +27,9 @@ from typing import Optional
 
 import numpy as np
 
-from . import tree
+from ..core import tree
 
-HAND_DOWN_MODES = ("paper", "default")
+HAND_DOWN_MODES = ("paper", "lean")
 
 
 def exchanged_minima(H: np.ndarray, me: int, m: int) -> np.ndarray:
@@ -48,7 +48,7 @@ def units_from_clusters(labels: np.ndarray) -> np.ndarray:
 
 
 def units_from_tree(labels: np.ndarray, parent: np.ndarray) -> np.ndarray:
-    """Default mode: clusters joined by any reported tree edge (merged or not)."""
+    """Lean mode: clusters joined by any reported tree edge (merged or not)."""
     n = len(labels)
     root = np.arange(n)
 

@@ -16,9 +16,20 @@ Two ways to get the seeds, both from one integer broadcast by the coordinator:
   leader (agent 0), which runs k-means++ and Lloyd on the pooled sample seeded
   by the integer and broadcasts the m seeds. Bytes: the sample plus m x dim
   seeds to each agent (metered by the simulator and the runtime).
+
+Balanced cells (power diagram): k-means cells of real descriptors are
+unbalanced (the largest graf cell holds 1.5 n/m at m = 8). Optional weights
+``w`` move the boundaries: a feature goes to ``argmin_a |x - P_a|^2 - w_a``.
+The cells stay convex polytopes, each pair separated by one hyperplane, so the
+bisector distance stays closed form and additive (dqm.distributed.boundary).
+Agent 0 fits the weights on the pooled sample (:func:`fit_weights`), then
+refines them on the exact cell counts of all features, which every agent
+reports for its own features (:func:`refine_weights`, a few rounds of m
+integers per agent); all from the same integer.
 """
 from __future__ import annotations
 
+from typing import Optional
 
 import numpy as np
 
@@ -104,11 +115,76 @@ def kmeans_seeds(sample: np.ndarray, m: int, seed: int, iterations: int = 20) ->
     return C
 
 
-def route(X: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Cell (agent index) of every row: nearest seed, ties to the lower index."""
+def route(X: np.ndarray, seeds: np.ndarray, weights: Optional[np.ndarray] = None) -> np.ndarray:
+    """Cell (agent index) of every row: least power ``|x - P_a|^2 - w_a``, ties to the lower index."""
+    return np.argmin(power(X, seeds, weights), axis=1).astype(np.int64) if len(X) else np.zeros(0, np.int64)
+
+
+def power(X: np.ndarray, seeds: np.ndarray, weights: Optional[np.ndarray] = None) -> np.ndarray:
+    """(n, m) power of every row to every seed, without the common ``|x|^2`` term."""
     X = np.asarray(X, dtype=np.float64)
     seeds = np.asarray(seeds, dtype=np.float64)
-    if len(X) == 0:
-        return np.zeros(0, np.int64)
-    d2 = (seeds ** 2).sum(1)[None, :] - 2.0 * X @ seeds.T  # |x|^2 is common to all cells
-    return np.argmin(d2, axis=1).astype(np.int64)  # argmin returns the first (lowest) index on ties
+    d2 = (seeds ** 2).sum(1)[None, :] - 2.0 * X @ seeds.T
+    if weights is not None:
+        d2 -= np.asarray(weights, dtype=np.float64)[None, :]
+    return d2
+
+
+def _soft_sensitivity(sample: np.ndarray, seeds: np.ndarray, weights: np.ndarray, scale: float) -> np.ndarray:
+    """How fast each cell's share of the sample grows with its own weight (a smoothed count)."""
+    d = power(sample, seeds, weights)
+    t = max(0.1 * scale, 1e-12)
+    z = -(d - d.min(axis=1, keepdims=True)) / t
+    p = np.exp(z)
+    p /= p.sum(axis=1, keepdims=True)
+    return (p * (1.0 - p)).sum(axis=0) / t / max(1, len(sample))
+
+
+def _margin_scale(sample: np.ndarray, seeds: np.ndarray) -> float:
+    """Typical gap between a sample point's best and second-best power (weight units)."""
+    if len(seeds) < 2 or len(sample) == 0:
+        return 1.0
+    d = np.sort(power(sample, seeds), axis=1)
+    gap = float(np.median(d[:, 1] - d[:, 0]))
+    return gap if gap > 0 else 1.0
+
+
+def fit_weights(sample: np.ndarray, seeds: np.ndarray, iterations: int = 500) -> np.ndarray:
+    """Power weights that split the pooled sample evenly (deterministic).
+
+    Each step raises the weight of cells below their share and lowers those
+    above it; the best weights seen (smallest largest cell) are returned.
+    """
+    S = np.asarray(sample, dtype=np.float64)
+    m = len(seeds)
+    w = np.zeros(m)
+    if m < 2 or len(S) < m:
+        return w
+    target = len(S) / m
+    scale = _margin_scale(S, seeds)
+    d = power(S, seeds)
+    best_max, best_w = None, w.copy()
+    for _ in range(iterations):
+        c = np.bincount(np.argmin(d - w[None, :], axis=1), minlength=m)
+        if best_max is None or c.max() < best_max:
+            best_max, best_w = int(c.max()), w.copy()
+        if c.max() <= np.ceil(target):
+            break
+        w = w + 0.2 * scale * (target - c) / target
+    return best_w
+
+
+def refine_weights(sample: np.ndarray, seeds: np.ndarray, weights: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """One Newton-like step on the exact cell counts of all features.
+
+    ``counts`` are the global counts under ``weights``; the sensitivity of
+    each cell to its own weight is estimated on the sample (a smoothed count)
+    and scaled to the data size. The step is damped (0.7).
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    n = counts.sum()
+    m = len(seeds)
+    if m < 2 or n == 0:
+        return np.asarray(weights, dtype=np.float64)
+    sens = _soft_sensitivity(np.asarray(sample, np.float64), seeds, weights, _margin_scale(sample, seeds)) * n
+    return np.asarray(weights, np.float64) + 0.7 * (n / m - counts) / np.maximum(sens, 1e-12)

@@ -28,16 +28,23 @@ from typing import Optional
 import numpy as np
 
 
-def hyperplane_distances(X: np.ndarray, seeds: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """(n, m) bisector distances of every x (in cell ``cells[k]``) to every cell; 0 for its own."""
+def hyperplane_distances(X: np.ndarray, seeds: np.ndarray, cells: np.ndarray,
+                         weights: Optional[np.ndarray] = None) -> np.ndarray:
+    """(n, m) bisector distances of every x (in cell ``cells[k]``) to every cell; 0 for its own.
+
+    With power-diagram ``weights`` the separating hyperplane of cells i and a is
+    ``|z - P_a|^2 - w_a = |z - P_i|^2 - w_i``; the formula keeps its form.
+    """
     X = np.asarray(X, dtype=np.float64)
     P = np.asarray(seeds, dtype=np.float64)
     n, m = len(X), len(P)
     if n == 0:
         return np.zeros((0, m))
     cells = np.asarray(cells, dtype=np.int64)
-    # |x - P_a|^2 - |x - P_i|^2 = |P_a|^2 - |P_i|^2 - 2 x.(P_a - P_i)
+    # |x - P_a|^2 - w_a - |x - P_i|^2 + w_i = |P_a|^2 - w_a - |P_i|^2 + w_i - 2 x.(P_a - P_i)
     pn = (P ** 2).sum(1)
+    if weights is not None:
+        pn = pn - np.asarray(weights, dtype=np.float64)
     xp = X @ P.T  # (n, m)
     num = (pn[None, :] - pn[cells][:, None]) - 2.0 * (xp - xp[np.arange(n), cells][:, None])
     sep = seed_separation(P)[cells]
@@ -49,6 +56,29 @@ def hyperplane_distances(X: np.ndarray, seeds: np.ndarray, cells: np.ndarray) ->
     return np.maximum(h, 0.0)
 
 
+def bisector_lower_bounds(X: np.ndarray, seeds: np.ndarray, cells: np.ndarray,
+                          weights: Optional[np.ndarray] = None) -> np.ndarray:
+    """(n, m) rigorous lower bounds of the bisector distances: float64 rounding taken off.
+
+    The numerator of :func:`hyperplane_distances` sums terms of size up to
+    ``(|x| + max|P|)^2 + max|w|``; its rounding error is below
+    ``8 (dim + 4) eps`` times that, divided by the seeds' separation.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    P = np.asarray(seeds, dtype=np.float64)
+    H = hyperplane_distances(X, P, cells, weights)
+    if len(X) == 0:
+        return H
+    cells = np.asarray(cells, dtype=np.int64)
+    wmax = 0.0 if weights is None else float(np.abs(weights).max())
+    mag = (np.sqrt(np.einsum("ij,ij->i", X, X)) + float(np.sqrt((P ** 2).sum(1).max()))) ** 2 + wmax
+    sep = seed_separation(P)[cells]
+    with np.errstate(divide="ignore"):
+        err = 8.0 * (X.shape[1] + 4) * np.finfo(np.float64).eps * mag[:, None] / (2.0 * sep)
+    err[~np.isfinite(err)] = 0.0  # coincident seeds: distance already 0
+    return np.maximum(H - err, 0.0)
+
+
 def seed_separation(seeds: np.ndarray) -> np.ndarray:
     """(m, m) distances between seeds."""
     P = np.asarray(seeds, dtype=np.float64)
@@ -58,8 +88,9 @@ def seed_separation(seeds: np.ndarray) -> np.ndarray:
 class CellGeometry:
     """The seeds in the coordinates of their own affine span (dimension <= m-1)."""
 
-    def __init__(self, seeds: np.ndarray):
+    def __init__(self, seeds: np.ndarray, weights: Optional[np.ndarray] = None):
         P = np.asarray(seeds, dtype=np.float64)
+        self.weights = np.zeros(len(P)) if weights is None else np.asarray(weights, dtype=np.float64)
         self.seeds = P
         self.m = len(P)
         self.origin = P[0]
@@ -80,7 +111,7 @@ class CellGeometry:
         """(G, h) with V_a = {u : G u <= h} in span coordinates."""
         others = np.array([b for b in range(self.m) if b != a], dtype=np.int64)
         G = 2.0 * (self.q[others] - self.q[a])
-        h = self.qn[others] - self.qn[a]
+        h = self.qn[others] - self.qn[a] - (self.weights[others] - self.weights[a])
         return G, h
 
 
@@ -141,6 +172,7 @@ def cell_distances(
     cells: np.ndarray,
     need: Optional[np.ndarray] = None,
     hyper: Optional[np.ndarray] = None,
+    weights: Optional[np.ndarray] = None,
 ) -> np.ndarray:
     """(n, m) exact distances of every x to every other cell (0 for its own).
 
@@ -152,7 +184,7 @@ def cell_distances(
     P = np.asarray(seeds, dtype=np.float64)
     cells = np.asarray(cells, dtype=np.int64)
     n, m = len(X), len(P)
-    H = hyperplane_distances(X, P, cells) if hyper is None else hyper.copy()
+    H = hyperplane_distances(X, P, cells, weights) if hyper is None else hyper.copy()
     if n == 0 or m == 1:
         return H
     if need is None:
@@ -167,14 +199,16 @@ def cell_distances(
     normal = P[a_idx] - P[i_idx]
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     Z = X[k_idx] + H[k_idx, a_idx][:, None] * normal
+    w = np.zeros(m) if weights is None else np.asarray(weights, dtype=np.float64)
     dz = ((Z[:, None, :] - P[None, :, :]) ** 2).sum(2) if len(Z) * m * P.shape[1] < 2e7 else \
         np.stack([((Z - p) ** 2).sum(1) for p in P], axis=1)
+    dz = dz - w[None, :]
     own = dz[np.arange(len(Z)), a_idx]
     scale = 1e-9 * np.maximum(1.0, dz.max(axis=1))
     inside = (own[:, None] <= dz + scale[:, None]).all(axis=1)
     hard = np.flatnonzero(~inside)
     if len(hard):
-        geom = CellGeometry(P)
+        geom = CellGeometry(P, weights)
         Uc = geom.coords(X[k_idx[hard]])
         out = _solve_batch(geom, Uc, a_idx[hard])
         ok = np.isfinite(out)  # unsolved problems keep the bisector bound (conservative)

@@ -1,0 +1,30 @@
+"""Distributed QuickMatch (Serlin et al.): features partitioned over agents by a Voronoi
+(power) diagram of descriptor space whose seeds follow from one integer.
+
+The pure algorithm (numpy in, numpy out, no I/O) lives here and is driven by
+both the in-process simulator (:func:`simulate`) and the zenoh runtime
+(:mod:`dqm.runtime`), with the same payloads, so the two cannot drift apart.
+
+=================  ===============================================================
+module             holds
+=================  ===============================================================
+``config``         :class:`DQMConfig`, the modes (balanced, lean, paper)
+``partition``      seeds from the integer (k-means / seeded), power weights, routing
+``boundary``       bisector distances (closed form, rigorous lower bounds), QP cell distances
+``seeding``        the set-up every mode shares (sample, seeds, weights, sketch basis, sigma fill)
+``shard``          the features an agent holds; source-side sigma
+``sketch``         lower-bound sketches: the ghost pre-filter
+``ghosts``         which copies travel where (one-way / two-way rules)
+``balanced``       the balanced mode's agent core (rounds)
+``forest``         fragments, crossing components, replay of break/merge
+``contested``      the cascade's contested test and hand-down units
+``cascade``        the lean and paper modes' agent core
+``messages``       wire schema and validation
+``protocol``       which messages each phase sends; parts, acks, traffic tables
+``simulator``      all agents in one process, metered
+=================  ===============================================================
+"""
+from .config import DEFAULT_MODE, MODES, DQMConfig
+from .simulator import DQMResult, Traffic, image_owners, simulate
+
+__all__ = ["DEFAULT_MODE", "MODES", "DQMConfig", "DQMResult", "Traffic", "image_owners", "simulate"]

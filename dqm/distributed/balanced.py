@@ -1,0 +1,478 @@
+"""The balanced mode: exact Distributed QuickMatch that spreads the work (one agent's steps).
+
+Pure numpy in, numpy out; no I/O. The simulator and the runtime drive the same
+rounds (:data:`ROUNDS`) with the same payloads, so they cannot drift apart.
+Every agent owns the features of its cell (after routing) and, round by round:
+
+``bounds``     publishes two lower-bound numbers per other cell (dqm.distributed.ghosts);
+``sketch``     sends lower-bound sketches of its features near each cell that ships
+               copies to it (dqm.distributed.sketch);
+``ghost``      ships copies of the features another cell may need (one way per cell pair);
+``sums``       finds, in one blocked pass over its own features and the copies it holds
+               (pairs among copies are another agent's work), every pair within
+               reach, and returns each copy's exact partial density (integer sums,
+               dqm.core.density) to the copy's owner;
+``density``    completes its own features' densities (bit-identical to the centralized
+               engine's) and tells the holders of its copies;
+``proposal``   proposes, for every copy it holds, the nearest higher-ranked own
+               feature within rho sigma of it;
+``notify``     picks each own feature's parent (own candidates and proposals; ties by
+               distance then id, as the engine) and tells the parents' owners about
+               the crossing edges;
+``fragments``  reports its crossing fragments to the leader (agent 0);
+``assign``     (leader) joins fragments into components, assigns each crossing
+               component to the lowest agent involved;
+``component``  sends the edge lists of its fragments of components assigned elsewhere;
+finally it replays break/merge of everything it keeps (dqm.distributed.forest).
+
+The result is identical to :func:`dqm.quickmatch` on all features with the
+quadratic kernel and the same rho: same sigma, same densities, same parents,
+same merges (tests check labels, parents and distances).
+"""
+from __future__ import annotations
+
+import time
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..core import density as exact
+from ..core import pairs
+from ..core.clustering import duplicate_groups
+from . import boundary, forest, ghosts, partition, sketch
+from .config import DQMConfig
+from .shard import Shard
+
+Payload = Dict[str, np.ndarray]
+LEADER = 0
+
+#: the balanced rounds after routing, in order; each is one message kind
+ROUNDS = ("bounds", "sketch", "ghost", "sums", "density", "proposal", "notify", "fragments", "assign", "component")
+
+
+def ranks_above(da: np.ndarray, db: np.ndarray, ida: np.ndarray, idb: np.ndarray) -> np.ndarray:
+    """Does feature a rank above feature b? Higher density, then lower id (the engine's rule)."""
+    return (da > db) | ((da == db) & (ida < idb))
+
+
+def _best_per_target(target: np.ndarray, cand: np.ndarray, dist: np.ndarray, n: int):
+    """Nearest candidate (ties: lowest id) per target: ``(parent id, distance, row)`` arrays of length n."""
+    parent = np.full(n, -1, np.int64)
+    pdist = np.full(n, np.inf)
+    row = np.full(n, -1, np.int64)
+    if len(target):
+        order = np.lexsort((cand, dist, target))
+        t = target[order]
+        first = np.ones(len(t), bool)
+        first[1:] = t[1:] != t[:-1]
+        sel = order[first]
+        parent[target[sel]] = cand[sel]
+        pdist[target[sel]] = dist[sel]
+        row[target[sel]] = sel
+    return parent, pdist, row
+
+
+class BalancedCore:
+    """One agent's state in the balanced mode. Drive it with :meth:`step` round by round."""
+
+    def __init__(self, me: int, cfg: DQMConfig, space: Optional[sketch.SketchSpace] = None):
+        self.me = me
+        self.cfg = cfg
+        self.m = cfg.agents
+        self.rule = cfg.ghost_rule
+        self.ships = ghosts.orientation(self.m, self.rule)  # ships[a, b]: a sends copies to b
+        self.space = space if (space is not None and space.k > 0 and cfg.sketch_dims > 0) else None
+        self.E = np.full((self.m, self.m), np.inf)
+        self.S = np.full((self.m, self.m), np.inf)
+        self.failures = 0  # arrival and consistency checks that did not hold
+        self.stats: Dict[str, float] = {}
+        self.cpu = 0.0
+        self.round = 0
+
+    # ------------------------------------------------------------------ who talks to whom
+    def recipients(self, name: str) -> List[int]:
+        """Agents this agent sends a message to in round ``name`` (possibly an empty payload)."""
+        return recipients_of(self.me, name, self.ships, self.space is not None)
+
+    def senders(self, name: str) -> List[int]:
+        """Agents whose round-``name`` message this agent needs before its next step."""
+        return [a for a in range(self.m)
+                if a != self.me and self.me in recipients_of(a, name, self.ships, self.space is not None)]
+
+    # ------------------------------------------------------------------ driver entry points
+    def set_shard(self, parts, seeds: np.ndarray, weights: Optional[np.ndarray]) -> None:
+        """The features routed to this cell (from every source agent, itself included)."""
+        t = time.process_time()
+        self.own = Shard.concat(parts)
+        self.seeds = np.asarray(seeds, np.float64)
+        self.weights = None if weights is None else np.asarray(weights, np.float64)
+        self.X = self.own.descriptors.astype(np.float64)
+        self.H = boundary.bisector_lower_bounds(self.X, self.seeds, self.own.cells, self.weights)
+        self.R = ghosts.reach(self.own.sigma, self.cfg.rho)
+        self.n_own = len(self.own)
+        self.stats.update(features_owned=float(self.n_own))
+        self.cpu += time.process_time() - t
+
+    def step(self, inputs: Dict[int, Payload]) -> Dict[int, Payload]:
+        """Run the next round with the previous round's messages; returns this round's messages."""
+        name = ROUNDS[self.round]
+        t = time.process_time()
+        out = getattr(self, f"_round_{name}")(inputs)
+        self.cpu += time.process_time() - t
+        self.round += 1
+        assert sorted(out) == self.recipients(name), (name, sorted(out), self.recipients(name))
+        return out
+
+    def finish(self, inputs: Dict[int, Payload]) -> Tuple[np.ndarray, np.ndarray]:
+        """The last step: ``(ids, labels)`` of every feature this agent decides (labels local)."""
+        t = time.process_time()
+        out = self._finish(inputs)
+        self.cpu += time.process_time() - t
+        self.stats["cpu_s"] = self.cpu
+        self.stats["consistency_failures"] = float(self.failures)
+        return out
+
+    # ------------------------------------------------------------------ rounds
+    def _round_bounds(self, _inputs) -> Dict[int, Payload]:
+        minima, slack = ghosts.cell_summaries(self.H, self.R, self.me)
+        self.E[self.me], self.S[self.me] = minima, slack
+        return {b: {"minima": minima, "slack": slack} for b in self.recipients("bounds")}
+
+    def _round_sketch(self, inputs) -> Dict[int, Payload]:
+        for a, p in inputs.items():
+            if len(p["minima"]) != self.m or len(p["slack"]) != self.m:
+                self.failures += 1
+                continue
+            self.E[a], self.S[a] = p["minima"], p["slack"]
+        self.sketch_sent: Dict[int, Payload] = {}
+        n_sk = 0
+        for a in self.recipients("sketch"):
+            mask = ghosts.sketch_mask(self.H[:, a], self.R, self.E[a, self.me], self.S[a, self.me], self.rule)
+            self.sketch_sent[a] = sketch.encode(self.space, self.X[mask], self.R[mask])
+            n_sk += int(mask.sum())
+        self.stats["sketches_sent"] = float(n_sk)
+        return dict(self.sketch_sent)
+
+    def _ship_candidates(self, b: int, X: np.ndarray, H_b: np.ndarray, R: np.ndarray,
+                         sketch_of_b: Optional[Payload]) -> np.ndarray:
+        """Mask of features (of this cell, or arrived from it) that this cell ships to b."""
+        mask = ghosts.ship_mask(H_b, R, self.E[b, self.me], self.S[b, self.me], self.rule)
+        if sketch_of_b is not None and mask.any():
+            idx = np.flatnonzero(mask)
+            ok = sketch.plausible(self.space, X[idx], R[idx], sketch_of_b, use_their_reach=self.rule == "one-way")
+            mask[idx[~ok]] = False
+        return mask
+
+    def _round_ghost(self, inputs) -> Dict[int, Payload]:
+        self.shipped: Dict[int, np.ndarray] = {}
+        self.shipped_to = np.zeros((self.n_own, self.m), bool)
+        out = {}
+        geometric = 0
+        for b in self.recipients("ghost"):
+            sk = inputs.get(b) if self.space is not None else None
+            if self.space is not None and sk is None:
+                self.failures += 1  # no sketch arrived: ship on the geometric rule alone
+            geo = ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me], self.rule)
+            geometric += int(geo.sum())
+            idx = np.flatnonzero(self._ship_candidates(b, self.X, self.H[:, b], self.R, sk))
+            self.shipped[b] = idx
+            self.shipped_to[idx, b] = True
+            o = self.own
+            out[b] = {"ids": o.ids[idx], "image_ids": o.image_ids[idx], "descriptors": o.descriptors[idx],
+                      "sigma": o.sigma[idx]}
+        self.stats.update(ghosts_geometric=float(geometric),
+                          ghosts_sent=float(sum(len(v) for v in self.shipped.values())))
+        return out
+
+    def _arrival_check(self, a: int, p: Payload) -> int:
+        """Ghosts from a that a's rule would not have sent here, recomputed on arrival.
+
+        The receiver has everything the sender used (the ghost's descriptor and
+        sigma, the seeds, its own summaries and sketches). The check allows a
+        relative 1e-9 for float rounding that may differ between batches.
+        """
+        if len(p["ids"]) == 0:
+            return 0
+        Xg = p["descriptors"].astype(np.float64)
+        bad = partition.route(Xg, self.seeds, self.weights) != a
+        H = boundary.bisector_lower_bounds(Xg, self.seeds, np.full(len(Xg), a), self.weights)[:, self.me]
+        R = ghosts.reach(p["sigma"], self.cfg.rho)
+        tol = 1e-9 * (1.0 + R + H)
+        mask = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
+        sk = self.sketch_sent.get(a) if self.space is not None else None
+        if sk is not None and mask.any():
+            idx = np.flatnonzero(mask)
+            ok = sketch.plausible(self.space, Xg[idx], R[idx] + tol[idx], sk, self.rule == "one-way")
+            mask[idx[~ok]] = False
+        return int((bad | ~mask).sum())
+
+    def _round_sums(self, inputs) -> Dict[int, Payload]:
+        me = self.me
+        senders = self.recipients("sums")
+        parts = [self.own]
+        src = [np.full(self.n_own, me, np.int64)]
+        self.ghost_slices: Dict[int, slice] = {}
+        start = self.n_own
+        for a in senders:
+            p = inputs.get(a)
+            if p is None or len(p["ids"]) and (len(p["descriptors"]) != len(p["ids"])):
+                self.failures += 1
+                p = {"ids": np.zeros(0, np.int64), "image_ids": np.zeros(0, np.int64),
+                     "descriptors": self.own.descriptors[:0], "sigma": np.zeros(0)}
+            self.failures += self._arrival_check(a, p)
+            k = len(p["ids"])
+            parts.append(Shard(np.asarray(p["ids"], np.int64), np.asarray(p["image_ids"], np.int64),
+                               np.asarray(p["descriptors"]).astype(self.own.descriptors.dtype, copy=False),
+                               np.asarray(p["sigma"], np.float64), np.full(k, a, np.int64)))
+            src.append(np.full(k, a, np.int64))
+            self.ghost_slices[a] = slice(start, start + k)
+            start += k
+        held = Shard(*(np.concatenate([getattr(s, f) for s in parts]) for f in
+                       ("ids", "image_ids", "descriptors", "sigma", "cells")))
+        self.held_ids = held.ids
+        self.held_src = np.concatenate(src)
+        n_held = len(held)
+        n_ghost = n_held - self.n_own
+        self.stats.update(ghosts_held=float(n_ghost), max_held=float(n_held),
+                          pairs=float(self.n_own * (self.n_own - 1) // 2 + self.n_own * n_ghost))
+        sig = held.sigma
+        R = ghosts.reach(sig, self.cfg.rho)
+        sums = exact.ExactSums(n_held)
+        self.cand = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        if n_held:
+            aug = pairs.Augmented(held.descriptors.astype(np.float64))
+            zero = np.zeros(n_held)
+            _, _, cr, cc = pairs.kernel_pass(aug, zero, zero, "quadratic", R, rows_limit=self.n_own)
+            lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
+            key = np.unique(lo * n_held + hi)
+            i, j = key // n_held, key % n_held
+            if self.rule == "two-way":  # a pair both of whose features travelled is counted at the lower agent
+                i, j = self._dedupe_two_way(i, j)
+            d2 = pairs.exact_sq_distances(aug.exact, i, j)
+            active = sig > 0
+            w = np.where(active, 1.0 / np.where(active, sig, 1.0) ** 2, 0.0)
+            t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
+            t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
+            sums.add_terms(np.concatenate([j, i]), np.concatenate([t_ij, t_ji]))
+            d = np.sqrt(d2)
+            radius = self.cfg.rho * sig
+            c1 = d < radius[i]  # i child, j candidate parent
+            c2 = d < radius[j]
+            self.cand = (np.concatenate([i[c1], j[c2]]), np.concatenate([j[c1], i[c2]]),
+                         np.concatenate([d[c1], d[c2]]))
+        self.sums = sums
+        self.held_sigma = sig
+        self.held_image_ids = held.image_ids
+        out = {}
+        for a in senders:
+            sl = self.ghost_slices[a]
+            units, high = exact.pack_parts(*sums.parts(np.arange(sl.start, sl.stop)))
+            out[a] = {"units": units, "high": high}
+        return out
+
+    def _dedupe_two_way(self, i: np.ndarray, j: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Two-way rule: drop own-ghost pairs that the ghost's owner also meets and counts."""
+        gi = i >= self.n_own
+        gj = j >= self.n_own
+        own_idx = np.where(gi, j, i)
+        ghost_idx = np.where(gi, i, j)
+        mixed = gi ^ gj
+        a = self.held_src[ghost_idx]
+        also_there = mixed & self.shipped_to[np.minimum(own_idx, max(0, self.n_own - 1)), a] & (a < self.me)
+        return i[~also_there], j[~also_there]
+
+    def _round_density(self, inputs) -> Dict[int, Payload]:
+        for b in self.recipients("density"):
+            p = inputs.get(b)
+            idx = self.shipped[b]
+            if p is None or len(p["units"]) != len(idx) or (len(p["high"]) not in (0, len(idx))):
+                self.failures += 1
+                continue
+            hi, lo = exact.unpack_parts(p["units"], p["high"])
+            self.sums.add_parts(idx, hi, lo)
+        dens_o = self.sums.values()[:self.n_own]
+        groups = duplicate_groups(self.X)
+        gsize = np.bincount(groups) if len(groups) else np.zeros(0, np.int64)
+        zero = self.own.sigma == 0
+        zcount = np.bincount(groups[zero], minlength=len(gsize))
+        dens_o = dens_o + zcount[groups] - zero
+        in_dup = gsize[groups] > 1 if len(groups) else np.zeros(0, bool)
+        if in_dup.any():  # identical vectors: identical densities (the engine's rule)
+            dup_idx = np.flatnonzero(in_dup)
+            first_of = np.full(len(gsize), self.n_own, np.int64)
+            np.minimum.at(first_of, groups[dup_idx], dup_idx)
+            dens_o[dup_idx] = dens_o[first_of[groups[dup_idx]]]
+        self.density = 1.0 + dens_o
+        return {b: {"density": self.density[self.shipped[b]]} for b in self.recipients("density")}
+
+    def _round_proposal(self, inputs) -> Dict[int, Payload]:
+        n_held = len(self.held_ids)
+        dens = np.full(n_held, np.nan)
+        dens[:self.n_own] = self.density
+        for a, sl in self.ghost_slices.items():
+            p = inputs.get(a)
+            if p is None or len(p["density"]) != sl.stop - sl.start:
+                self.failures += 1
+                continue
+            dens[sl] = p["density"]
+        child, cand, dist = self.cand
+        ids = self.held_ids
+        ok = ranks_above(dens[cand], dens[child], ids[cand], ids[child])  # NaN (missing) never ranks
+        child, cand, dist = child[ok], cand[ok], dist[ok]
+        own_child = child < self.n_own
+        # own features: nearest higher-ranked among own features and held copies
+        c, p_, d = child[own_child], cand[own_child], dist[own_child]
+        parent, pdist, row = _best_per_target(c, ids[p_], d, self.n_own)
+        owner = np.full(self.n_own, -1, np.int64)
+        has = row >= 0
+        owner[has] = self.held_src[p_[row[has]]]
+        self.local_best = (parent, pdist, owner)
+        # copies: the nearest higher-ranked own feature, proposed to the copy's owner
+        gc, gp, gd = child[~own_child], cand[~own_child], dist[~own_child]
+        gparent, gdist, _ = _best_per_target(gc - self.n_own, ids[gp], gd, n_held - self.n_own)
+        out = {}
+        for a in self.recipients("proposal"):
+            sl = self.ghost_slices[a]
+            loc = np.arange(sl.start - self.n_own, sl.stop - self.n_own)
+            sel = loc[gparent[loc] >= 0]
+            out[a] = {"index": (sel - (sl.start - self.n_own)).astype(np.int64), "parent": gparent[sel],
+                      "distance": gdist[sel]}
+        self.stats["proposals_sent"] = float(sum(len(v["index"]) for v in out.values()))
+        # copies are no longer needed
+        del self.held_sigma, self.held_image_ids
+        return out
+
+    def _round_notify(self, inputs) -> Dict[int, Payload]:
+        parent, pdist, owner = self.local_best
+        tgt, cand, dist, who = [np.arange(self.n_own)[parent >= 0]], [parent[parent >= 0]], \
+            [pdist[parent >= 0]], [owner[parent >= 0]]
+        for b in self.recipients("ghost"):
+            p = inputs.get(b)
+            idx = self.shipped.get(b, np.zeros(0, np.int64))
+            if p is None:
+                self.failures += 1
+                continue
+            k = np.asarray(p["index"], np.int64)
+            valid = (k >= 0) & (k < len(idx))
+            self.failures += int((~valid).sum())
+            k = k[valid]
+            tgt.append(idx[k])
+            cand.append(np.asarray(p["parent"], np.int64)[valid])
+            dist.append(np.asarray(p["distance"], np.float64)[valid])
+            who.append(np.full(len(k), b, np.int64))
+        tgt, cand, dist, who = (np.concatenate(v) for v in (tgt, cand, dist, who))
+        self.parent, self.pdist, row = _best_per_target(tgt, cand, dist, self.n_own)
+        self.parent_owner = np.full(self.n_own, -1, np.int64)
+        self.parent_owner[row >= 0] = who[row[row >= 0]]
+        ids = self.own.ids
+        local = self.parent_owner == self.me
+        local_parent = np.full(self.n_own, -1, np.int64)
+        local_parent[local] = np.searchsorted(ids, self.parent[local])
+        self.roots = forest.fragment_roots(local_parent)
+        crossing_out = (self.parent >= 0) & ~local
+        self.out_roots = np.flatnonzero(crossing_out)  # fragment roots with a parent elsewhere
+        self.stats["crossing_edges"] = float(len(self.out_roots))
+        out = {}
+        for b in self.recipients("notify"):
+            sel = self.out_roots[self.parent_owner[self.out_roots] == b]
+            out[b] = {"child": ids[sel], "parent": self.parent[sel]}
+        return out
+
+    def _round_fragments(self, inputs) -> Dict[int, Payload]:
+        ids = self.own.ids
+        child_key, child_agent, parent_key = [], [], []
+        for a in sorted(inputs):
+            p = inputs[a]
+            par = np.asarray(p["parent"], np.int64)
+            pos = np.minimum(np.searchsorted(ids, par), max(0, self.n_own - 1))
+            found = (self.n_own > 0) & (ids[pos] == par) if self.n_own else np.zeros(len(par), bool)
+            self.failures += int((~found).sum())
+            child_key.append(np.asarray(p["child"], np.int64)[found])
+            child_agent.append(np.full(int(found.sum()), a, np.int64))
+            parent_key.append(ids[self.roots[pos[found]]])
+        cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))  # noqa: E731
+        edges = {"child_key": cat(child_key), "child_agent": cat(child_agent), "parent_key": cat(parent_key)}
+        self.crossing = np.union1d(ids[self.out_roots], edges["parent_key"])
+        if self.me == LEADER:
+            self.leader_edges = {LEADER: edges}
+            return {}
+        return {LEADER: edges}
+
+    def _round_assign(self, inputs) -> Dict[int, Payload]:
+        if self.me != LEADER:
+            return {}
+        all_edges = dict(self.leader_edges)
+        all_edges.update(inputs)
+        ck, ca, pk, pa = [], [], [], []
+        for b in sorted(all_edges):
+            e = all_edges[b]
+            ck.append(np.asarray(e["child_key"], np.int64))
+            ca.append(np.asarray(e["child_agent"], np.int64))
+            pk.append(np.asarray(e["parent_key"], np.int64))
+            pa.append(np.full(len(e["parent_key"]), b, np.int64))
+        keys, agents, targets = forest.assign_components(*(np.concatenate(v) for v in (ck, ca, pk, pa)))
+        self.stats["crossing_components_features_keys"] = float(len(keys))
+        self.assigned_here = {"key": keys[agents == LEADER], "target": targets[agents == LEADER]}
+        return {b: {"key": keys[agents == b], "target": targets[agents == b]} for b in self.recipients("assign")}
+
+    def _round_component(self, inputs) -> Dict[int, Payload]:
+        a = self.assigned_here if self.me == LEADER else inputs.get(LEADER)
+        if a is None:
+            self.failures += 1
+            a = {"key": np.zeros(0, np.int64), "target": np.zeros(0, np.int64)}
+        keys = np.asarray(a["key"], np.int64)
+        targets = np.asarray(a["target"], np.int64)
+        if not np.array_equal(np.sort(keys), self.crossing):
+            self.failures += 1
+        ids = self.own.ids
+        frag_key = ids[self.roots] if self.n_own else np.zeros(0, np.int64)
+        order = np.argsort(keys)
+        keys, targets = keys[order], targets[order]
+        dest = np.full(self.n_own, self.me, np.int64)
+        if len(keys) and self.n_own:
+            pos = np.minimum(np.searchsorted(keys, frag_key), len(keys) - 1)
+            hit = keys[pos] == frag_key
+            dest[hit] = targets[pos[hit]]
+        out = {}
+        o = self.own
+        for b in self.recipients("component"):
+            sel = np.flatnonzero(dest == b)
+            out[b] = {"ids": o.ids[sel], "image_ids": o.image_ids[sel], "sigma": o.sigma[sel],
+                      "parent": self.parent[sel], "distance": self.pdist[sel]}
+        self.keep = np.flatnonzero(dest == self.me)
+        self.stats["features_handed"] = float(self.n_own - len(self.keep))
+        return out
+
+    def _finish(self, inputs) -> Tuple[np.ndarray, np.ndarray]:
+        o = self.own
+        k = self.keep
+        parts = [(o.ids[k], o.image_ids[k], o.sigma[k], self.parent[k], self.pdist[k])]
+        for b in sorted(inputs):
+            p = inputs[b]
+            parts.append((p["ids"], p["image_ids"], p["sigma"], p["parent"], p["distance"]))
+        ids, img, sig, par, dist = (np.concatenate([np.asarray(p[f]) for p in parts]) for f in range(5))
+        order = np.argsort(ids, kind="stable")
+        ids, img, sig, par, dist = ids[order], img[order], sig[order], par[order], dist[order]
+        labels, missing = forest.replay(ids, img, sig, par, dist, self.cfg.rho)
+        self.failures += missing
+        self.stats["features_final"] = float(len(ids))
+        self.stats["max_held"] = max(self.stats.get("max_held", 0.0), float(len(ids)))
+        return ids.astype(np.int64), labels.astype(np.int64)
+
+
+def recipients_of(a: int, name: str, ships: np.ndarray, sketches: bool) -> List[int]:
+    """Recipients of agent a in round ``name``: the one rule every agent evaluates."""
+    others = [b for b in range(len(ships)) if b != a]
+    if name in ("bounds", "notify", "component"):
+        return others
+    if name == "sketch":
+        return [b for b in others if ships[b, a]] if sketches else []
+    if name in ("ghost", "density"):
+        return [b for b in others if ships[a, b]]
+    if name in ("sums", "proposal"):
+        return [b for b in others if ships[b, a]]
+    if name == "fragments":
+        return [LEADER] if a != LEADER else []
+    if name == "assign":
+        return others if a == LEADER else []
+    raise ValueError(f"unknown round {name!r}")

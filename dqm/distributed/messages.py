@@ -1,0 +1,286 @@
+"""Messages between dqm processes: msgpack, versioned, validated on receipt.
+
+Every message is a msgpack map with at least ``v`` (schema version), ``kind``,
+``job`` (job id string: keeps concurrent jobs apart) and ``src`` (sender: agent
+index >= 0, or -1 for the coordinator). numpy arrays travel as
+``{"dtype", "shape", "data"}`` maps of raw little-endian bytes.
+
+:func:`decode` checks everything a receiver relies on -- size, msgpack
+validity, version, kind, job, the fields of that kind with their types,
+array dtypes/shapes/consistent lengths, agent indices -- and raises
+:class:`MessageError` (never anything else) on a bad message, so a receiver can
+count and drop it and go on.
+
+The in-process simulator meters traffic with :func:`encode` too, so its byte
+counts are those the runtime sends.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional
+
+import msgpack
+import numpy as np
+
+VERSION = 2
+#: default maximum encoded message size (bytes); larger messages are rejected
+MAX_MESSAGE_BYTES = 64 << 20
+
+_ALLOWED_DTYPES = {"|u1", "|i1", "<i4", "<i8", "<f4", "<f8", "<u8"}
+
+
+class MessageError(ValueError):
+    """A message that cannot be accepted; the text says why."""
+
+
+def _pack_array(a: np.ndarray) -> Dict[str, Any]:
+    a = np.ascontiguousarray(a)
+    dt = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
+    a = a.astype(dt, copy=False)
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _unpack_array(obj: Any, name: str) -> np.ndarray:
+    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+        raise MessageError(f"field {name!r} is not an array")
+    dt, shape, data = obj["dtype"], obj["shape"], obj["data"]
+    if dt not in _ALLOWED_DTYPES:
+        raise MessageError(f"field {name!r} has disallowed dtype {dt!r}")
+    if not isinstance(shape, list) or not all(isinstance(s, int) and 0 <= s < 2 ** 40 for s in shape) or len(shape) > 3:
+        raise MessageError(f"field {name!r} has a bad shape {shape!r}")
+    if not isinstance(data, (bytes, bytearray)):
+        raise MessageError(f"field {name!r} has no byte data")
+    dtype = np.dtype(dt)
+    count = int(np.prod(shape)) if shape else 1
+    if count * dtype.itemsize != len(data):
+        raise MessageError(f"field {name!r}: {len(data)} bytes do not fit shape {shape} of {dt}")
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+# the envelope of every data message of a round: per-link sequence number (acknowledged,
+# resent, duplicates dropped) and the part index among the message's parts
+ENVELOPE = {"seq": "int", "part": "int", "parts": "int"}
+
+# kind -> {field: type spec}; "array:<dtypes>:<ndim>", "int", "float", "str" or "dict"
+SCHEMAS: Dict[str, Dict[str, str]] = {
+    # coordinator -> agents: start a job (the only thing the coordinator decides)
+    "start": {"seed": "int", "agents": "int", "mode": "str"},
+    # agent -> leader: sample of own descriptors (seeds, cell weights, sketch basis; may be empty)
+    # and the number of own features alone in their image (their sigma needs everyone's)
+    "sample": {"descriptors": "array:|u1,<f4:2", "lonely": "int"},
+    # leader -> agents: seeds (empty: derive them from the integer), power weights, int8 sketch
+    # basis (k x dim, k may be 0), final (1: weights need no refinement), fill (1: send sigmas)
+    "seeds": {"seeds": "array:<f8:2", "weights": "array:<f8:1", "basis": "array:|i1:2", "final": "int",
+              "fill": "int"},
+    # agent -> leader: every finite sigma of own features (only when some image has one feature)
+    "sigmas": {**ENVELOPE, "values": "array:<f8:1"},
+    # leader -> agents: sigma of features alone in their image (median of all finite sigmas)
+    "fill": {"value": "float"},
+    # agent -> leader: own features per cell under the current weights
+    "counts": {"counts": "array:<i8:1"},
+    # leader -> agents: refined weights (final = 1: route with these)
+    "weights": {"weights": "array:<f8:1", "final": "int"},
+    # agent -> agent: features (routing or lean hand-down); unit: hand-down unit of every row
+    "features": {"phase": "str", "seq": "int", "ids": "array:<i8:1", "image_ids": "array:<i8:1",
+                 "descriptors": "array:|u1,<f4:2", "sigma": "array:<f8:1", "unit": "array:<i8:1"},
+    # agent -> agent: end of a phase from this sender to this receiver (count of feature messages);
+    # moved: flattened (cell, target) pairs of the sender's hand-downs (2 x K, row-major)
+    "phase_end": {"phase": "str", "dst": "int", "messages": "int", "features": "int", "moved": "array:<i8:1"},
+    # lean/paper: agent -> all agents: exchanged minima per other agent
+    "minima": {"values": "array:<f8:1"},
+    # balanced rounds (dqm.distributed.balanced), all with the envelope
+    "bounds": {**ENVELOPE, "minima": "array:<f8:1", "slack": "array:<f8:1"},
+    "sketch": {**ENVELOPE, "codes": "array:|i1:2", "residual": "array:|u1:1", "reach": "array:<f4:1",
+               "scale": "array:<f8:1", "bounds": "array:<f8:1"},
+    "ghost": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "descriptors": "array:|u1,<f4:2",
+              "sigma": "array:<f8:1"},
+    "sums": {**ENVELOPE, "units": "array:<i8:1", "high": "array:<i8:1"},
+    "density": {**ENVELOPE, "density": "array:<f8:1"},
+    "proposal": {**ENVELOPE, "index": "array:<i8:1", "parent": "array:<i8:1", "distance": "array:<f8:1"},
+    "notify": {**ENVELOPE, "child": "array:<i8:1", "parent": "array:<i8:1"},
+    "fragments": {**ENVELOPE, "child_key": "array:<i8:1", "child_agent": "array:<i8:1",
+                  "parent_key": "array:<i8:1"},
+    "assign": {**ENVELOPE, "key": "array:<i8:1", "target": "array:<i8:1"},
+    "component": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "sigma": "array:<f8:1",
+                  "parent": "array:<i8:1", "distance": "array:<f8:1"},
+    # agent -> coordinator: final clusters of the features the agent decided
+    "result": {"ids": "array:<i8:1", "labels": "array:<i8:1"},
+    # receiver -> sender: acknowledgement of a sequence number
+    "ack": {"seq": "int", "dst": "int"},
+    # agent -> coordinator: per-phase timings and local statistics (numbers only)
+    "stats": {"values": "dict"},
+    # coordinator -> agents: abort the job (reason)
+    "abort": {"reason": "str"},
+    # coordinator -> agents: all results are in, exit
+    "finish": {"clusters": "int"},
+}
+
+#: fields of one row per feature (split across parts; equal lengths within a message)
+ROW_FIELDS: Dict[str, tuple] = {
+    "sigmas": ("values",),
+    "sketch": ("codes", "residual", "reach"),
+    "ghost": ("ids", "image_ids", "descriptors", "sigma"),
+    "sums": ("units",),
+    "density": ("density",),
+    "proposal": ("index", "parent", "distance"),
+    "notify": ("child", "parent"),
+    "fragments": ("child_key", "child_agent", "parent_key"),
+    "assign": ("key", "target"),
+    "component": ("ids", "image_ids", "sigma", "parent", "distance"),
+}
+#: row fields that may also be empty (sums.high: only when a partial sum is too large for one int64)
+OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",)}
+
+
+def encode(kind: str, job: str, src: int, **fields: Any) -> bytes:
+    """Encode a message; arrays become typed byte maps."""
+    if kind not in SCHEMAS:
+        raise MessageError(f"unknown message kind {kind!r}")
+    body: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": job, "src": int(src)}
+    for k, v in fields.items():
+        body[k] = _pack_array(v) if isinstance(v, np.ndarray) else v
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = None,
+           max_bytes: int = MAX_MESSAGE_BYTES, dim: Optional[int] = None) -> Dict[str, Any]:
+    """Decode and validate a message; raise MessageError naming the problem."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise MessageError("payload is not bytes")
+    if len(payload) > max_bytes:
+        raise MessageError(f"message of {len(payload)} bytes exceeds the maximum {max_bytes}")
+    try:
+        body = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
+                               max_bin_len=max_bytes, max_str_len=1 << 16, max_array_len=1 << 16,
+                               max_map_len=1 << 10)
+    except Exception as exc:  # noqa: BLE001 - any malformed input
+        raise MessageError(f"not valid msgpack ({type(exc).__name__})") from None
+    if not isinstance(body, dict):
+        raise MessageError("message is not a map")
+    if body.get("v") != VERSION:
+        raise MessageError(f"schema version {body.get('v')!r} is not {VERSION}")
+    kind = body.get("kind")
+    if kind not in SCHEMAS:
+        raise MessageError(f"unknown message kind {kind!r}")
+    if not isinstance(body.get("job"), str):
+        raise MessageError("missing job id")
+    if job is not None and body["job"] != job:
+        raise MessageError(f"message for job {body['job']!r}, not this job {job!r}")
+    src = body.get("src")
+    if not isinstance(src, int) or src < -1 or (n_agents is not None and src >= n_agents):
+        raise MessageError(f"bad sender {src!r}")
+    out: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": body["job"], "src": src}
+    for field, spec in SCHEMAS[kind].items():
+        if field not in body:
+            raise MessageError(f"{kind} message lacks field {field!r}")
+        val = body[field]
+        if spec == "int":
+            if not isinstance(val, int) or isinstance(val, bool):
+                raise MessageError(f"{kind}.{field} must be an integer")
+        elif spec == "str":
+            if not isinstance(val, str):
+                raise MessageError(f"{kind}.{field} must be a string")
+        elif spec == "float":
+            if isinstance(val, bool) or not isinstance(val, (int, float)) or not np.isfinite(val):
+                raise MessageError(f"{kind}.{field} must be a finite number")
+            val = float(val)
+        elif spec == "dict":
+            if not isinstance(val, dict) or not all(
+                    isinstance(k, str) and isinstance(x, (int, float)) for k, x in val.items()):
+                raise MessageError(f"{kind}.{field} must be a map of numbers")
+        else:
+            _, dts, nd = spec.split(":")
+            arr = _unpack_array(val, f"{kind}.{field}")
+            if arr.dtype.str not in dts.split(","):
+                raise MessageError(f"{kind}.{field} has dtype {arr.dtype.str}, expected {dts}")
+            if arr.ndim != int(nd):
+                raise MessageError(f"{kind}.{field} must be {nd}-D, got shape {arr.shape}")
+            val = arr
+        out[field] = val
+    _check_content(kind, out, n_agents, dim)
+    return out
+
+
+def _nonneg(arr: np.ndarray, what: str, allow_inf: bool = False) -> None:
+    ok = (arr >= 0) & (np.isfinite(arr) | (allow_inf & (arr == np.inf)))
+    if len(arr) and not ok.all():
+        raise MessageError(f"{what} must be {'non-negative' if allow_inf else 'finite and non-negative'}")
+
+
+def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim: Optional[int]) -> None:
+    """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
+    if "parts" in out and not (0 <= out["part"] < out["parts"] <= 1 << 20 and out["seq"] >= 0):
+        raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']} or seq {out['seq']}")
+    rows = ROW_FIELDS.get(kind)
+    if rows:
+        n = len(out[rows[0]])
+        for f in rows[1:] + tuple(f for f in OPTIONAL_ROW_FIELDS.get(kind, ()) if len(out[f])):
+            if len(out[f]) != n:
+                raise MessageError(f"{kind}.{f} has {len(out[f])} rows, {rows[0]} has {n}")
+    if "descriptors" in out and kind in ("features", "ghost", "sample"):
+        d = out["descriptors"]
+        if dim is not None and len(d) and d.shape[1] != dim:
+            raise MessageError(f"descriptor dimension {d.shape[1]} is not the job's {dim}")
+        if d.dtype == np.float32 and len(d) and not np.isfinite(d).all():
+            raise MessageError("non-finite descriptor values")
+    for f in ("ids", "child", "child_key", "parent_key", "key", "index", "units", "high"):
+        if f in out and isinstance(out[f], np.ndarray) and len(out[f]) and (out[f] < 0).any():
+            raise MessageError("negative feature id" if f == "ids" else f"negative {kind}.{f}")
+    if "sigma" in out and kind != "features":
+        _nonneg(out["sigma"], f"{kind}.sigma")
+    if kind == "features" and len(out["ids"]) and (out["sigma"] < 0).any():
+        raise MessageError("negative sigma")
+    if kind == "features":
+        n = len(out["ids"])
+        for f in ("image_ids", "sigma", "unit"):
+            if len(out[f]) != n:
+                raise MessageError(f"features.{f} has {len(out[f])} rows, ids has {n}")
+        if out["descriptors"].shape[0] != n:
+            raise MessageError(f"features.descriptors has {out['descriptors'].shape[0]} rows, ids has {n}")
+        if n and not np.isfinite(out["sigma"]).all():
+            raise MessageError("non-finite sigma")
+    if kind in ("component", "proposal"):
+        if len(out["parent"]) and (out["parent"] < -1).any():
+            raise MessageError(f"{kind}.parent below -1")
+        _nonneg(out["distance"], f"{kind}.distance", allow_inf=True)
+    if kind == "notify" and len(out["parent"]) and (out["parent"] < 0).any():
+        raise MessageError("negative notify.parent")
+    if kind == "density" and len(out["density"]) and not np.isfinite(out["density"]).all():
+        raise MessageError("non-finite density")
+    if kind == "sigmas":
+        _nonneg(out["values"], "sigmas.values")
+    if kind == "sketch":
+        k = out["codes"].shape[1]
+        if len(out["scale"]) != k or len(out["bounds"]) != 4:
+            raise MessageError(f"sketch has {len(out['scale'])} scales and {len(out['bounds'])} bounds for {k} dims")
+        if not (np.isfinite(out["scale"]).all() and (out["scale"] > 0).all() and np.isfinite(out["bounds"]).all()):
+            raise MessageError("sketch scales and bounds must be finite (scales > 0)")
+        _nonneg(out["reach"].astype(np.float64), "sketch.reach")
+    if kind in ("bounds",):
+        for f in ("minima", "slack"):
+            if np.isnan(out[f]).any():
+                raise MessageError(f"bounds.{f} holds NaN")
+    if kind == "result" and len(out["ids"]) != len(out["labels"]):
+        raise MessageError("result ids and labels differ in length")
+    if n_agents is None:
+        return
+    if kind in ("phase_end", "ack") and not 0 <= out["dst"] < n_agents:
+        raise MessageError(f"bad destination agent {out['dst']}")
+    for f in ("child_agent", "target"):
+        if f in out and len(out[f]) and ((out[f] < 0) | (out[f] >= n_agents)).any():
+            raise MessageError(f"{kind}.{f} names an agent outside 0..{n_agents - 1}")
+    if kind in ("minima", "counts", "weights") or kind == "bounds":
+        fields = {"minima": ("values",), "counts": ("counts",), "weights": ("weights",),
+                  "bounds": ("minima", "slack")}[kind]
+        for f in fields:
+            if len(out[f]) != n_agents:
+                raise MessageError(f"{kind}.{f} has {len(out[f])} values for {n_agents} agents")
+    if kind == "seeds":
+        if out["seeds"].shape[0] not in (0, n_agents) or len(out["weights"]) != n_agents:
+            raise MessageError(f"{out['seeds'].shape[0]} seeds and {len(out['weights'])} weights for {n_agents} agents")
+        if not (np.isfinite(out["seeds"]).all() and np.isfinite(out["weights"]).all()):
+            raise MessageError("non-finite seeds or weights")
+        if dim is not None and (out["seeds"].shape[0] and out["seeds"].shape[1] != dim
+                                or len(out["basis"]) and out["basis"].shape[1] != dim):
+            raise MessageError(f"seeds or sketch basis do not have the job's dimension {dim}")
+    if kind == "weights" and not np.isfinite(out["weights"]).all():
+        raise MessageError("non-finite weights")
