@@ -26,7 +26,7 @@ def add_algorithm(p) -> None:
                    help="balanced: one-way (default) or two-way (the plain bisector halo, for comparison)")
     g.add_argument("--sketch-dims", type=int, default=DEFAULT_SKETCH_DIMS,
                    help="balanced: dimension of the lower-bound sketch pre-filter (0 = off)")
-    g.add_argument("--balance-rounds", type=int, default=8, help="most rounds of cell-weight refinement")
+    g.add_argument("--balance-rounds", type=int, default=12, help="most rounds of cell-weight refinement")
     g.add_argument("--job", default="job", help="job id; keeps concurrent jobs on one router apart")
 
 

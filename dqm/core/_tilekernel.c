@@ -400,3 +400,33 @@ int64_t dqm_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
     }
     return count;
 }
+
+/*
+ * Any-within scan of a tile of squared distances (the lower-bound sketch
+ * pre-filter of dqm/distributed/sketch.py): sets hit[r] = 1 when some column c
+ * has G[r, c] < max(rad2r[r], rad2c[c]). Rows already hit are skipped and a
+ * row stops at its first hit, checked every 64 columns so the inner loop
+ * vectorises.
+ */
+void dqm_any_within(const float *G, int64_t m, int64_t k, int64_t ldg,
+                    const float *rad2r, const float *rad2c, uint8_t *hit)
+{
+    for (int64_t r = 0; r < m; ++r) {
+        if (hit[r])
+            continue;
+        const float *g = G + r * ldg;
+        const float lr = rad2r[r];
+        for (int64_t c0 = 0; c0 < k; c0 += 64) {
+            int64_t c1 = c0 + 64 < k ? c0 + 64 : k;
+            int any = 0;
+            for (int64_t c = c0; c < c1; ++c) {
+                float lim = rad2c[c] > lr ? rad2c[c] : lr;
+                any |= g[c] < lim;
+            }
+            if (any) {
+                hit[r] = 1;
+                break;
+            }
+        }
+    }
+}

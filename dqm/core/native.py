@@ -60,6 +60,10 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, f32, f32, i32, i32, f32, ctypes.c_int64,
         ]
         nn.restype = ctypes.c_int64
+        aw = lib.dqm_any_within
+        u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
+        aw.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, f32, f32, u8]
+        aw.restype = None
         return lib
     return None
 
@@ -211,6 +215,23 @@ def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_nat
         if got >= 0:
             return rmin, cmin, cr[:got], cc[:got], cg[:got]
         cap *= 4
+
+
+def any_within(G: np.ndarray, rad2r: np.ndarray, rad2c: np.ndarray, hit: np.ndarray,
+               use_native: bool = True) -> None:
+    """Set ``hit[r]`` where some column has ``G[r, c] < max(rad2r[r], rad2c[c])`` (rows already hit stay).
+
+    ``G`` C-contiguous float32; ``hit`` uint8, updated in place.
+    """
+    m, k = G.shape
+    if _LIB is None or not use_native:
+        todo = hit == 0
+        if todo.any():
+            g = G[todo]
+            hit[todo] |= ((g < rad2r[todo][:, None]) | (g < rad2c[None, :])).any(axis=1).astype(np.uint8)
+        return
+    _LIB.dqm_any_within(G.ctypes.data, m, k, G.strides[0] // 4, np.ascontiguousarray(rad2r, dtype=np.float32),
+                        np.ascontiguousarray(rad2c, dtype=np.float32), hit)
 
 
 def _blas_local_threads():

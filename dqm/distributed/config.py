@@ -70,7 +70,7 @@ class DQMConfig:
     cell_weights: Optional[bool] = None
     ghost_rule: str = "one-way"
     sketch_dims: int = DEFAULT_SKETCH_DIMS
-    balance_rounds: int = 8
+    balance_rounds: int = 12
 
     @property
     def weighted(self) -> bool:

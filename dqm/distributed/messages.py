@@ -79,7 +79,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "counts": {"counts": "array:<i8:1"},
     # leader -> agents: refined weights (final = 1: route with these)
     "weights": {"weights": "array:<f8:1", "final": "int"},
-    # agent -> agent: features (routing or lean hand-down); unit: hand-down unit of every row
+    # agent -> agent: features (routing or lean hand-down); unit: hand-down unit of every row (empty: routing)
     "features": {"phase": "str", "seq": "int", "ids": "array:<i8:1", "image_ids": "array:<i8:1",
                  "descriptors": "array:|u1,<f4:2", "sigma": "array:<f8:1", "unit": "array:<i8:1"},
     # agent -> agent: end of a phase from this sender to this receiver (count of feature messages);
@@ -232,7 +232,7 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
     if kind == "features":
         n = len(out["ids"])
         for f in ("image_ids", "sigma", "unit"):
-            if len(out[f]) != n:
+            if len(out[f]) != n and not (f == "unit" and len(out[f]) == 0):
                 raise MessageError(f"features.{f} has {len(out[f])} rows, ids has {n}")
         if out["descriptors"].shape[0] != n:
             raise MessageError(f"features.descriptors has {out['descriptors'].shape[0]} rows, ids has {n}")

@@ -24,8 +24,8 @@ The cells stay convex polytopes, each pair separated by one hyperplane, so the
 bisector distance stays closed form and additive (dqm.distributed.boundary).
 Agent 0 fits the weights on the pooled sample (:func:`fit_weights`), then
 refines them on the exact cell counts of all features, which every agent
-reports for its own features (:func:`refine_weights`, a few rounds of m
-integers per agent); all from the same integer.
+reports for its own features (:func:`refine_weights`, rounds of m integers per
+agent until the largest cell is within 10% of n/m); all from the same integer.
 """
 from __future__ import annotations
 
@@ -130,16 +130,6 @@ def power(X: np.ndarray, seeds: np.ndarray, weights: Optional[np.ndarray] = None
     return d2
 
 
-def _soft_sensitivity(sample: np.ndarray, seeds: np.ndarray, weights: np.ndarray, scale: float) -> np.ndarray:
-    """How fast each cell's share of the sample grows with its own weight (a smoothed count)."""
-    d = power(sample, seeds, weights)
-    t = max(0.1 * scale, 1e-12)
-    z = -(d - d.min(axis=1, keepdims=True)) / t
-    p = np.exp(z)
-    p /= p.sum(axis=1, keepdims=True)
-    return (p * (1.0 - p)).sum(axis=0) / t / max(1, len(sample))
-
-
 def _margin_scale(sample: np.ndarray, seeds: np.ndarray) -> float:
     """Typical gap between a sample point's best and second-best power (weight units)."""
     if len(seeds) < 2 or len(sample) == 0:
@@ -174,17 +164,20 @@ def fit_weights(sample: np.ndarray, seeds: np.ndarray, iterations: int = 500) ->
     return best_w
 
 
-def refine_weights(sample: np.ndarray, seeds: np.ndarray, weights: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """One Newton-like step on the exact cell counts of all features.
+def margin_scale(sample: np.ndarray, seeds: np.ndarray) -> float:
+    """Typical gap between a sample point's best and second-best power (the weights' unit)."""
+    return _margin_scale(np.asarray(sample, np.float64), seeds)
 
-    ``counts`` are the global counts under ``weights``; the sensitivity of
-    each cell to its own weight is estimated on the sample (a smoothed count)
-    and scaled to the data size. The step is damped (0.7).
+
+def refine_weights(weights: np.ndarray, step: np.ndarray, previous: np.ndarray, counts: np.ndarray):
+    """One round of weight refinement on the exact cell counts of all features (Rprop).
+
+    Counts are piecewise constant in the weights, so gradients say little;
+    each cell moves its weight by its own step toward its share n/m, the step
+    growing (x1.2) while the cell stays on the same side and halving when it
+    crosses. Returns ``(weights, step, sign)``; deterministic.
     """
     counts = np.asarray(counts, dtype=np.float64)
-    n = counts.sum()
-    m = len(seeds)
-    if m < 2 or n == 0:
-        return np.asarray(weights, dtype=np.float64)
-    sens = _soft_sensitivity(np.asarray(sample, np.float64), seeds, weights, _margin_scale(sample, seeds)) * n
-    return np.asarray(weights, np.float64) + 0.7 * (n / m - counts) / np.maximum(sens, 1e-12)
+    sign = np.sign(counts.sum() / len(counts) - counts)
+    step = np.where(sign * previous < 0, 0.5 * step, np.where(sign * previous > 0, 1.2 * step, step))
+    return np.asarray(weights, np.float64) + step * sign, step, sign

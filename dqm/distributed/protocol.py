@@ -60,12 +60,13 @@ def wire_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return d if d.dtype == np.uint8 else np.ascontiguousarray(d, dtype=np.float32)
 
 
-def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors, sigma, unit,
+def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors, sigma, unit=None,
                      seq0: int = 0) -> List[bytes]:
     """The ``features`` chunks of one (src, dst, phase), numbered ``seq0, seq0 + 1, ...``.
 
     Sequence numbers are per directed link and never reused within a job, so
-    an ack names one chunk and a duplicate is recognised.
+    an ack names one chunk and a duplicate is recognised. ``unit`` (the lean
+    hand-down's units) is left out (an empty array) when None, as in routing.
     """
     n = len(ids)
     desc = wire_descriptors(descriptors)
@@ -75,7 +76,8 @@ def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors
         out.append(messages.encode(
             "features", job, src, phase=phase, seq=seq0 + k, ids=np.asarray(ids[sl], np.int64),
             image_ids=np.asarray(image_ids[sl], np.int64), descriptors=np.ascontiguousarray(desc[sl]),
-            sigma=np.asarray(sigma[sl], np.float64), unit=np.asarray(unit[sl], np.int64)))
+            sigma=np.asarray(sigma[sl], np.float64),
+            unit=np.zeros(0, np.int64) if unit is None else np.asarray(unit[sl], np.int64)))
     return out
 
 

@@ -14,8 +14,9 @@ Everything follows from the one integer the coordinator broadcasts:
    sigmas, the leader broadcasts their median (the centralized engine's value
    for such features), so sigma is exact everywhere.
 4. Only with cell weights: rounds of exact cell counts (m integers per agent)
-   and refined weights until the largest cell is within 10% of n/m or
-   ``balance_rounds`` are spent; the best weights seen are final.
+   and refined weights (dqm.distributed.partition.refine_weights) until the
+   largest cell is within 10% of n/m or ``balance_rounds`` are spent; the best
+   weights seen are final.
 
 The agent side is :class:`SourceSide`, the leader's is :class:`Leader`; the
 simulator and the runtime call the same methods with the same payloads.
@@ -125,6 +126,8 @@ class Leader:
         self.seeds = seeds
         weights = partition.fit_weights(pooled, seeds) if cfg.weighted else np.zeros(self.m)
         self.weights = weights
+        self.step = np.full(self.m, 0.25 * partition.margin_scale(pooled, seeds))
+        self.sign = np.zeros(self.m)
         if cfg.mode == "balanced" and cfg.sketch_dims > 0:
             basis = sketch.basis_from_sample(pooled, seeds.mean(axis=0), cfg.sketch_dims)
         else:
@@ -147,5 +150,5 @@ class Leader:
         self.rounds += 1
         if largest <= BALANCE_TOLERANCE * n / self.m or self.rounds >= self.cfg.balance_rounds:
             return {"weights": self.best[1], "final": 1}
-        self.weights = partition.refine_weights(self.sample, self.seeds, self.weights, c)
+        self.weights, self.step, self.sign = partition.refine_weights(self.weights, self.step, self.sign, c)
         return {"weights": self.weights, "final": 0}

@@ -157,7 +157,7 @@ class _Wire:
         self.seqs[(src, dst)] = seq0 + len(msgs)
         return protocol.merge_parts(kind, [self._decode(m) for m in msgs])
 
-    def features(self, src: int, dst: int, phase: str, shard: Shard, units: np.ndarray,
+    def features(self, src: int, dst: int, phase: str, shard: Shard, units: Optional[np.ndarray],
                  moved: Optional[np.ndarray] = None) -> None:
         """The features chunks of one (src, dst, phase), their acks and the phase end."""
         seq0 = self.seqs[(src, dst)]
@@ -251,7 +251,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     for a in range(m):
         for b, sh in clock.run(a, sources[a].route).items():
             if a != b:
-                wire.features(a, b, "route", sh, np.full(len(sh), -1))
+                wire.features(a, b, "route", sh, None)
             parts_for[b].append(sh)
     routed = traffic.features_moved
     cells = np.zeros(n, np.int64)

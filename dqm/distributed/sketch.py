@@ -24,12 +24,19 @@ machines are covered by the margins below.
 """
 from __future__ import annotations
 
-from typing import Dict, Tuple
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from ..core import native, pairs
+
 #: relative margin for float64 rounding in projections, norms and the bound
 _REL = 1e-7
+#: tile of the pre-filter's pass (rows x sketch columns, float32)
+_TILE_ROWS = 1024
+_TILE_COLS = 2048
 
 
 def basis_from_sample(sample: np.ndarray, center: np.ndarray, k: int) -> np.ndarray:
@@ -90,53 +97,86 @@ def encode(space: SketchSpace, X: np.ndarray, reach: np.ndarray) -> Dict[str, np
 
 
 def plausible(space: SketchSpace, X: np.ndarray, reach_x: np.ndarray, sketch: Dict[str, np.ndarray],
-              use_their_reach: bool = True, block: int = 4096) -> np.ndarray:
+              use_their_reach: bool = True, relax: float = 0.0, n_threads: Optional[int] = None) -> np.ndarray:
     """(n,) bool: could x be within reach of some sketched feature?
 
     With ``w = (u, r)`` (k + 1 numbers), ``|x - y| >= |w_x - w_y| >= |w_x - ŵ_y| - e``
-    where ŵ_y is y's decoded sketch and e bounds its quantization error (and
-    float rounding on both sides). The bound is compared with
-    ``max(reach(x), reach(y))`` (``use_their_reach``, the one-way rule) or
-    ``reach(x)`` alone (the two-way rule): True whenever the true distance is
-    within the threshold, possibly True otherwise. One GEMM per block; the
-    thresholds are folded into column offsets so each block is two passes.
+    where ŵ_y is y's decoded sketch and e bounds its quantization error. The
+    bound is compared with ``max(reach(x), reach(y))`` (``use_their_reach``, the
+    one-way rule) or ``reach(x)`` alone (the two-way rule): True whenever the
+    true distance is within the threshold, possibly True otherwise.
+
+    Computed as a float32 GEMM per tile (augmented vectors around the sketch's
+    mean) and a scan that stops at a row's first hit (dqm.core.native); later
+    column tiles skip rows already hit. Every margin (the sketch's
+    quantization, the rounding of x's own projection, the float32 GEMM's worst
+    case) depends on x itself or on the sketch alone, so a row's answer does not
+    depend on which other rows are tested with it: the receiver can recompute
+    the sender's decision. ``relax`` widens the thresholds by that fraction (the
+    receiver's check allows for float32 differences between batches).
     """
     n = len(X)
-    out = np.zeros(n, dtype=bool)
     codes = np.asarray(sketch["codes"])
     if n == 0 or len(codes) == 0:
-        return out
+        return np.zeros(n, dtype=bool)
     r_lo, r_step, e_u, e_r = (float(v) for v in sketch["bounds"])
     Wy = np.empty((len(codes), codes.shape[1] + 1))
     Wy[:, :-1] = codes.astype(np.float64) * np.asarray(sketch["scale"], np.float64)[None, :]
     Wy[:, -1] = r_lo + sketch["residual"].astype(np.float64) * r_step
     Ry = np.asarray(sketch["reach"], np.float64)
-    ny = np.einsum("ij,ij->i", Wy, Wy)
     ux, rx, normx = space.project(X)
     Wx = np.concatenate([ux, rx[:, None]], axis=1)
-    nx = np.einsum("ij,ij->i", Wx, Wx)
-    # quantization of the sketch (e), rounding of x's own projection (mx, per row: a row's answer
-    # must not depend on the other rows; it also covers QR differences between machines)
     e = float(np.hypot(e_u, e_r))
-    mx = (_REL + 4.0 * np.sqrt(_REL)) * normx
-    gamma = 8.0 * (Wx.shape[1] + 2) * np.finfo(np.float64).eps  # GEMM rounding, relative to |w_x|^2 + |w_y|^2
-    reach_x = np.asarray(reach_x, np.float64)
-    c_near = ny  # |w_x - ŵ_y|^2 = nx + ny - 2 w_x.ŵ_y
-    c_theirs = ny - (Ry + e) ** 2 if use_their_reach else None
-    ny_max = float(ny.max())
-    ry_max = float(Ry.max()) + e
-    for s in range(0, n, block):
-        sl = slice(s, s + block)
-        G = Wx[sl] @ Wy.T
-        G *= -2.0
-        low = nx[sl] - gamma * (nx[sl] + ny_max)  # with the column offsets: a lower bound of |w_x - ŵ_y|^2
-        hit = (G + c_near[None, :]).min(axis=1) + low < (reach_x[sl] + e + mx[sl]) ** 2
-        if c_theirs is not None:
-            # |w_x - ŵ_y| < R_y + e + m  <=>  |.|^2 - (R_y + e)^2 < m (2 (R_y + e) + m) <= m (2 ry_max + m)
-            G += c_theirs[None, :]
-            hit |= G.min(axis=1) + low < mx[sl] * (2.0 * ry_max + mx[sl])
-        out[sl] = hit
-    return out
+    crel = _REL + 4.0 * np.sqrt(_REL)  # rounding of a projection, relative to |x - mu|
+    c0 = Wy.mean(axis=0)
+    Yc = Wy - c0[None, :]
+    Xc = Wx - c0[None, :]
+    ny = np.einsum("ij,ij->i", Yc, Yc)
+    nx = np.einsum("ij,ij->i", Xc, Xc)
+    K = Wx.shape[1] + 2
+    gamma = (2 * K + 4) * float(np.finfo(np.float32).eps)  # worst case of the float32 GEMM, any order
+    grow = 1.0 + relax
+    # x's own threshold: |w_x - ŵ_y| < R_x + e + m_x
+    rad2r = ((np.asarray(reach_x, np.float64) + e + crel * normx) ** 2 * grow + gamma * (nx + float(ny.max())))
+    if use_their_reach:
+        # y's threshold; where it matters |x - mu| <= |ŵ_y| + e + R_y, which bounds x's rounding and norm
+        far = Ry + e
+        wy_norm = np.sqrt(np.einsum("ij,ij->i", Wy, Wy))
+        rad2c = (far + crel * (wy_norm + far)) ** 2 * grow + gamma * (ny + (np.sqrt(ny) + far + e) ** 2)
+    else:
+        rad2c = np.full(len(Wy), -np.inf)
+    order = np.argsort(-rad2c, kind="stable")  # likely hits first: earlier exits
+    L = np.empty((n, K), np.float32)
+    L[:, :-2], L[:, -2], L[:, -1] = Xc, nx, 1.0
+    Rm = np.empty((len(Wy), K), np.float32)
+    Rm[:, :-2], Rm[:, -2], Rm[:, -1] = -2.0 * Yc[order], 1.0, ny[order]
+    rad2r32 = rad2r.astype(np.float32)
+    rad2c32 = np.where(np.isfinite(rad2c[order]), rad2c[order], -np.inf).astype(np.float32)
+    hit = np.zeros(n, np.uint8)
+    pending = np.arange(n)
+    local = threading.local()
+
+    def work(task):
+        if not getattr(local, "blas_set", False):
+            native.single_threaded_blas_in_this_thread()
+            local.blas_set = True
+        rows, c_lo, c_hi = task
+        G = L[rows] @ Rm[c_lo:c_hi].T
+        h = np.zeros(len(rows), np.uint8)
+        native.any_within(G, rad2r32[rows], rad2c32[c_lo:c_hi], h)
+        return rows, h
+
+    threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for c_lo in range(0, len(Wy), _TILE_COLS):
+            if len(pending) == 0:
+                break
+            c_hi = min(len(Wy), c_lo + _TILE_COLS)
+            tasks = [(pending[s:s + _TILE_ROWS], c_lo, c_hi) for s in range(0, len(pending), _TILE_ROWS)]
+            for rows, h in pool.map(work, tasks):
+                hit[rows] |= h
+            pending = pending[hit[pending] == 0]
+    return hit.astype(bool)
 
 
 def empty_sketch(k: int) -> Dict[str, np.ndarray]:

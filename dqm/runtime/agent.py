@@ -153,9 +153,9 @@ class AgentProcess:
         shard = Shard(ids, np.concatenate([c["image_ids"] for c in ch]), desc,
                       np.concatenate([c["sigma"] for c in ch]),
                       partition.route(desc.astype(np.float64), self.source.seeds, self.source.weights))
-        return shard, np.concatenate([c["unit"] for c in ch])
+        return shard, np.concatenate([c["unit"] if len(c["unit"]) else np.full(len(c["ids"]), -1) for c in ch])
 
-    def _send_features(self, dst: int, phase: str, shard: Shard, units: np.ndarray) -> int:
+    def _send_features(self, dst: int, phase: str, shard: Shard, units: Optional[np.ndarray]) -> int:
         seq0 = self.bus.next_seq(dst, protocol.chunk_count(len(shard)))
         msgs = protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids,
                                          shard.descriptors, shard.sigma, units, seq0=seq0)
@@ -198,7 +198,7 @@ class AgentProcess:
         parts = self.source.route()
         self.own_part = parts[self.me]
         for b in self._others():
-            k = self._send_features(b, "route", parts[b], np.full(len(parts[b]), -1))
+            k = self._send_features(b, "route", parts[b], None)
             self.bus.send(b, "phase_end", protocol.phase_end(self.cfg.job, self.me, b, "route", k, len(parts[b])))
         self._enter("wait_routed")
 
