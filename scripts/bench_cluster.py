@@ -10,7 +10,7 @@ time, centralized QuickMatch (same finite kernel), bytes per feature, traffic
 over raw descriptor bytes, per-phase times of the slowest agent, and whether
 the runtime's clusters equal the simulator's.
 
-    python scripts/bench_cluster.py [--sizes 25000,100000] [--agents 1,2,4,8] [--no-graf]
+    python scripts/bench_cluster.py [--sizes 25000,100000] [--agents 1,2,4,8] [--no-graf] [--mode balanced]
 """
 import argparse
 import json
@@ -50,6 +50,7 @@ def main(argv=None):
     ap.add_argument("--agents", default="1,2,4,8")
     ap.add_argument("--no-graf", action="store_true")
     ap.add_argument("--json", help="write raw numbers here")
+    ap.add_argument("--mode", default="balanced", help="balanced, lean or paper")
     args = ap.parse_args(argv)
     rows = []
     for name, X, ids in datasets([int(s) for s in args.sizes.split(",") if s], not args.no_graf):
@@ -58,7 +59,7 @@ def main(argv=None):
         t_central = time.perf_counter() - t
         raw = X.size * X.dtype.itemsize
         for m in [int(a) for a in args.agents.split(",")]:
-            cfg = DQMConfig(agents=m, seed=1, job=f"bench{m}")
+            cfg = DQMConfig(agents=m, seed=1, mode=args.mode, job=f"bench{m}")
             t = time.perf_counter()
             sim = simulate(X, ids, cfg)
             t_sim = time.perf_counter() - t
@@ -66,8 +67,9 @@ def main(argv=None):
             rep = run_job(X, ids, cfg, timeout_s=3600)
             t_run = time.perf_counter() - t
             same = bool(np.array_equal(np.asarray(rep["labels"]), sim.labels))
-            slowest = max(rep["per_agent"].values(), key=lambda s: s.get("time_cluster", 0))
+            slowest = max(rep["per_agent"].values(), key=lambda s: s.get("cpu_s", 0))
             phases = {k[5:]: round(v, 2) for k, v in slowest.items() if k.startswith("time_")}
+            phases["cpu"] = round(slowest.get("cpu_s", 0.0), 2)
             row = dict(data=name, n=len(X), m=m, central_s=t_central, simulator_s=t_sim, runtime_s=t_run,
                        runtime_job_s=rep["time_run_s"], runtime_startup_s=t_run - rep["time_run_s"],
                        ratio_vs_sim=t_run / t_sim, bytes=rep["total_bytes"], bytes_per_feature=rep["total_bytes"] / len(X),

@@ -101,6 +101,23 @@ def test_work_is_spread_and_cells_balanced():
     assert lean.stats["max_pair_share"] > 2 * s["max_pair_share"]
 
 
+def test_sketches_travel_only_where_they_pay(graf_sift):
+    """Generated SIFT-like data defeats 48 projected dimensions: after the pilot the senders ask
+    for no more sketches, and the bytes stay within the pilot's cost of no sketch at all. On real
+    SIFT the full sketches keep about half the copies home and save bytes."""
+    ds = sift_like(n_images=12, n_points=700, clutter_per_image=250, noise=0.3, seed=2)
+    on, off = (simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=8, seed=1, sketch_dims=k)).stats
+               for k in (48, 0))
+    assert on["ghosts_per_feature"] == off["ghosts_per_feature"]
+    assert on["sketches_per_feature"] < 0.15 * (8 - 1) / 2
+    assert on["bytes_over_raw"] <= 1.06 * off["bytes_over_raw"]
+    X, ids = graf_sift
+    keep = np.concatenate([np.flatnonzero(ids == k)[:700] for k in np.unique(ids)])
+    on, off = (simulate(X[keep], ids[keep], DQMConfig(agents=5, seed=1, sketch_dims=k)).stats for k in (48, 0))
+    assert on["ghosts_per_feature"] < 0.7 * off["ghosts_per_feature"]
+    assert on["bytes_over_raw"] < off["bytes_over_raw"]
+
+
 def test_gaussian_kernel_is_refused_clearly(sift):
     X, ids = sift
     with pytest.raises(InputError, match="balanced mode needs the finite quadratic kernel"):
@@ -180,7 +197,7 @@ def test_sketch_prefilter_never_drops_a_pair(their_reach):
     xs, ys = X[:half], X[half:]
     Rx = rng.uniform(120, 260, len(xs))
     Ry = rng.uniform(120, 260, len(ys))
-    sk = sketch.encode(space, ys, Ry)
+    sk = dict(sketch.encode(space, ys, Ry), pending=0)
     payload = protocol.merge_parts("sketch", [messages.decode(b) for b in
                                               protocol.data_messages("sketch", "j", 1, sk)])
     kept = sketch.plausible(space, xs, Rx, payload, use_their_reach=their_reach)
@@ -223,6 +240,14 @@ def test_one_way_ghost_rule_covers_every_interacting_pair():
     assert shipped.sum() < (len(X) * (m - 1)) / 2  # and the rule does not ship everything
 
 
+def test_the_rest_of_a_sketch_is_asked_for_only_if_it_can_pay():
+    assert sketch.worth_the_rest(n_unhit=100, n_rest=200, copy_bytes=168, sketch_bytes=53)
+    assert not sketch.worth_the_rest(n_unhit=10, n_rest=800, copy_bytes=168, sketch_bytes=53)
+    ids = np.arange(80_000)
+    assert 0.11 < sketch.pilot_mask(ids).mean() < 0.14  # an eighth, deterministic
+    np.testing.assert_array_equal(sketch.pilot_mask(ids), sketch.pilot_mask(ids.copy()))
+
+
 def test_crossing_components_go_to_the_lowest_agent():
     # fragments 10 (agent 3) -> 20 (agent 1) -> 30 (agent 2); 40 (agent 2) -> 50 (agent 4)
     keys, agents, targets = forest.assign_components(
@@ -259,7 +284,7 @@ def test_round_messages_split_into_parts_and_merge_back():
     ("bounds", {"minima": np.zeros(2), "slack": np.zeros(2)}, "for 3 agents"),
     ("sums", {"units": np.array([-5]), "high": np.zeros(0, np.int64)}, "negative sums.units"),
     ("sketch", {"codes": np.zeros((1, 3), np.int8), "residual": np.zeros(1, np.uint8),
-                "reach": np.ones(1, np.float32), "scale": np.ones(2), "bounds": np.zeros(4)}, "scales"),
+                "reach": np.ones(1, np.float32), "scale": np.ones(2), "bounds": np.zeros(4), "pending": 0}, "scales"),
 ])
 def test_hostile_round_messages_are_refused(kind, fields, pattern):
     raw = messages.encode(kind, "j", 1, seq=0, part=0, parts=1, **fields)

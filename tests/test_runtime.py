@@ -63,6 +63,22 @@ def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition):
         assert all(st["consistency_failures"] == 0 for st in rep["per_agent"].values())
 
 
+def test_runtime_agrees_sigma_of_single_feature_images(data):
+    """Images with one feature take the median sigma of all agents' features (the fill rounds)."""
+    import dqm
+
+    X, ids = data
+    X = np.vstack([X, X[:1] // 2, X[5:6]])
+    ids = np.concatenate([ids, [100, 101]])
+    cfg = DQMConfig(agents=3, seed=4, job="fill")
+    rep = run_job(X, ids, cfg, timeout_s=120)
+    sim = simulate(X, ids, cfg)
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
+    np.testing.assert_array_equal(sim.labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
+    assert rep["kinds"]["fill"]["messages"] == 2 and rep["kinds"]["sigmas"]["messages"] == 2
+    assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k != "stats"} == sim.traffic.per_kind()
+
+
 def test_no_router_gives_a_clear_error(tmp_path):
     from dqm.runtime.launcher import free_port, write_agent_files
 

@@ -64,6 +64,14 @@ def run(args) -> int:
     if truth is not None and (np.asarray(truth) >= 0).any():
         s = evaluation.cluster_scores_landmarks(labels, np.asarray(truth), ids)
         print(f"Against ground truth: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f}.")
+    cpu = {int(a): st.get("cpu_s", 0.0) for a, st in rep.get("per_agent", {}).items()}
+    if cpu:
+        busiest = max(cpu, key=cpu.get)
+        pairs = [st.get("pairs", 0.0) for st in rep["per_agent"].values()]
+        most = 100.0 * max(pairs) / max(1.0, len(labels) * (len(labels) - 1) / 2)
+        share = f"; the most pairs at one agent: {most:.0f}% of the centralized pass" if any(pairs) else ""
+        print(f"Work: the busiest agent (agent {busiest}) used {cpu[busiest]:.2f} CPU s, all agents "
+              f"{sum(cpu.values()):.2f} CPU s{share}.")
     raw = np.asarray(X).size * (1 if np.asarray(X).dtype == np.uint8 else 4)
     print(f"Traffic: {rep['total_bytes']} bytes metered ({rep['total_bytes'] / raw:.2f}x the raw descriptor bytes)"
           + (f", {rep['wire_bytes_received_by_router']} bytes received by the router (kernel TCP counters)"

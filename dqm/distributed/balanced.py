@@ -5,8 +5,11 @@ rounds (:data:`ROUNDS`) with the same payloads, so they cannot drift apart.
 Every agent owns the features of its cell (after routing) and, round by round:
 
 ``bounds``     publishes two lower-bound numbers per other cell (dqm.distributed.ghosts);
-``sketch``     sends lower-bound sketches of its features near each cell that ships
-               copies to it (dqm.distributed.sketch);
+``sketch``     sends a pilot (a deterministic eighth) of the lower-bound sketches of its
+               features near each cell that ships copies to it (dqm.distributed.sketch);
+``request``    asks for the rest of a sketch only where it can pay: the candidates the
+               pilot does not already prove plausible bound what the rest can save;
+``sketch_rest`` sends the rest where asked (an empty message otherwise);
 ``ghost``      ships copies of the features another cell may need (one way per cell pair);
 ``sums``       finds, in one blocked pass over its own features and the copies it holds
                (pairs among copies are another agent's work), every pair within
@@ -47,7 +50,8 @@ Payload = Dict[str, np.ndarray]
 LEADER = 0
 
 #: the balanced rounds after routing, in order; each is one message kind
-ROUNDS = ("bounds", "sketch", "ghost", "sums", "density", "proposal", "notify", "fragments", "assign", "component")
+ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density", "proposal", "notify", "fragments",
+          "assign", "component")
 
 
 def ranks_above(da: np.ndarray, db: np.ndarray, ida: np.ndarray, idb: np.ndarray) -> np.ndarray:
@@ -144,24 +148,57 @@ class BalancedCore:
                 self.failures += 1
                 continue
             self.E[a], self.S[a] = p["minima"], p["slack"]
-        self.sketch_sent: Dict[int, Payload] = {}
-        n_sk = 0
+        self.sketch_sent: Dict[int, List[Payload]] = {}
+        self.sketch_rest: Dict[int, np.ndarray] = {}
+        out = {}
         for a in self.recipients("sketch"):
-            mask = ghosts.sketch_mask(self.H[:, a], self.R, self.E[a, self.me], self.S[a, self.me], self.rule)
-            self.sketch_sent[a] = sketch.encode(self.space, self.X[mask], self.R[mask])
-            n_sk += int(mask.sum())
-        self.stats["sketches_sent"] = float(n_sk)
-        return dict(self.sketch_sent)
+            idx = np.flatnonzero(ghosts.sketch_mask(self.H[:, a], self.R, self.E[a, self.me], self.S[a, self.me],
+                                                    self.rule))
+            pilot = sketch.pilot_mask(self.own.ids[idx])
+            self.sketch_rest[a] = idx[~pilot]
+            out[a] = dict(sketch.encode(self.space, self.X[idx[pilot]], self.R[idx[pilot]]),
+                          pending=int((~pilot).sum()))
+            self.sketch_sent[a] = [out[a]]
+        self.stats["sketches_sent"] = float(sum(int(pilot_of["codes"].shape[0]) for pilot_of in out.values()))
+        return out
 
-    def _ship_candidates(self, b: int, X: np.ndarray, H_b: np.ndarray, R: np.ndarray,
-                         sketch_of_b: Optional[Payload]) -> np.ndarray:
-        """Mask of features (of this cell, or arrived from it) that this cell ships to b."""
-        mask = ghosts.ship_mask(H_b, R, self.E[b, self.me], self.S[b, self.me], self.rule)
-        if sketch_of_b is not None and mask.any():
-            idx = np.flatnonzero(mask)
-            ok = sketch.plausible(self.space, X[idx], R[idx], sketch_of_b, use_their_reach=self.rule == "one-way")
-            mask[idx[~ok]] = False
-        return mask
+    def _round_request(self, inputs) -> Dict[int, Payload]:
+        """For every cell this one ships to: the geometric candidates, those the pilot already
+        proves plausible, and whether the rest of the sketch can pay for itself."""
+        self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
+        if self.space is None:
+            return {}
+        copy_bytes = self.X.shape[1] * self.own.descriptors.itemsize + 40  # ids, image, sigma, sum, density
+        sketch_bytes = self.space.k + 5
+        out = {}
+        for b in self.recipients("request"):
+            idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
+                                                  self.rule))
+            pilot = inputs.get(b)
+            if pilot is None:
+                self.failures += 1
+                self.plan[b] = (idx, np.ones(len(idx), bool), False)
+                out[b] = {"want": 0}
+                continue
+            hit = sketch.plausible(self.space, self.X[idx], self.R[idx], pilot, use_their_reach=self.rule == "one-way")
+            want = sketch.worth_the_rest(int((~hit).sum()), int(pilot["pending"]), copy_bytes, sketch_bytes)
+            self.plan[b] = (idx, hit, want)
+            out[b] = {"want": int(want)}
+        return out
+
+    def _round_sketch_rest(self, inputs) -> Dict[int, Payload]:
+        self.requested: Dict[int, bool] = {}
+        out = {}
+        for a in self.recipients("sketch_rest"):
+            p = inputs.get(a)
+            want = bool(p is not None and p["want"])
+            self.requested[a] = want
+            idx = self.sketch_rest[a] if want else np.zeros(0, np.int64)
+            out[a] = dict(sketch.encode(self.space, self.X[idx], self.R[idx]), pending=0)
+            if want:
+                self.sketch_sent[a].append(out[a])
+        self.stats["sketches_sent"] += float(sum(int(v["codes"].shape[0]) for v in out.values()))
+        return out
 
     def _round_ghost(self, inputs) -> Dict[int, Payload]:
         self.shipped: Dict[int, np.ndarray] = {}
@@ -169,19 +206,32 @@ class BalancedCore:
         out = {}
         geometric = 0
         for b in self.recipients("ghost"):
-            sk = inputs.get(b) if self.space is not None else None
-            if self.space is not None and sk is None:
-                self.failures += 1  # no sketch arrived: ship on the geometric rule alone
-            geo = ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me], self.rule)
-            geometric += int(geo.sum())
-            idx = np.flatnonzero(self._ship_candidates(b, self.X, self.H[:, b], self.R, sk))
+            if self.space is None:
+                idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
+                                                      self.rule))
+                geometric += len(idx)
+            else:
+                cand, hit, want = self.plan[b]
+                geometric += len(cand)
+                rest = inputs.get(b)
+                if want and rest is None:
+                    self.failures += 1  # the rest of the sketch did not arrive: ship every candidate
+                    hit[:] = True
+                elif want:
+                    unhit = np.flatnonzero(~hit)
+                    hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], rest,
+                                                  use_their_reach=self.rule == "one-way")
+                else:
+                    hit[:] = True  # the rest could not pay for itself: every candidate travels
+                idx = cand[hit]
             self.shipped[b] = idx
             self.shipped_to[idx, b] = True
             o = self.own
             out[b] = {"ids": o.ids[idx], "image_ids": o.image_ids[idx], "descriptors": o.descriptors[idx],
                       "sigma": o.sigma[idx]}
         self.stats.update(ghosts_geometric=float(geometric),
-                          ghosts_sent=float(sum(len(v) for v in self.shipped.values())))
+                          ghosts_sent=float(sum(len(v) for v in self.shipped.values())),
+                          sketch_rests_asked=float(sum(p[2] for p in self.plan.values())))
         return out
 
     def _arrival_check(self, a: int, p: Payload) -> int:
@@ -202,11 +252,13 @@ class BalancedCore:
         R = ghosts.reach(p["sigma"], self.cfg.rho)
         tol = 1e-9 * (1.0 + R + H)
         ok = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
-        sk = self.sketch_sent.get(a) if self.space is not None else None
-        if sk is not None:
+        if self.space is not None and self.requested.get(a):  # a filtered with the whole sketch
             ids = np.asarray(p["ids"], np.uint64)
             sample = np.flatnonzero(((ids * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(60)) == 0)
-            ok[sample] &= sketch.plausible(self.space, Xg[sample], R[sample], sk, self.rule == "one-way", relax=1e-3)
+            hit = np.zeros(len(sample), bool)
+            for sk in self.sketch_sent[a]:
+                hit |= sketch.plausible(self.space, Xg[sample], R[sample], sk, self.rule == "one-way", relax=1e-3)
+            ok[sample] &= hit
         return int((bad | ~ok).sum())
 
     def _round_sums(self, inputs) -> Dict[int, Payload]:
@@ -468,8 +520,10 @@ def recipients_of(a: int, name: str, ships: np.ndarray, sketches: bool) -> List[
     others = [b for b in range(len(ships)) if b != a]
     if name in ("bounds", "notify", "component"):
         return others
-    if name == "sketch":
+    if name in ("sketch", "sketch_rest"):
         return [b for b in others if ships[b, a]] if sketches else []
+    if name == "request":
+        return [b for b in others if ships[a, b]] if sketches else []
     if name in ("ghost", "density"):
         return [b for b in others if ships[a, b]]
     if name in ("sums", "proposal"):

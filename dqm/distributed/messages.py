@@ -90,7 +90,10 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     # balanced rounds (dqm.distributed.balanced), all with the envelope
     "bounds": {**ENVELOPE, "minima": "array:<f8:1", "slack": "array:<f8:1"},
     "sketch": {**ENVELOPE, "codes": "array:|i1:2", "residual": "array:|u1:1", "reach": "array:<f4:1",
-               "scale": "array:<f8:1", "bounds": "array:<f8:1"},
+               "scale": "array:<f8:1", "bounds": "array:<f8:1", "pending": "int"},
+    "request": {**ENVELOPE, "want": "int"},
+    "sketch_rest": {**ENVELOPE, "codes": "array:|i1:2", "residual": "array:|u1:1", "reach": "array:<f4:1",
+                    "scale": "array:<f8:1", "bounds": "array:<f8:1", "pending": "int"},
     "ghost": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "descriptors": "array:|u1,<f4:2",
               "sigma": "array:<f8:1"},
     "sums": {**ENVELOPE, "units": "array:<i8:1", "high": "array:<i8:1"},
@@ -118,6 +121,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
 ROW_FIELDS: Dict[str, tuple] = {
     "sigmas": ("values",),
     "sketch": ("codes", "residual", "reach"),
+    "sketch_rest": ("codes", "residual", "reach"),
     "ghost": ("ids", "image_ids", "descriptors", "sigma"),
     "sums": ("units",),
     "density": ("density",),
@@ -248,7 +252,9 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         raise MessageError("non-finite density")
     if kind == "sigmas":
         _nonneg(out["values"], "sigmas.values")
-    if kind == "sketch":
+    if kind in ("sketch", "sketch_rest"):
+        if out["pending"] < 0:
+            raise MessageError(f"negative {kind}.pending")
         k = out["codes"].shape[1]
         if len(out["scale"]) != k or len(out["bounds"]) != 4:
             raise MessageError(f"sketch has {len(out['scale'])} scales and {len(out['bounds'])} bounds for {k} dims")

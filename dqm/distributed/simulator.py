@@ -109,6 +109,7 @@ class DQMResult:
     initial_labels: Optional[np.ndarray] = None  # lean/paper: local cluster labels after step 1
     contested: Optional[np.ndarray] = None  # lean/paper: contested in the initial test
     handed_to: Optional[np.ndarray] = None  # lean/paper: first hand-down target (-1 = kept)
+    copies: Optional[np.ndarray] = None  # balanced: (K, 2) ghost copies as (feature id, receiving agent)
     density: Optional[np.ndarray] = None  # balanced: every feature's density (as its owner computed it)
     parent: Optional[np.ndarray] = None  # balanced: tree parent (-1: none within rho sigma)
     parent_distance: Optional[np.ndarray] = None
@@ -317,8 +318,10 @@ def _run_balanced(cfg, wire, clock, sources, parts_for, seeds, weights, n, progr
         raise RuntimeError("balanced mode lost features (a bug): some feature has no final cluster")
     per_agent = [dict(cores[a].stats) for a in range(m)]
     ghosts = sum(p.get("ghosts_sent", 0.0) for p in per_agent)
+    copies = [np.stack([c.own.ids[idx], np.full(len(idx), b)], axis=1) for c in cores for b, idx in c.shipped.items()]
+    copies = np.concatenate(copies) if copies else np.zeros((0, 2), np.int64)
     return {
-        "labels": canonical_labels(labels), "holder": holder, "per_agent": per_agent,
+        "labels": canonical_labels(labels), "holder": holder, "per_agent": per_agent, "copies": copies,
         "density": density, "parent": parent, "parent_distance": pdist,
         "stats": {
             "ghosts_per_feature": ghosts / n,

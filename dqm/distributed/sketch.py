@@ -184,3 +184,20 @@ def empty_sketch(k: int) -> Dict[str, np.ndarray]:
     return {"codes": np.zeros((0, k), np.int8), "residual": np.zeros(0, np.uint8),
             "reach": np.zeros(0, np.float32), "scale": np.ones(k), "bounds": np.array([0.0, 1.0, 0.0, 0.0])}
 
+
+def pilot_mask(ids: np.ndarray) -> np.ndarray:
+    """The deterministic eighth of features whose sketches travel first (a hash of the id)."""
+    h = np.asarray(ids, np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    return (h >> np.uint64(61)) == 0
+
+
+def worth_the_rest(n_unhit: int, n_rest: int, copy_bytes: float, sketch_bytes: float) -> bool:
+    """Should the sender ask for the rest of a sketch?
+
+    The pilot already proves the candidates it hits plausible; the full
+    sketch can at most keep home the ``n_unhit`` others, saving at most
+    ``n_unhit * copy_bytes``. Ask only when that bound exceeds what the rest
+    of the sketch costs.
+    """
+    return n_unhit * copy_bytes > n_rest * sketch_bytes
+

@@ -187,11 +187,9 @@ class AgentProcess:
         if self.source.final:
             self._route()
             return
-        counts = self.source.counts_payload()
-        if self.me == LEADER:
-            self.own_counts = counts
-        else:
-            self._send_single("counts", LEADER, **counts)
+        self.own["counts"] = self.source.counts_payload()
+        if self.me != LEADER:
+            self._send_single("counts", LEADER, **self.own["counts"])
         self._enter("wait_weights")
 
     def _route(self) -> None:
@@ -202,6 +200,26 @@ class AgentProcess:
             self.bus.send(b, "phase_end", protocol.phase_end(self.cfg.job, self.me, b, "route", k, len(parts[b])))
         self._enter("wait_routed")
 
+    def _leader_round(self, collect: str, reply: str, own: dict, compute, apply, then, parts: bool = False) -> bool:
+        """One set-up round: agent 0 gathers ``collect`` from every other agent (its own is ``own``),
+        computes the reply, broadcasts it as ``reply`` and applies it; the others wait for it."""
+        if self.me == LEADER:
+            others = self._others()
+            if not (self._have_parts(collect, others) if parts else self._have(collect, others)):
+                return False
+            got = self._take_parts(collect, others) if parts else self._take(collect, others)
+            got[LEADER] = own
+            payload = compute(got)
+            for b in others:
+                self._send_single(reply, b, **payload)
+        else:
+            if not self._have(reply, [LEADER]):
+                return False
+            payload = self._take(reply, [LEADER])[LEADER]
+        apply(payload)
+        then()
+        return True
+
     def _setup_step(self) -> bool:
         s = self.state
         if s == "wait_start" and self.seed is not None:
@@ -209,49 +227,23 @@ class AgentProcess:
             if self.me == LEADER:
                 self.leader = seeding.Leader(self.cfg, self.dim)
             self.source = seeding.SourceSide(self.me, self.cfg, self.ids, self.image_ids, self.desc)
-            sample = self.source.sample_payload()
-            if self.me == LEADER:
-                self.own_sample = sample
-            else:
-                self._send_single("sample", LEADER, **sample)
+            self.own = {"sample": self.source.sample_payload()}
+            if self.me != LEADER:
+                self._send_single("sample", LEADER, **self.own["sample"])
             self._enter("wait_seeds")
-        elif s == "wait_seeds" and self.me == LEADER and self._have("sample", self._others()):
-            samples = {a: {"descriptors": p["descriptors"], "lonely": p["lonely"]}
-                       for a, p in self._take("sample", self._others()).items()}
-            samples[LEADER] = self.own_sample
-            payload = self.leader.seeds_payload(samples)
-            for b in self._others():
-                self._send_single("seeds", b, **payload)
-            self.source.on_seeds(payload)
-            self._after_seeds()
-        elif s == "wait_seeds" and self.me != LEADER and self._have("seeds", [LEADER]):
-            self.source.on_seeds(self._take("seeds", [LEADER])[LEADER])
-            self._after_seeds()
-        elif s == "wait_fill" and self.me == LEADER and self._have_parts("sigmas", self._others()):
-            sig = self._take_parts("sigmas", self._others())
-            sig[LEADER] = self.source.sigmas_payload()
-            value = self.leader.fill_value(sig)
-            for b in self._others():
-                self._send_single("fill", b, value=value)
-            self.source.on_fill(value)
-            self._after_fill()
-        elif s == "wait_fill" and self.me != LEADER and self._have("fill", [LEADER]):
-            self.source.on_fill(self._take("fill", [LEADER])[LEADER]["value"])
-            self._after_fill()
-        elif s == "wait_weights" and self.me == LEADER and self._have("counts", self._others()):
-            counts = self._take("counts", self._others())
-            counts[LEADER] = self.own_counts
-            payload = self.leader.weights_payload(counts)
-            for b in self._others():
-                self._send_single("weights", b, **payload)
-            self.source.on_weights(payload)
-            self._after_fill()
-        elif s == "wait_weights" and self.me != LEADER and self._have("weights", [LEADER]):
-            self.source.on_weights(self._take("weights", [LEADER])[LEADER])
-            self._after_fill()
-        else:
-            return False
-        return True
+            return True
+        leader, source = self.leader, self.source
+        if s == "wait_seeds":
+            return self._leader_round("sample", "seeds", self.own["sample"], lambda got: leader.seeds_payload(got),
+                                      source.on_seeds, self._after_seeds)
+        if s == "wait_fill":
+            return self._leader_round("sigmas", "fill", source.sigmas_payload(),
+                                      lambda got: {"value": leader.fill_value(got)},
+                                      lambda p: source.on_fill(p["value"]), self._after_fill, parts=True)
+        if s == "wait_weights":
+            return self._leader_round("counts", "weights", self.own["counts"], lambda got: leader.weights_payload(got),
+                                      source.on_weights, self._after_fill)
+        return False
 
     # ------------------------------------------------------------------ after routing
     def _routed(self) -> None:
