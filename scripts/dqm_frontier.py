@@ -11,7 +11,8 @@ for every number of agents m and every mode, and records:
 * max_pair_share: the busiest agent's pair count / the centralized n(n-1)/2 (target <= 2.5/m);
 * bytes_over_raw: metered bytes / raw descriptor bytes (n * dim * itemsize);
 * ghosts (and sketches) per feature;
-* the busiest agent's CPU seconds over the centralized CPU seconds, both measured here;
+* the busiest agent's CPU seconds over the centralized CPU seconds, both measured here,
+  single-threaded (so CPU seconds are work, not threads waiting);
 * the largest cell over n/m.
 
 Modes: ``balanced`` (one-way rule + sketch pre-filter, the default), ``one-way``
@@ -31,11 +32,17 @@ resumes and one mode can be measured again alone.
 """
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+# CPU seconds are the measure of work here: one thread everywhere (BLAS, the tile pool), so that
+# idle threads spinning in BLAS do not count as work (they made the centralized time vary by 35%)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "DQM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -214,7 +221,7 @@ def write(results: dict, out: Path, argv) -> None:
         f"({time.strftime('%Y-%m-%d')}, {__import__('os').cpu_count()} cores). In-process simulator, "
         f"quadratic kernel, rho = {dqm.DEFAULT_RHO}, k-means seeds from the integer 1. The busiest agent's CPU "
         "seconds are divided by the centralized run's (dqm.quickmatch, same kernel), measured in the same "
-        "invocation. Modes: "
+        "invocation, single-threaded. Modes: "
         "`balanced` (one-way rule + 48-dim sketch pre-filter, where a pilot shows it can pay), `one-way` "
         "(no sketch), `two-way` (the plain "
         "two-way bisector halo: the byte target's baseline), `lean` (cascade), `paper`. "
@@ -261,6 +268,7 @@ def main(argv=None):
                 and not (mode == "paper" and len(X) * m > args.paper_max)]
         central, central_cpu = None, old.get(key, {}).get("central_cpu_s")
         if todo or central_cpu is None:  # each row keeps the centralized CPU time of the run that made it
+            dqm.quickmatch(X[:500], ids[:500], kernel="quadratic")  # warm-up: libraries, pools, pages
             t = time.process_time()
             central = dqm.quickmatch(X, ids, kernel="quadratic")
             central_cpu = time.process_time() - t

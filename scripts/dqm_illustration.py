@@ -101,7 +101,8 @@ def main(argv=None):
             ax.scatter(*X[held].T, facecolors="none", edgecolors=[colors(a)], s=60, lw=0.6)
     fig.savefig(out / "dqm2d_final.png", dpi=100)
     plt.close("all")
-    print(f"{len(X)} points, 4 agents ({args.mode} mode): {int(r.contested.sum())} contested, {len(moved)} handed down, "
+    print(f"{len(X)} points, 4 agents ({args.mode} mode): {int(r.contested.sum())} contested, "
+          f"{len(moved)} handed down, "
           f"{r.n_clusters} final clusters vs {central.n_clusters} centralized, co-membership F1 {s.f1:.3f}; "
           f"PNGs in {out}")
 

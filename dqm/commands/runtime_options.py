@@ -11,8 +11,9 @@ from ..distributed.partition import PARTITION_MODES
 def add_algorithm(p) -> None:
     g = p.add_argument_group("algorithm (must be the same for every agent of a job)")
     g.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,
-                   help="balanced (exact, work spread evenly), lean (exact cascade, fewer bytes at small M, work "
-                        "gathers at agent 0) or paper (the seed paper's literal procedure); docs/distributed.md")
+                   help="balanced (clusters identical to centralized, work spread evenly), lean (the hand-down "
+                        "cascade: fewer bytes, work gathers at agent 0) or paper (the seed paper's literal "
+                        "procedure); docs/distributed.md")
     g.add_argument("--partition", choices=PARTITION_MODES, default="kmeans")
     g.add_argument("--rho", type=float, default=DEFAULT_RHO)
     g.add_argument("--kernel", choices=KERNELS, default="quadratic")

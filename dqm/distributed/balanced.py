@@ -124,7 +124,9 @@ class BalancedCore:
         out = getattr(self, f"_round_{name}")(inputs)
         self.cpu += time.process_time() - t
         self.round += 1
-        assert sorted(out) == self.recipients(name), (name, sorted(out), self.recipients(name))
+        if sorted(out) != self.recipients(name):
+            raise RuntimeError(f"internal error: round {name!r} of agent {self.me} addressed {sorted(out)}, "
+                               f"not {self.recipients(name)}")
         return out
 
     def finish(self, inputs: Dict[int, Payload]) -> Tuple[np.ndarray, np.ndarray]:
@@ -316,8 +318,6 @@ class BalancedCore:
             self.cand = (np.concatenate([i[c1], j[c2]]), np.concatenate([j[c1], i[c2]]),
                          np.concatenate([d[c1], d[c2]]))
         self.sums = sums
-        self.held_sigma = sig
-        self.held_image_ids = held.image_ids
         out = {}
         for a in senders:
             sl = self.ghost_slices[a]
@@ -393,8 +393,6 @@ class BalancedCore:
             out[a] = {"index": (sel - (sl.start - self.n_own)).astype(np.int64), "parent": gparent[sel],
                       "distance": gdist[sel]}
         self.stats["proposals_sent"] = float(sum(len(v["index"]) for v in out.values()))
-        # copies are no longer needed
-        del self.held_sigma, self.held_image_ids
         return out
 
     def _round_notify(self, inputs) -> Dict[int, Payload]:

@@ -33,6 +33,22 @@ SUBNET = "10.213"
 ROUTER_PORT = 7447
 
 
+def _kill_in_namespace(inode) -> None:
+    """SIGKILL every process whose network namespace has this (device, inode)."""
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            st = os.stat(f"/proc/{entry}/ns/net")
+        except OSError:
+            continue
+        if (st.st_dev, st.st_ino) == inode:
+            try:
+                os.kill(int(entry), 9)
+            except ProcessLookupError:
+                pass
+
+
 class NamespacesUnavailable(RuntimeError):
     """Network namespaces / veth pairs cannot be created here (not root, no ip, a sandbox)."""
 
@@ -121,15 +137,24 @@ class Namespaces:
         return self
 
     def delete(self) -> None:
+        """Delete the namespaces; no process may keep one alive after we are gone.
+
+        A process being started with ``ip netns exec`` may enter its namespace
+        just after a listing of the namespace's processes: so the name is
+        removed first (later entries fail), then every process whose network
+        namespace is that one (same inode) is killed, over a few scans.
+        """
         for ns in reversed(self.created):
-            # no process may keep a namespace alive after we are gone
-            pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout.split()
-            for pid in pids:
-                try:
-                    os.kill(int(pid), 9)
-                except (ProcessLookupError, ValueError):
-                    pass
+            try:
+                st = os.stat(f"/var/run/netns/{ns}")
+                inode = (st.st_dev, st.st_ino)
+            except OSError:
+                inode = None
             _ip("netns", "del", ns, check=False)
+            for _ in range(6):
+                if inode is not None:
+                    _kill_in_namespace(inode)
+                time.sleep(0.05)
         self.created.clear()
 
     def __enter__(self) -> "Namespaces":
