@@ -198,6 +198,11 @@ def figure(results: dict, path: Path) -> None:
         bottom.semilogy(ms, [1.0 / m for m in ms], "k:", lw=0.8, label="1/m")
         top.set(title=name, xlabel="metered bytes / raw descriptor bytes",
                 ylabel="busiest agent's pairs / centralized (m annotated)")
+        from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
+
+        top.xaxis.set_major_locator(FixedLocator([1, 2, 5, 10, 20, 50]))
+        top.xaxis.set_major_formatter(ScalarFormatter())
+        top.xaxis.set_minor_formatter(NullFormatter())
         bottom.set(xlabel="agents m", ylabel="busiest agent's CPU s / centralized CPU s")
         for ax in (top, bottom):
             ax.grid(alpha=0.3, which="both")

@@ -257,6 +257,64 @@ def test_crossing_components_go_to_the_lowest_agent():
     assert forest.fragment_roots(np.array([-1, 0, 1, -1, 3])).tolist() == [0, 0, 0, 3, 3]
 
 
+def test_routing_of_a_row_does_not_depend_on_its_batch():
+    """Points on (or within rounding of) a bisector go to the exact nearest seed, alone or in any batch:
+    identical descriptors held by different sources must meet in one cell."""
+    rng = np.random.default_rng(8)
+    P = rng.normal(size=(6, 128)) * 100
+    w = rng.normal(size=6)
+    i, j = rng.integers(0, 6, 300), rng.integers(0, 6, 300)
+    X = (P[i] + P[j]) / 2 + rng.choice([0.0, 1e-13, -1e-13], size=(300, 1)) * rng.normal(size=(300, 128))
+    X = np.vstack([X, rng.normal(size=(200, 128)) * 100])
+    for weights in (None, w):
+        batch = partition.route(X, P, weights)
+        alone = np.array([partition.route(X[k:k + 1], P, weights)[0] for k in range(len(X))])
+        np.testing.assert_array_equal(batch, alone)
+        np.testing.assert_array_equal(partition.route(X[::-1], P, weights)[::-1], batch)
+        exact = [partition._exact_route(x, P, weights, np.arange(6)) for x in X[:40]]
+        np.testing.assert_array_equal(batch[:40], exact)
+
+
+def test_many_agents_with_few_features_each_still_get_seeds():
+    rng = np.random.default_rng(0)
+    X = rng.integers(0, 50, (30, 8)).astype(np.uint8)
+    ids = np.repeat([0, 1], 15)
+    central = dqm.quickmatch(X, ids, kernel="quadratic")
+    r = simulate(X, ids, DQMConfig(agents=20, seed=2, samples_per_agent=4))
+    np.testing.assert_array_equal(r.labels, central.labels)
+
+
+def test_a_sketch_of_the_wrong_width_is_counted_not_fatal():
+    from dqm.distributed.balanced import BalancedCore
+
+    center = np.zeros(16)
+    space = sketch.SketchSpace(sketch.basis_from_sample(np.random.default_rng(0).normal(size=(40, 16)), center, 6),
+                               center)
+    core = BalancedCore(0, DQMConfig(agents=2).validated(), space)
+    good = sketch.encode(space, np.ones((3, 16)), np.ones(3))
+    bad = sketch.encode(sketch.SketchSpace(np.eye(16, dtype=np.int8)[:4], center), np.ones((3, 16)), np.ones(3))
+    assert core._sketch_ok(good) and core.failures == 0
+    assert not core._sketch_ok(bad) and core.failures == 1
+    assert not core._sketch_ok(None) and core.failures == 1
+
+
+def test_parts_that_do_not_fit_together_are_refused():
+    a = messages.decode(messages.encode("notify", "j", 1, seq=0, part=0, parts=2, child=np.arange(2),
+                                        parent=np.arange(2)))
+    b = messages.decode(messages.encode("notify", "j", 1, seq=1, part=1, parts=3, child=np.arange(2),
+                                        parent=np.arange(2)))
+    with pytest.raises(messages.MessageError, match="parts"):
+        protocol.merge_parts("notify", [a, b])
+    c = messages.decode(messages.encode("ghost", "j", 1, seq=0, part=0, parts=2, ids=np.arange(1),
+                                        image_ids=np.zeros(1, np.int64), descriptors=np.zeros((1, 4), np.uint8),
+                                        sigma=np.ones(1)))
+    d = messages.decode(messages.encode("ghost", "j", 1, seq=1, part=1, parts=2, ids=np.arange(1),
+                                        image_ids=np.zeros(1, np.int64), descriptors=np.zeros((1, 5), np.uint8),
+                                        sigma=np.ones(1)))
+    with pytest.raises(messages.MessageError, match="disagree on descriptors"):
+        protocol.merge_parts("ghost", [c, d])
+
+
 # ----------------------------------------------------------------- messages
 
 
@@ -283,6 +341,7 @@ def test_round_messages_split_into_parts_and_merge_back():
     ("assign", {"key": np.arange(2), "target": np.array([0, 9])}, "outside"),
     ("bounds", {"minima": np.zeros(2), "slack": np.zeros(2)}, "for 3 agents"),
     ("sums", {"units": np.array([-5]), "high": np.zeros(0, np.int64)}, "negative sums.units"),
+    ("proposal", {"index": np.zeros(1, np.int64), "parent": np.array([-1]), "distance": np.zeros(1)}, "parent below 0"),
     ("sketch", {"codes": np.zeros((1, 3), np.int8), "residual": np.zeros(1, np.uint8),
                 "reach": np.ones(1, np.float32), "scale": np.ones(2), "bounds": np.zeros(4), "pending": 0}, "scales"),
 ])

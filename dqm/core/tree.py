@@ -25,9 +25,12 @@ import numpy as np
 
 def ranks_above(density: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Boolean array: does feature ``a[k]`` rank above feature ``b[k]``?"""
-    da = density[a]
-    db = density[b]
-    return (da > db) | ((da == db) & (a < b))
+    return rank_order(density[a], density[b], a, b)
+
+
+def rank_order(da: np.ndarray, db: np.ndarray, ida: np.ndarray, idb: np.ndarray) -> np.ndarray:
+    """The rank rule on values: higher density, then the lower index (or global id)."""
+    return (da > db) | ((da == db) & (ida < idb))
 
 
 def select_parents(

@@ -40,7 +40,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from ..core import density as exact
-from ..core import pairs
+from ..core import pairs, tree
 from ..core.clustering import duplicate_groups
 from . import boundary, forest, ghosts, partition, sketch
 from .config import DQMConfig
@@ -52,11 +52,6 @@ LEADER = 0
 #: the balanced rounds after routing, in order; each is one message kind
 ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density", "proposal", "notify", "fragments",
           "assign", "component")
-
-
-def ranks_above(da: np.ndarray, db: np.ndarray, ida: np.ndarray, idb: np.ndarray) -> np.ndarray:
-    """Does feature a rank above feature b? Higher density, then lower id (the engine's rule)."""
-    return (da > db) | ((da == db) & (ida < idb))
 
 
 def _best_per_target(target: np.ndarray, cand: np.ndarray, dist: np.ndarray, n: int):
@@ -117,9 +112,24 @@ class BalancedCore:
         self.stats.update(features_owned=float(self.n_own))
         self.cpu += time.process_time() - t
 
+    def _count_missing(self, inputs: Dict[int, Payload]) -> None:
+        """A sender of the previous round whose message is absent (it was refused) is a failure."""
+        if self.round:
+            self.failures += sum(a not in inputs for a in self.senders(ROUNDS[self.round - 1]))
+
+    def _sketch_ok(self, payload: Optional[Payload]) -> bool:
+        """A sketch this agent can use: present and in its own sketch space's dimension."""
+        if payload is None:
+            return False
+        if payload["codes"].shape[1] != self.space.k or len(payload["scale"]) != self.space.k:
+            self.failures += 1
+            return False
+        return True
+
     def step(self, inputs: Dict[int, Payload]) -> Dict[int, Payload]:
         """Run the next round with the previous round's messages; returns this round's messages."""
         name = ROUNDS[self.round]
+        self._count_missing(inputs)
         t = time.process_time()
         out = getattr(self, f"_round_{name}")(inputs)
         self.cpu += time.process_time() - t
@@ -131,6 +141,7 @@ class BalancedCore:
 
     def finish(self, inputs: Dict[int, Payload]) -> Tuple[np.ndarray, np.ndarray]:
         """The last step: ``(ids, labels)`` of every feature this agent decides (labels local)."""
+        self._count_missing(inputs)
         t = time.process_time()
         out = self._finish(inputs)
         self.cpu += time.process_time() - t
@@ -177,8 +188,7 @@ class BalancedCore:
             idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
                                                   self.rule))
             pilot = inputs.get(b)
-            if pilot is None:
-                self.failures += 1
+            if not self._sketch_ok(pilot):
                 self.plan[b] = (idx, np.ones(len(idx), bool), False)
                 out[b] = {"want": 0}
                 continue
@@ -216,9 +226,8 @@ class BalancedCore:
                 cand, hit, want = self.plan[b]
                 geometric += len(cand)
                 rest = inputs.get(b)
-                if want and rest is None:
-                    self.failures += 1  # the rest of the sketch did not arrive: ship every candidate
-                    hit[:] = True
+                if want and not self._sketch_ok(rest):
+                    hit[:] = True  # the rest of the sketch is missing or unusable: ship every candidate
                 elif want:
                     unhit = np.flatnonzero(~hit)
                     hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], rest,
@@ -272,8 +281,8 @@ class BalancedCore:
         start = self.n_own
         for a in senders:
             p = inputs.get(a)
-            if p is None or len(p["ids"]) and (len(p["descriptors"]) != len(p["ids"])):
-                self.failures += 1
+            if p is None or (len(p["ids"]) and p["descriptors"].shape[1] != self.X.shape[1]):
+                self.failures += p is not None
                 p = {"ids": np.zeros(0, np.int64), "image_ids": np.zeros(0, np.int64),
                      "descriptors": self.own.descriptors[:0], "sigma": np.zeros(0)}
             self.failures += self._arrival_check(a, p)
@@ -286,6 +295,7 @@ class BalancedCore:
             start += k
         held = Shard(*(np.concatenate([getattr(s, f) for s in parts]) for f in
                        ("ids", "image_ids", "descriptors", "sigma", "cells")))
+        self.failures += len(held.ids) - len(np.unique(held.ids))  # a copy of an own feature, or twice the same
         self.held_ids = held.ids
         self.held_src = np.concatenate(src)
         n_held = len(held)
@@ -372,7 +382,7 @@ class BalancedCore:
             dens[sl] = p["density"]
         child, cand, dist = self.cand
         ids = self.held_ids
-        ok = ranks_above(dens[cand], dens[child], ids[cand], ids[child])  # NaN (missing) never ranks
+        ok = tree.rank_order(dens[cand], dens[child], ids[cand], ids[child])  # NaN (missing) never ranks
         child, cand, dist = child[ok], cand[ok], dist[ok]
         own_child = child < self.n_own
         # own features: nearest higher-ranked among own features and held copies
@@ -406,7 +416,7 @@ class BalancedCore:
                 self.failures += 1
                 continue
             k = np.asarray(p["index"], np.int64)
-            valid = (k >= 0) & (k < len(idx))
+            valid = (k >= 0) & (k < len(idx)) & (np.asarray(p["parent"]) >= 0)
             self.failures += int((~valid).sum())
             k = k[valid]
             tgt.append(idx[k])

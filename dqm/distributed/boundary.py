@@ -8,7 +8,8 @@ For a feature x in cell i and another cell a:
   distance to cell a, and it is the exact distance when the foot of the
   perpendicular lies in cell a. It is also *additive*: for x in cell i and y in
   cell a, the segment xy crosses H_ia, so ``|x - y| >= h(x, H_ia) + h(y, H_ia)``.
-  The contested test (dqm.core.contested) relies on this.
+  The contested test (dqm.distributed.contested) and the ghost rules
+  (dqm.distributed.ghosts) rely on this.
 * **exact distance to the cell** ``min |z - x| s.t. z in V_a`` (a QP with m-1
   linear constraints ``2 (P_b - P_a) . z <= |P_b|^2 - |P_a|^2``). All seeds lie in
   an affine subspace of dimension <= m-1, and the constraints only see the

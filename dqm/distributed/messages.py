@@ -243,8 +243,9 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         if n and not np.isfinite(out["sigma"]).all():
             raise MessageError("non-finite sigma")
     if kind in ("component", "proposal"):
-        if len(out["parent"]) and (out["parent"] < -1).any():
-            raise MessageError(f"{kind}.parent below -1")
+        low = 0 if kind == "proposal" else -1  # a proposal names a feature; a component member may have none
+        if len(out["parent"]) and (out["parent"] < low).any():
+            raise MessageError(f"{kind}.parent below {low}")
         _nonneg(out["distance"], f"{kind}.distance", allow_inf=True)
     if kind == "notify" and len(out["parent"]) and (out["parent"] < 0).any():
         raise MessageError("negative notify.parent")

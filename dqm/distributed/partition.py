@@ -116,8 +116,49 @@ def kmeans_seeds(sample: np.ndarray, m: int, seed: int, iterations: int = 20) ->
 
 
 def route(X: np.ndarray, seeds: np.ndarray, weights: Optional[np.ndarray] = None) -> np.ndarray:
-    """Cell (agent index) of every row: least power ``|x - P_a|^2 - w_a``, ties to the lower index."""
-    return np.argmin(power(X, seeds, weights), axis=1).astype(np.int64) if len(X) else np.zeros(0, np.int64)
+    """Cell (agent index) of every row: least power ``|x - P_a|^2 - w_a``, ties to the lower index.
+
+    The answer depends on the row alone, never on the batch it is routed in:
+    a BLAS product's last bits do, so where the two best powers are closer
+    than a bound of their rounding errors the row is decided in exact
+    rational arithmetic. Identical descriptors therefore always share a cell
+    (the balanced mode's exactness needs it: duplicates meet only there).
+    """
+    if len(X) == 0:
+        return np.zeros(0, np.int64)
+    X = np.asarray(X, dtype=np.float64)
+    P = np.asarray(seeds, dtype=np.float64)
+    d = power(X, P, weights)
+    cells = np.argmin(d, axis=1).astype(np.int64)
+    if len(P) < 2:
+        return cells
+    # |rounding error| of each power: dot products of length dim plus the sums around them
+    u = float(np.finfo(np.float64).eps)
+    w = np.zeros(len(P)) if weights is None else np.abs(np.asarray(weights, dtype=np.float64))
+    pnorm = np.sqrt((P ** 2).sum(1))
+    err = 4.0 * (X.shape[1] + 4) * u * ((pnorm ** 2)[None, :] + 2.0 * np.sqrt((X ** 2).sum(1))[:, None]
+                                         * pnorm[None, :] + w[None, :])
+    best = d[np.arange(len(X)), cells]
+    near = d - err <= (best + err[np.arange(len(X)), cells])[:, None]
+    for r in np.flatnonzero(near.sum(axis=1) > 1).tolist():
+        cells[r] = _exact_route(X[r], P, None if weights is None else np.asarray(weights, np.float64),
+                                np.flatnonzero(near[r]))
+    return cells
+
+
+def _exact_route(x: np.ndarray, P: np.ndarray, weights: Optional[np.ndarray], candidates: np.ndarray) -> int:
+    """The least exact power among the candidate cells (rational arithmetic), ties to the lower index."""
+    from fractions import Fraction
+
+    xs = [Fraction(v) for v in x.tolist()]
+    best, best_a = None, -1
+    for a in candidates.tolist():
+        p = sum((Fraction(c) * (Fraction(c) - 2 * xv) for c, xv in zip(P[a].tolist(), xs)), Fraction(0))
+        if weights is not None:
+            p -= Fraction(float(weights[a]))
+        if best is None or p < best:
+            best, best_a = p, a
+    return best_a
 
 
 def power(X: np.ndarray, seeds: np.ndarray, weights: Optional[np.ndarray] = None) -> np.ndarray:

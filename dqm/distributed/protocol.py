@@ -152,8 +152,15 @@ def merge_parts(kind: str, parts: Sequence[dict]) -> Dict[str, np.ndarray]:
     fields = [f for f in messages.SCHEMAS[kind] if f not in messages.ENVELOPE]
     if len(parts) == 1:
         return {f: parts[0][f] for f in fields}
+    if [p["part"] for p in parts] != list(range(parts[0]["parts"])) or len({p["parts"] for p in parts}) != 1:
+        raise messages.MessageError(f"{kind} parts do not make one message")
     rows = set(messages.ROW_FIELDS.get(kind, ())) | {
         f for f in messages.OPTIONAL_ROW_FIELDS.get(kind, ()) if len(parts[0][f])}
+    for f in fields:
+        shapes = {(np.shape(p[f])[1:], p[f].dtype.str) if f in rows else repr(p[f])
+                  if not isinstance(p[f], np.ndarray) else (p[f].shape, p[f].dtype.str, p[f].tobytes()) for p in parts}
+        if len(shapes) != 1:
+            raise messages.MessageError(f"{kind} parts disagree on {f}")
     return {f: (np.concatenate([p[f] for p in parts]) if f in rows else parts[0][f]) for f in fields}
 
 

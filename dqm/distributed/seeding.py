@@ -57,7 +57,9 @@ class SourceSide:
     # --------------------------------------------------------------- messages out
     def sample_payload(self) -> dict:
         if self.cfg.needs_sample:
-            pick = partition.sample_for_seeds(self.X, self.ids, self.cfg.seed, self.cfg.samples_per_agent)
+            # at least m each, so that k-means always has m samples when there are m features at all
+            per = max(self.cfg.samples_per_agent, self.m)
+            pick = partition.sample_for_seeds(self.X, self.ids, self.cfg.seed, per)
         else:
             pick = np.zeros(0, np.int64)
         return {"descriptors": np.ascontiguousarray(self.descriptors[pick]),

@@ -179,12 +179,6 @@ def plausible(space: SketchSpace, X: np.ndarray, reach_x: np.ndarray, sketch: Di
     return hit.astype(bool)
 
 
-def empty_sketch(k: int) -> Dict[str, np.ndarray]:
-    """A sketch payload with no features."""
-    return {"codes": np.zeros((0, k), np.int8), "residual": np.zeros(0, np.uint8),
-            "reach": np.zeros(0, np.float32), "scale": np.ones(k), "bounds": np.array([0.0, 1.0, 0.0, 0.0])}
-
-
 def pilot_mask(ids: np.ndarray) -> np.ndarray:
     """The deterministic eighth of features whose sketches travel first (a hash of the id)."""
     h = np.asarray(ids, np.uint64) * np.uint64(0x9E3779B97F4A7C15)

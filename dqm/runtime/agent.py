@@ -127,7 +127,15 @@ class AgentProcess:
         return True
 
     def _take_parts(self, kind: str, senders) -> Dict[int, dict]:
-        return {a: protocol.merge_parts(kind, list(self.parts.pop((kind, a)).values())) for a in senders}
+        """The merged messages of a round; one whose parts do not fit together is refused and counted
+        (the core counts the missing sender as a failure)."""
+        out = {}
+        for a in senders:
+            try:
+                out[a] = protocol.merge_parts(kind, list(self.parts.pop((kind, a)).values()))
+            except messages.MessageError as exc:
+                self.bus.meter.reject(str(exc))
+        return out
 
     def _send_parts(self, kind: str, dst: int, payload: dict) -> None:
         k = protocol.part_count(kind, payload)
@@ -319,11 +327,12 @@ class AgentProcess:
             stats = dict(self.stats)
             stats.update(self.times)
             stats["cpu_s"] = time.process_time() - self.cpu0
-            for reason, count in self.bus.meter.rejected.items():
+            sent, rejected, duplicates, resent = self.bus.meter.snapshot()
+            for reason, count in rejected.items():
                 stats[f"rejected:{reason}"] = float(count)
-            stats["duplicates"] = float(self.bus.meter.duplicates)
-            stats["resent"] = float(self.bus.meter.resent)
-            for (src, dst, kind), (b, c) in self.bus.meter.sent.items():
+            stats["duplicates"] = float(duplicates)
+            stats["resent"] = float(resent)
+            for (src, dst, kind), (b, c) in sent.items():
                 stats[f"sent:{dst}:{kind}:bytes"] = float(b)
                 stats[f"sent:{dst}:{kind}:messages"] = float(c)
             self.bus.send(-1, "stats", messages.encode("stats", self.cfg.job, self.me, values=stats))

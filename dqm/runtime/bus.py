@@ -9,7 +9,10 @@ Facts this relies on (docs/runtime.md, shared/notes/zenoh-facts.md):
   on top, every bulk message (``features`` chunks, the parts of the balanced
   rounds) carries a sequence number, is acknowledged and resent until
   acknowledged, and receivers drop duplicates;
-* callbacks only push to a queue; all work happens in the process's own thread;
+* callbacks only push to a queue; a receiver thread decodes and validates each
+  message, acknowledges it at once and drops duplicates (so a sender hears
+  back within milliseconds even while this process computes a long round),
+  and hands the rest to the process's main thread, where all other work happens;
 * the session is closed in ``close()`` (called from ``finally``): a session
   with Python callbacks left open hangs the interpreter at exit.
 """
@@ -100,18 +103,33 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
 
 
 class Meter:
-    """Bytes and messages sent per (src, dst, kind), and received messages rejected per reason."""
+    """Bytes and messages sent per (src, dst, kind), and received messages rejected per reason.
+
+    Updated from the main thread and from the receiver thread (acks): under a lock.
+    """
 
     def __init__(self):
         self.sent: Dict[Tuple[int, int, str], List[int]] = defaultdict(lambda: [0, 0])
         self.rejected: Dict[str, int] = defaultdict(int)
         self.duplicates = 0
         self.resent = 0
+        self.lock = threading.Lock()
 
     def add(self, src: int, dst: int, kind: str, nbytes: int) -> None:
-        e = self.sent[(src, dst, kind)]
-        e[0] += nbytes
-        e[1] += 1
+        with self.lock:
+            e = self.sent[(src, dst, kind)]
+            e[0] += nbytes
+            e[1] += 1
+
+    def reject(self, reason: str) -> None:
+        with self.lock:
+            self.rejected[reason[:80]] += 1
+
+    def snapshot(self) -> Tuple[Dict[Tuple[int, int, str], Tuple[int, int]], Dict[str, int], int, int]:
+        """``(sent, rejected, duplicates, resent)`` copied under the lock."""
+        with self.lock:
+            return ({k: (v[0], v[1]) for k, v in self.sent.items()}, dict(self.rejected), self.duplicates,
+                    self.resent)
 
     def as_dict(self) -> dict:
         return {"sent": [[s, d, k, b, c] for (s, d, k), (b, c) in sorted(self.sent.items())],
@@ -132,13 +150,17 @@ class Bus:
         self.n_agents = n_agents
         self.dim = dim
         self.max_bytes = max_bytes
-        self.inbox: "queue.Queue" = queue.Queue()
+        self.inbox: "queue.Queue" = queue.Queue()  # decoded messages for the main thread
+        self._raw: "queue.Queue" = queue.Queue()  # payloads as they arrive
         self.meter = Meter()
         self.alive: Dict[str, bool] = {}
         self._alive_lock = threading.Lock()
         self._closed = False
         self._pending: Dict[Tuple[int, int], Tuple[float, int, bytes, str]] = {}  # (dst, seq) -> (t, tries, payload, kind)
+        self._pending_lock = threading.Lock()
         self._seen: set = set()
+        self._receiver = threading.Thread(target=self._receive_loop, name=f"dqm-bus-{me}", daemon=True)
+        self._receiver.start()
         self._next_seq: Dict[int, int] = defaultdict(int)
         my_key = keys.coordinator_inbox(job) if me < 0 else keys.agent_inbox(job, me)
         self._sub = session.declare_subscriber(my_key, self._on_sample)
@@ -148,7 +170,7 @@ class Bus:
 
     # ------------------------------------------------------------------ callbacks (tiny)
     def _on_sample(self, sample) -> None:
-        self.inbox.put(bytes(sample.payload.to_bytes()))
+        self._raw.put(bytes(sample.payload.to_bytes()))
 
     def _on_alive(self, sample) -> None:
         alive = str(sample.kind) == str(self._zenoh.SampleKind.PUT)
@@ -182,56 +204,75 @@ class Bus:
         With ``seq`` the message is kept until acknowledged and resent by
         :meth:`resend_due`.
         """
-        self._put(dst, kind, payload)
         if seq is not None:
-            self._pending[(dst, seq)] = (time.monotonic(), 1, payload, kind)
+            with self._pending_lock:  # before the put: the ack may come back at once
+                self._pending[(dst, seq)] = (time.monotonic(), 1, payload, kind)
+        self._put(dst, kind, payload)
 
     def acknowledged(self, src: int, seq: int) -> None:
-        self._pending.pop((src, seq), None)
+        with self._pending_lock:
+            self._pending.pop((src, seq), None)
 
     def unacknowledged(self) -> int:
-        return len(self._pending)
+        with self._pending_lock:
+            return len(self._pending)
 
     def resend_due(self, timeout_s: float = 2.0, max_tries: int = 5) -> None:
         """Resend chunks not acknowledged within ``timeout_s``; raise after ``max_tries``."""
         now = time.monotonic()
-        for (dst, seq), (t, tries, payload, kind) in list(self._pending.items()):
-            if now - t < timeout_s:
-                continue
+        with self._pending_lock:
+            due = [(k, v) for k, v in self._pending.items() if now - v[0] >= timeout_s]
+        for (dst, seq), (t, tries, payload, kind) in due:
             if tries >= max_tries:
                 raise TimeoutError(f"agent {dst} did not acknowledge message {seq} after {tries} sends")
+            with self._pending_lock:
+                if (dst, seq) not in self._pending:
+                    continue  # acknowledged meanwhile
+                self._pending[(dst, seq)] = (now, tries + 1, payload, kind)
             self._put(dst, kind, payload)
-            self.meter.resent += 1
-            self._pending[(dst, seq)] = (now, tries + 1, payload, kind)
+            with self.meter.lock:
+                self.meter.resent += 1
 
     # ------------------------------------------------------------------ receiving
-    def receive(self, timeout: float = 0.2) -> Optional[dict]:
-        """Next valid message, or None on timeout / liveliness wake-up. Bad messages are counted and dropped."""
-        try:
-            raw = self.inbox.get(timeout=timeout)
-        except queue.Empty:
-            return None
-        if raw is None:
-            return None
+    def _receive_loop(self) -> None:
+        """The receiver thread: decode, acknowledge, drop duplicates, hand over."""
+        while not self._closed:
+            try:
+                raw = self._raw.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            msg = self._accept(raw)
+            if msg is not None:
+                self.inbox.put(msg)
+
+    def _accept(self, raw: bytes) -> Optional[dict]:
+        """A valid new message for the main thread, or None (counted bad message, duplicate, ack)."""
         try:
             msg = messages.decode(raw, job=self.job, n_agents=self.n_agents, max_bytes=self.max_bytes, dim=self.dim)
         except messages.MessageError as exc:
-            reason = str(exc).split(" (")[0]
-            self.meter.rejected[reason[:80]] += 1
+            self.meter.reject(str(exc).split(" (")[0])
             return None
         msg["_bytes"] = len(raw)
         if "seq" in msg and msg["kind"] != "ack":
             key = (msg["src"], msg["seq"])
             # acknowledge every copy (the first ack may have been lost), process once
-            self.send(msg["src"], "ack", messages.encode("ack", self.job, self.me, seq=msg["seq"], dst=msg["src"]))
+            self._put(msg["src"], "ack", messages.encode("ack", self.job, self.me, seq=msg["seq"], dst=msg["src"]))
             if key in self._seen:
-                self.meter.duplicates += 1
+                with self.meter.lock:
+                    self.meter.duplicates += 1
                 return None
             self._seen.add(key)
         elif msg["kind"] == "ack":
             self.acknowledged(msg["src"], msg["seq"])
             return None
         return msg
+
+    def receive(self, timeout: float = 0.2) -> Optional[dict]:
+        """Next valid message, or None on timeout / liveliness wake-up. Bad messages are counted and dropped."""
+        try:
+            return self.inbox.get(timeout=timeout)
+        except queue.Empty:
+            return None
 
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:
@@ -243,4 +284,5 @@ class Bus:
                 obj.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway
                 pass
+        self._receiver.join(timeout=2.0)
         self.session.close()

@@ -133,7 +133,7 @@ class Coordinator:
             links[(a, -1)][1] += 1
             kinds["stats"][0] += b
             kinds["stats"][1] += 1
-        for (src, dst, kind), (b, c) in self.bus.meter.sent.items():
+        for (src, dst, kind), (b, c) in self.bus.meter.snapshot()[0].items():
             links[(src, dst)][0] += b
             links[(src, dst)][1] += c
             kinds[kind][0] += b
