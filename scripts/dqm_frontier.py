@@ -273,7 +273,8 @@ def main(argv=None):
                 and not (mode == "paper" and len(X) * m > args.paper_max)]
         central, central_cpu = None, old.get(key, {}).get("central_cpu_s")
         if todo or central_cpu is None:  # each row keeps the centralized CPU time of the run that made it
-            dqm.quickmatch(X[:500], ids[:500], kernel="quadratic")  # warm-up: libraries, pools, pages
+            step = max(1, len(X) // 500)
+            dqm.quickmatch(X[::step], ids[::step], kernel="quadratic")  # warm-up: libraries, pools, pages
             t = time.process_time()
             central = dqm.quickmatch(X, ids, kernel="quadratic")
             central_cpu = time.process_time() - t
