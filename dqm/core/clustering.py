@@ -140,9 +140,33 @@ def distinctiveness(aug: pairs.Augmented, image_index: np.ndarray, n_images: int
     sigma = pairs.nearest_same_image(aug, image_index, n_images, n_threads=n_threads)
     lonely = np.isnan(sigma)
     if lonely.any():
-        finite = sigma[~lonely]
-        sigma[lonely] = float(np.median(finite)) if len(finite) else 0.0
+        sigma[lonely] = lonely_sigma(sigma[~lonely])
     return sigma
+
+
+def lonely_sigma(finite: np.ndarray) -> float:
+    """sigma of a feature alone in its image: the median of every finite sigma (0 if there is none)."""
+    return float(np.median(finite)) if len(finite) else 0.0
+
+
+def zero_sigma_counts(groups: np.ndarray, gsize: np.ndarray, zero: np.ndarray) -> np.ndarray:
+    """Per feature, the zero-sigma features identical to it, itself included.
+
+    A zero-sigma feature's kernel is the indicator of distance 0, so it adds 1
+    to each of its duplicates' densities (callers subtract the self term).
+    """
+    return np.bincount(groups[zero], minlength=len(gsize))[groups]
+
+
+def equalize_duplicates(dens: np.ndarray, groups: np.ndarray, gsize: np.ndarray) -> np.ndarray:
+    """Identical vectors have identical densities: each takes its group's first member's value (in place)."""
+    in_dup = gsize[groups] > 1
+    if in_dup.any():
+        dup_idx = np.flatnonzero(in_dup)
+        first_of = np.full(len(gsize), len(dens), dtype=np.int64)
+        np.minimum.at(first_of, groups[dup_idx], dup_idx)
+        dens[dup_idx] = dens[first_of[groups[dup_idx]]]
+    return dens
 
 
 def kernel_weights(sigma: np.ndarray, kernel: str, ratio_density: float):
@@ -229,8 +253,8 @@ def quickmatch(
     gsize = np.bincount(groups)
     zero = sig == 0
     if zero.any():
-        zcount = np.bincount(groups[zero], minlength=len(gsize))
-        dens_o = dens_o + zcount[groups] - zero
+        zcount = zero_sigma_counts(groups, gsize, zero)
+        dens_o = dens_o + zcount - zero
     if len(cr) > 20_000_000:  # ~0.5 GB of edge arrays: tell the user why memory is growing
         warnings.warn(f"quickmatch: rho={rho:g} puts {len(cr)} candidate edges ({len(cr) / n:.0f} per feature) "
                       "within reach; memory and time grow with rho on dense data (docs/quickmatch.md)",
@@ -252,15 +276,10 @@ def quickmatch(
     if len(idx):
         exact = pairs.exact_density_others(aug, idx, w, active, kernel)
         if zero.any():
-            exact = exact + zcount[groups[idx]] - zero[idx]
+            exact = exact + zcount[idx] - zero[idx]
         dens_o = dens_o.copy()
         dens_o[idx] = exact
-    if in_dup.any():  # identical vectors have identical densities: remove rounding
-        dup_idx = np.flatnonzero(in_dup)
-        first_of = np.full(len(gsize), n, dtype=np.int64)
-        np.minimum.at(first_of, groups[dup_idx], dup_idx)
-        dens_o[dup_idx] = dens_o[first_of[groups[dup_idx]]]
-    density = 1.0 + dens_o
+    density = 1.0 + equalize_duplicates(dens_o, groups, gsize)  # remove rounding between duplicates
     stats["n_candidate_edges"] = float(len(cr))
     stats["n_refined"] = float(len(idx))
     stats["time_refine"] = time.perf_counter() - t

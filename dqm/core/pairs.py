@@ -27,6 +27,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Callable, List, Optional, Tuple
 
 import numpy as np
@@ -48,6 +49,26 @@ def default_threads() -> int:
     if env:
         return max(1, int(env))
     return max(1, min(8, os.cpu_count() or 1))
+
+
+@contextmanager
+def tile_pool(n_threads: Optional[int] = None):
+    """Worker threads for tile work: ``with tile_pool() as run: run(fn, tasks)`` maps ``fn``
+    over ``tasks`` in order. Each worker makes its own BLAS calls single-threaded once, so
+    one GEMM per tile and thread does not oversubscribe the cores."""
+    local = threading.local()
+
+    def wrap(fn):
+        def run(task):
+            if not getattr(local, "blas_set", False):
+                native.single_threaded_blas_in_this_thread()
+                local.blas_set = True
+            return fn(task)
+        return run
+
+    n = default_threads() if n_threads is None else max(1, int(n_threads))
+    with ThreadPoolExecutor(max_workers=n) as pool:
+        yield lambda fn, tasks: pool.map(wrap(fn), tasks)
 
 
 class Augmented:
@@ -136,12 +157,8 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
             continue
         starts = list(range(lo, hi, BLOCK))
         tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK)) for i, a in enumerate(starts) for b in starts[i:]]
-    local = threading.local()
 
     def work(task):
-        if not getattr(local, "blas_set", False):
-            native.single_threaded_blas_in_this_thread()
-            local.blas_set = True
         a, a1, b, b1 = task
         ra, rb = order[a:a1], order[b:b1]
         G = aug.left[ra] @ aug.right[rb].T
@@ -152,9 +169,8 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
 
     best = np.full(n, np.inf)
     rows_l, cols_l, g_l = [], [], []
-    n_threads = default_threads() if n_threads is None else max(1, int(n_threads))
-    with ThreadPoolExecutor(max_workers=n_threads) as pool:
-        for r, c, g, ra, rmin, rb, cmin in pool.map(work, tasks):
+    with tile_pool(n_threads) as run:
+        for r, c, g, ra, rmin, rb, cmin in run(work, tasks):
             np.minimum.at(best, ra, rmin)
             np.minimum.at(best, rb, cmin)
             rows_l.append(r)
@@ -220,12 +236,8 @@ def kernel_pass(
     starts = list(range(0, n, BLOCK))
     limit = n if rows_limit is None else int(rows_limit)
     tasks = [(a, b) for ia, a in enumerate(starts) if a < limit for b in starts[ia:]]
-    local = threading.local()
 
     def work(task: Tuple[int, int]):
-        if not getattr(local, "blas_set", False):
-            native.single_threaded_blas_in_this_thread()
-            local.blas_set = True
         a, b = task
         a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
         G = aug.left[a:a1] @ aug.right[b:b1].T
@@ -240,11 +252,10 @@ def kernel_pass(
                                dr, er, dc, ec, use_native=use_native)
         return a, b, dr, er, dc, ec, r, c
 
-    n_threads = default_threads() if n_threads is None else max(1, int(n_threads))
     child: List[np.ndarray] = []
     cand: List[np.ndarray] = []
-    with ThreadPoolExecutor(max_workers=n_threads) as pool:
-        for done, (a, b, dr, er, dc, ec, r, c) in enumerate(pool.map(work, tasks), start=1):
+    with tile_pool(n_threads) as run:
+        for done, (a, b, dr, er, dc, ec, r, c) in enumerate(run(work, tasks), start=1):
             dens[a:a + len(dr)] += dr
             err[a:a + len(er)] += er
             r = r.astype(np.int64) + a

@@ -46,18 +46,32 @@ def select_parents(
     it within the child's search radius (and may contain more). Features without
     a higher-ranked candidate get parent -1 and distance inf.
     """
+    keep = ranks_above(density, cand, child)
+    parent, pdist, _ = nearest_candidates(child[keep], cand[keep], dist[keep], n)
+    return parent, pdist
+
+
+def nearest_candidates(child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
+                       n: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest candidate of every child (ties: the lowest candidate index or id).
+
+    Returns ``(parent, distance, row)``, arrays of length n: -1, inf and -1
+    where a child has no candidate; ``row`` is the chosen edge's position in
+    the inputs.
+    """
     parent = np.full(n, -1, dtype=np.int64)
     pdist = np.full(n, np.inf)
-    keep = ranks_above(density, cand, child)
-    c, p, d = child[keep], cand[keep], dist[keep]
-    if len(c):
-        order = np.lexsort((p, d, c))  # by child, then distance, then parent index
-        c, p, d = c[order], p[order], d[order]
+    row = np.full(n, -1, dtype=np.int64)
+    if len(child):
+        order = np.lexsort((cand, dist, child))  # by child, then distance, then candidate
+        c = child[order]
         first = np.ones(len(c), dtype=bool)
         first[1:] = c[1:] != c[:-1]
-        parent[c[first]] = p[first]
-        pdist[c[first]] = d[first]
-    return parent, pdist
+        sel = order[first]
+        parent[child[sel]] = cand[sel]
+        pdist[child[sel]] = dist[sel]
+        row[child[sel]] = sel
+    return parent, pdist, row
 
 
 def merge_clusters(

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..core import density as exact
 from ..core import pairs, tree
-from ..core.clustering import duplicate_groups
+from ..core.clustering import duplicate_groups, equalize_duplicates, zero_sigma_counts
 from . import boundary, forest, ghosts, partition, sketch
 from .config import DQMConfig
 from .shard import Shard
@@ -52,23 +52,6 @@ LEADER = 0
 #: the balanced rounds after routing, in order; each is one message kind
 ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density", "proposal", "notify", "fragments",
           "assign", "component")
-
-
-def _best_per_target(target: np.ndarray, cand: np.ndarray, dist: np.ndarray, n: int):
-    """Nearest candidate (ties: lowest id) per target: ``(parent id, distance, row)`` arrays of length n."""
-    parent = np.full(n, -1, np.int64)
-    pdist = np.full(n, np.inf)
-    row = np.full(n, -1, np.int64)
-    if len(target):
-        order = np.lexsort((cand, dist, target))
-        t = target[order]
-        first = np.ones(len(t), bool)
-        first[1:] = t[1:] != t[:-1]
-        sel = order[first]
-        parent[target[sel]] = cand[sel]
-        pdist[target[sel]] = dist[sel]
-        row[target[sel]] = sel
-    return parent, pdist, row
 
 
 class BalancedCore:
@@ -156,10 +139,7 @@ class BalancedCore:
         return {b: {"minima": minima, "slack": slack} for b in self.recipients("bounds")}
 
     def _round_sketch(self, inputs) -> Dict[int, Payload]:
-        for a, p in inputs.items():
-            if len(p["minima"]) != self.m or len(p["slack"]) != self.m:
-                self.failures += 1
-                continue
+        for a, p in inputs.items():  # lengths checked on receipt (dqm.distributed.messages)
             self.E[a], self.S[a] = p["minima"], p["slack"]
         self.sketch_sent: Dict[int, List[Payload]] = {}
         self.sketch_rest: Dict[int, np.ndarray] = {}
@@ -176,26 +156,25 @@ class BalancedCore:
         return out
 
     def _round_request(self, inputs) -> Dict[int, Payload]:
-        """For every cell this one ships to: the geometric candidates, those the pilot already
-        proves plausible, and whether the rest of the sketch can pay for itself."""
+        """For every cell this one ships to: the geometric candidates, those already known to
+        travel (without sketches: all; with: those the pilot proves plausible), and whether the
+        rest of the sketch can pay for itself."""
         self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
-        if self.space is None:
-            return {}
-        copy_bytes = self.X.shape[1] * self.own.descriptors.itemsize + 40  # ids, image, sigma, sum, density
-        sketch_bytes = self.space.k + 5
         out = {}
-        for b in self.recipients("request"):
+        for b in self.recipients("ghost"):
             idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
                                                   self.rule))
-            pilot = inputs.get(b)
+            pilot = inputs.get(b) if self.space is not None else None
             if not self._sketch_ok(pilot):
                 self.plan[b] = (idx, np.ones(len(idx), bool), False)
-                out[b] = {"want": 0}
-                continue
-            hit = sketch.plausible(self.space, self.X[idx], self.R[idx], pilot, use_their_reach=self.rule == "one-way")
-            want = sketch.worth_the_rest(int((~hit).sum()), int(pilot["pending"]), copy_bytes, sketch_bytes)
-            self.plan[b] = (idx, hit, want)
-            out[b] = {"want": int(want)}
+            else:
+                hit = sketch.plausible(self.space, self.X[idx], self.R[idx], pilot,
+                                       use_their_reach=self.rule == "one-way")
+                copy_bytes = self.X.shape[1] * self.own.descriptors.itemsize + 40  # ids, image, sigma, sum, density
+                want = sketch.worth_the_rest(int((~hit).sum()), int(pilot["pending"]), copy_bytes, self.space.k + 5)
+                self.plan[b] = (idx, hit, want)
+        for b in self.recipients("request"):
+            out[b] = {"want": int(self.plan[b][2])}
         return out
 
     def _round_sketch_rest(self, inputs) -> Dict[int, Payload]:
@@ -218,23 +197,15 @@ class BalancedCore:
         out = {}
         geometric = 0
         for b in self.recipients("ghost"):
-            if self.space is None:
-                idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
-                                                      self.rule))
-                geometric += len(idx)
+            cand, hit, want = self.plan[b]
+            geometric += len(cand)
+            if want and self._sketch_ok(inputs.get(b)):
+                unhit = np.flatnonzero(~hit)
+                hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], inputs[b],
+                                              use_their_reach=self.rule == "one-way")
             else:
-                cand, hit, want = self.plan[b]
-                geometric += len(cand)
-                rest = inputs.get(b)
-                if want and not self._sketch_ok(rest):
-                    hit[:] = True  # the rest of the sketch is missing or unusable: ship every candidate
-                elif want:
-                    unhit = np.flatnonzero(~hit)
-                    hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], rest,
-                                                  use_their_reach=self.rule == "one-way")
-                else:
-                    hit[:] = True  # the rest could not pay for itself: every candidate travels
-                idx = cand[hit]
+                hit[:] = True  # no sketch, one not worth its rest, or a missing rest: every candidate travels
+            idx = cand[hit]
             self.shipped[b] = idx
             self.shipped_to[idx, b] = True
             o = self.own
@@ -264,8 +235,7 @@ class BalancedCore:
         tol = 1e-9 * (1.0 + R + H)
         ok = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
         if self.space is not None and self.requested.get(a):  # a filtered with the whole sketch
-            ids = np.asarray(p["ids"], np.uint64)
-            sample = np.flatnonzero(((ids * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(60)) == 0)
+            sample = np.flatnonzero(sketch.hashed_subset(p["ids"], 4))
             hit = np.zeros(len(sample), bool)
             for sk in self.sketch_sent[a]:
                 hit |= sketch.plausible(self.space, Xg[sample], R[sample], sk, self.rule == "one-way", relax=1e-3)
@@ -355,19 +325,12 @@ class BalancedCore:
                 continue
             hi, lo = exact.unpack_parts(p["units"], p["high"])
             self.sums.add_parts(idx, hi, lo)
-        dens_o = self.sums.values()[:self.n_own]
+        # duplicates route to one cell, so the engine's duplicate rules apply here whole
         groups = duplicate_groups(self.X)
         gsize = np.bincount(groups) if len(groups) else np.zeros(0, np.int64)
         zero = self.own.sigma == 0
-        zcount = np.bincount(groups[zero], minlength=len(gsize))
-        dens_o = dens_o + zcount[groups] - zero
-        in_dup = gsize[groups] > 1 if len(groups) else np.zeros(0, bool)
-        if in_dup.any():  # identical vectors: identical densities (the engine's rule)
-            dup_idx = np.flatnonzero(in_dup)
-            first_of = np.full(len(gsize), self.n_own, np.int64)
-            np.minimum.at(first_of, groups[dup_idx], dup_idx)
-            dens_o[dup_idx] = dens_o[first_of[groups[dup_idx]]]
-        self.density = 1.0 + dens_o
+        dens_o = self.sums.values()[:self.n_own] + zero_sigma_counts(groups, gsize, zero) - zero
+        self.density = 1.0 + equalize_duplicates(dens_o, groups, gsize)
         return {b: {"density": self.density[self.shipped[b]]} for b in self.recipients("density")}
 
     def _round_proposal(self, inputs) -> Dict[int, Payload]:
@@ -387,14 +350,14 @@ class BalancedCore:
         own_child = child < self.n_own
         # own features: nearest higher-ranked among own features and held copies
         c, p_, d = child[own_child], cand[own_child], dist[own_child]
-        parent, pdist, row = _best_per_target(c, ids[p_], d, self.n_own)
+        parent, pdist, row = tree.nearest_candidates(c, ids[p_], d, self.n_own)
         owner = np.full(self.n_own, -1, np.int64)
         has = row >= 0
         owner[has] = self.held_src[p_[row[has]]]
         self.local_best = (parent, pdist, owner)
         # copies: the nearest higher-ranked own feature, proposed to the copy's owner
         gc, gp, gd = child[~own_child], cand[~own_child], dist[~own_child]
-        gparent, gdist, _ = _best_per_target(gc - self.n_own, ids[gp], gd, n_held - self.n_own)
+        gparent, gdist, _ = tree.nearest_candidates(gc - self.n_own, ids[gp], gd, n_held - self.n_own)
         out = {}
         for a in self.recipients("proposal"):
             sl = self.ghost_slices[a]
@@ -424,7 +387,7 @@ class BalancedCore:
             dist.append(np.asarray(p["distance"], np.float64)[valid])
             who.append(np.full(len(k), b, np.int64))
         tgt, cand, dist, who = (np.concatenate(v) for v in (tgt, cand, dist, who))
-        self.parent, self.pdist, row = _best_per_target(tgt, cand, dist, self.n_own)
+        self.parent, self.pdist, row = tree.nearest_candidates(tgt, cand, dist, self.n_own)
         self.parent_owner = np.full(self.n_own, -1, np.int64)
         self.parent_owner[row >= 0] = who[row[row >= 0]]
         ids = self.own.ids
@@ -448,7 +411,7 @@ class BalancedCore:
             p = inputs[a]
             par = np.asarray(p["parent"], np.int64)
             pos = np.minimum(np.searchsorted(ids, par), max(0, self.n_own - 1))
-            found = (self.n_own > 0) & (ids[pos] == par) if self.n_own else np.zeros(len(par), bool)
+            found = ids[pos] == par if self.n_own else np.zeros(len(par), bool)
             self.failures += int((~found).sum())
             child_key.append(np.asarray(p["child"], np.int64)[found])
             child_agent.append(np.full(int(found.sum()), a, np.int64))

@@ -135,6 +135,11 @@ ROW_FIELDS: Dict[str, tuple] = {
 OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",)}
 
 
+def row_fields(kind: str, fields: Dict[str, Any]) -> tuple:
+    """The fields of one row per feature in this message: the kind's, and its optional ones present."""
+    return ROW_FIELDS.get(kind, ()) + tuple(f for f in OPTIONAL_ROW_FIELDS.get(kind, ()) if len(fields[f]))
+
+
 def encode(kind: str, job: str, src: int, **fields: Any) -> bytes:
     """Encode a message; arrays become typed byte maps."""
     if kind not in SCHEMAS:
@@ -214,10 +219,10 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
     if "parts" in out and not (0 <= out["part"] < out["parts"] <= 1 << 20 and out["seq"] >= 0):
         raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']} or seq {out['seq']}")
-    rows = ROW_FIELDS.get(kind)
+    rows = row_fields(kind, out)
     if rows:
         n = len(out[rows[0]])
-        for f in rows[1:] + tuple(f for f in OPTIONAL_ROW_FIELDS.get(kind, ()) if len(out[f])):
+        for f in rows[1:]:
             if len(out[f]) != n:
                 raise MessageError(f"{kind}.{f} has {len(out[f])} rows, {rows[0]} has {n}")
     if "descriptors" in out and kind in ("features", "ghost", "sample"):

@@ -107,16 +107,9 @@ def ack(job: str, src: int, dst: int, seq: int) -> bytes:
     return messages.encode("ack", job, src, seq=int(seq), dst=int(dst))
 
 
-def _row_fields(kind: str, payload: Dict[str, np.ndarray]) -> List[str]:
-    rows = list(messages.ROW_FIELDS.get(kind, ()))
-    n = len(payload[rows[0]]) if rows else 0
-    rows += [f for f in messages.OPTIONAL_ROW_FIELDS.get(kind, ()) if len(payload[f]) == n and n]
-    return rows
-
-
 def part_count(kind: str, payload: Dict[str, np.ndarray]) -> int:
     """Number of parts the payload of a round message is split into (at least 1)."""
-    rows = _row_fields(kind, payload)
+    rows = messages.row_fields(kind, payload)
     if not rows:
         return 1
     n = len(payload[rows[0]])
@@ -131,7 +124,7 @@ def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray],
     Row fields (one row per feature) are split across the parts; other fields
     (a sketch's scales, say) are repeated in every part.
     """
-    rows = _row_fields(kind, payload)
+    rows = messages.row_fields(kind, payload)
     k = part_count(kind, payload)
     n = len(payload[rows[0]]) if rows else 0
     per = (n + k - 1) // k if n else 0
@@ -146,6 +139,15 @@ def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray],
     return out
 
 
+def _part_signature(value, row: bool):
+    """What every part of a message must share for a field: the row shape and dtype, or the value."""
+    if row:
+        return np.shape(value)[1:], value.dtype.str
+    if isinstance(value, np.ndarray):
+        return value.shape, value.dtype.str, value.tobytes()
+    return repr(value)
+
+
 def merge_parts(kind: str, parts: Sequence[dict]) -> Dict[str, np.ndarray]:
     """One payload from all decoded parts of a round message (any arrival order)."""
     parts = sorted(parts, key=lambda msg: msg["part"])
@@ -154,12 +156,9 @@ def merge_parts(kind: str, parts: Sequence[dict]) -> Dict[str, np.ndarray]:
         return {f: parts[0][f] for f in fields}
     if [p["part"] for p in parts] != list(range(parts[0]["parts"])) or len({p["parts"] for p in parts}) != 1:
         raise messages.MessageError(f"{kind} parts do not make one message")
-    rows = set(messages.ROW_FIELDS.get(kind, ())) | {
-        f for f in messages.OPTIONAL_ROW_FIELDS.get(kind, ()) if len(parts[0][f])}
+    rows = messages.row_fields(kind, parts[0])
     for f in fields:
-        shapes = {(np.shape(p[f])[1:], p[f].dtype.str) if f in rows else repr(p[f])
-                  if not isinstance(p[f], np.ndarray) else (p[f].shape, p[f].dtype.str, p[f].tobytes()) for p in parts}
-        if len(shapes) != 1:
+        if len({_part_signature(p[f], f in rows) for p in parts}) != 1:
             raise messages.MessageError(f"{kind} parts disagree on {f}")
     return {f: (np.concatenate([p[f] for p in parts]) if f in rows else parts[0][f]) for f in fields}
 

@@ -7,6 +7,7 @@ from typing import Dict
 import numpy as np
 
 from ..core import pairs
+from ..core.clustering import lonely_sigma
 
 
 @dataclass
@@ -61,9 +62,9 @@ def fill_lonely(sigma: np.ndarray, value: float) -> np.ndarray:
 
 
 def median_fill(finite_sigmas) -> float:
-    """The centralized engine's rule: the median of every finite sigma (0 if there is none)."""
+    """The centralized engine's rule (:func:`dqm.core.clustering.lonely_sigma`) over every agent's finite sigmas."""
     vals = np.concatenate([np.asarray(v, np.float64).ravel() for v in finite_sigmas]) if finite_sigmas else np.zeros(0)
-    return float(np.median(vals)) if len(vals) else 0.0
+    return lonely_sigma(vals)
 
 
 def split_by_cell(ids, image_ids, descriptors, sigma, cells, m: int) -> Dict[int, Shard]:

@@ -149,25 +149,26 @@ class _Wire:
         self.add(src, dst, kind, payload)
         return self._decode(payload)
 
-    def parts(self, kind: str, src: int, dst: int, payload: dict) -> dict:
+    def _numbered(self, src: int, dst: int, kind: str, build: Callable[[int], List[bytes]]) -> List[bytes]:
+        """Messages numbered on the (src, dst) link from its next sequence number, each with its ack."""
         seq0 = self.seqs[(src, dst)]
-        msgs = protocol.data_messages(kind, self.job, src, payload, seq0=seq0)
+        msgs = build(seq0)
         for k, msg in enumerate(msgs):
             self.add(src, dst, kind, msg)
             self.add(dst, src, "ack", protocol.ack(self.job, dst, src, seq0 + k))
         self.seqs[(src, dst)] = seq0 + len(msgs)
+        return msgs
+
+    def parts(self, kind: str, src: int, dst: int, payload: dict) -> dict:
+        msgs = self._numbered(src, dst, kind,
+                              lambda seq0: protocol.data_messages(kind, self.job, src, payload, seq0=seq0))
         return protocol.merge_parts(kind, [self._decode(m) for m in msgs])
 
     def features(self, src: int, dst: int, phase: str, shard: Shard, units: Optional[np.ndarray],
                  moved: Optional[np.ndarray] = None) -> None:
         """The features chunks of one (src, dst, phase), their acks and the phase end."""
-        seq0 = self.seqs[(src, dst)]
-        msgs = protocol.feature_messages(self.job, src, phase, shard.ids, shard.image_ids, shard.descriptors,
-                                         shard.sigma, units, seq0=seq0)
-        for k, msg in enumerate(msgs):
-            self.add(src, dst, "features", msg)
-            self.add(dst, src, "ack", protocol.ack(self.job, dst, src, seq0 + k))
-        self.seqs[(src, dst)] = seq0 + len(msgs)
+        msgs = self._numbered(src, dst, "features", lambda seq0: protocol.feature_messages(
+            self.job, src, phase, shard.ids, shard.image_ids, shard.descriptors, shard.sigma, units, seq0=seq0))
         self.add(src, dst, "phase_end", protocol.phase_end(self.job, src, dst, phase, len(msgs), len(shard), moved))
         self.traffic.features_moved += len(shard)
 

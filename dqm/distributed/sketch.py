@@ -24,8 +24,6 @@ machines are covered by the margins below.
 """
 from __future__ import annotations
 
-import threading
-from concurrent.futures import ThreadPoolExecutor
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -154,35 +152,35 @@ def plausible(space: SketchSpace, X: np.ndarray, reach_x: np.ndarray, sketch: Di
     rad2c32 = np.where(np.isfinite(rad2c[order]), rad2c[order], -np.inf).astype(np.float32)
     hit = np.zeros(n, np.uint8)
     pending = np.arange(n)
-    local = threading.local()
 
     def work(task):
-        if not getattr(local, "blas_set", False):
-            native.single_threaded_blas_in_this_thread()
-            local.blas_set = True
         rows, c_lo, c_hi = task
         G = L[rows] @ Rm[c_lo:c_hi].T
         h = np.zeros(len(rows), np.uint8)
         native.any_within(G, rad2r32[rows], rad2c32[c_lo:c_hi], h)
         return rows, h
 
-    threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
-    with ThreadPoolExecutor(max_workers=threads) as pool:
+    with pairs.tile_pool(n_threads) as run:
         for c_lo in range(0, len(Wy), _TILE_COLS):
             if len(pending) == 0:
                 break
             c_hi = min(len(Wy), c_lo + _TILE_COLS)
             tasks = [(pending[s:s + _TILE_ROWS], c_lo, c_hi) for s in range(0, len(pending), _TILE_ROWS)]
-            for rows, h in pool.map(work, tasks):
+            for rows, h in run(work, tasks):
                 hit[rows] |= h
             pending = pending[hit[pending] == 0]
     return hit.astype(bool)
 
 
+def hashed_subset(ids: np.ndarray, bits: int) -> np.ndarray:
+    """Mask of a deterministic 1 / 2^bits of the features, chosen by a hash of their ids."""
+    h = np.asarray(ids, np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    return (h >> np.uint64(64 - bits)) == 0
+
+
 def pilot_mask(ids: np.ndarray) -> np.ndarray:
     """The deterministic eighth of features whose sketches travel first (a hash of the id)."""
-    h = np.asarray(ids, np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-    return (h >> np.uint64(61)) == 0
+    return hashed_subset(ids, 3)
 
 
 def worth_the_rest(n_unhit: int, n_rest: int, copy_bytes: float, sketch_bytes: float) -> bool:

@@ -137,11 +137,17 @@ class AgentProcess:
                 self.bus.meter.reject(str(exc))
         return out
 
-    def _send_parts(self, kind: str, dst: int, payload: dict) -> None:
-        k = protocol.part_count(kind, payload)
-        seq0 = self.bus.next_seq(dst, k)
-        for j, msg in enumerate(protocol.data_messages(kind, self.cfg.job, self.me, payload, seq0=seq0)):
+    def _send_numbered(self, dst: int, kind: str, count: int, build) -> int:
+        """Send ``count`` messages numbered from the link's next sequence number (kept until acknowledged)."""
+        seq0 = self.bus.next_seq(dst, count)
+        msgs = build(seq0)
+        for j, msg in enumerate(msgs):
             self.bus.send(dst, kind, msg, seq=seq0 + j)
+        return len(msgs)
+
+    def _send_parts(self, kind: str, dst: int, payload: dict) -> None:
+        self._send_numbered(dst, kind, protocol.part_count(kind, payload),
+                            lambda seq0: protocol.data_messages(kind, self.cfg.job, self.me, payload, seq0=seq0))
 
     def _send_single(self, kind: str, dst: int, **fields) -> None:
         self.bus.send(dst, kind, messages.encode(kind, self.cfg.job, self.me, **fields))
@@ -158,18 +164,17 @@ class AgentProcess:
         desc = np.concatenate([c["descriptors"] for c in ch])
         if desc.dtype != self.desc.dtype:
             raise JobAborted(f"agent {src} sent {desc.dtype} descriptors, this agent holds {self.desc.dtype}")
+        # routed features are in this cell by construction; handed-down ones keep their own cell
+        cells = np.full(len(ids), self.me, np.int64) if phase == "route" else \
+            partition.route(desc.astype(np.float64), self.source.seeds, self.source.weights)
         shard = Shard(ids, np.concatenate([c["image_ids"] for c in ch]), desc,
-                      np.concatenate([c["sigma"] for c in ch]),
-                      partition.route(desc.astype(np.float64), self.source.seeds, self.source.weights))
+                      np.concatenate([c["sigma"] for c in ch]), cells)
         return shard, np.concatenate([c["unit"] if len(c["unit"]) else np.full(len(c["ids"]), -1) for c in ch])
 
     def _send_features(self, dst: int, phase: str, shard: Shard, units: Optional[np.ndarray]) -> int:
-        seq0 = self.bus.next_seq(dst, protocol.chunk_count(len(shard)))
-        msgs = protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids,
-                                         shard.descriptors, shard.sigma, units, seq0=seq0)
-        for k, payload in enumerate(msgs):
-            self.bus.send(dst, "features", payload, seq=seq0 + k)
-        return len(msgs)
+        return self._send_numbered(dst, "features", protocol.chunk_count(len(shard)), lambda seq0: (
+            protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids, shard.descriptors,
+                                      shard.sigma, units, seq0=seq0)))
 
     def _enter(self, state: str) -> None:
         now = time.monotonic()
