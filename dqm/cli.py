@@ -2,12 +2,16 @@
 
 Each sub-command lives in its own module under :mod:`dqm.commands` and exposes
 ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
-Errors in the user's input print one line naming the problem and exit with 2.
+Errors in the user's input print one line naming the problem and exit with 2;
+Ctrl-C exits with 130, SIGTERM with 143; no Python traceback reaches the user
+(an unexpected error prints one line; DQM_TRACEBACK=1 shows the traceback).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 from typing import List, Optional
 
@@ -41,20 +45,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: leave like Ctrl-C (children stopped, files closed), exit 143."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args._run(args) or 0)
     except InputError as exc:
         print(f"dqm {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"dqm {args.command}: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print(f"dqm {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - no traceback reaches the user
+        if os.environ.get("DQM_TRACEBACK"):
+            raise
+        print(f"dqm {args.command}: error: {type(exc).__name__}: {exc} (DQM_TRACEBACK=1 shows where)",
+              file=sys.stderr)
+        return 70
 
 
 if __name__ == "__main__":

@@ -54,7 +54,7 @@ def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition):
     # the runtime sent exactly the messages the simulator metered, kind by kind, byte for byte
     # (the agents' timing reports to the coordinator are the only messages the simulator leaves out)
     sim_kinds = sim.traffic.per_kind()
-    run_kinds = {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k != "stats"}
+    run_kinds = {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k not in ("stats", "progress")}
     assert run_kinds == sim_kinds
     assert rep["kinds"]["stats"]["messages"] == 3
     links = {(e["src"], e["dst"]) for e in rep["links"]}
@@ -76,7 +76,8 @@ def test_runtime_agrees_sigma_of_single_feature_images(data):
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
     np.testing.assert_array_equal(sim.labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
     assert rep["kinds"]["fill"]["messages"] == 2 and rep["kinds"]["sigmas"]["messages"] == 2
-    assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k != "stats"} == sim.traffic.per_kind()
+    assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items()
+            if k not in ("stats", "progress")} == sim.traffic.per_kind()
 
 
 def test_no_router_gives_a_clear_error(tmp_path):
@@ -92,54 +93,6 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert p.returncode == 2
     assert f"no zenoh router reachable at tcp/127.0.0.1:{port}" in p.stderr
     assert time.monotonic() - t0 < 30
-
-
-@pytest.mark.parametrize("mode,state", [
-    ("balanced", "wait_start"), ("balanced", "wait_seeds"), ("balanced", "wait_routed"), ("balanced", "wait_ghost"),
-    ("balanced", "wait_component"), ("balanced", "wait_finish"), ("lean", "wait_minima"), ("lean", "wait_handdown"),
-])
-def test_agent_killed_in_each_phase(data, tmp_path, mode, state):
-    """SIGKILL an agent while it sits in a phase: the job fails with a clear message fast, nothing hangs."""
-    X, ids = data
-    victim = 1
-    marker = tmp_path / "paused"
-    env = dict(os.environ, DQM_FAULT_PAUSE=f"{victim}:{state}", DQM_FAULT_MARKER=str(marker))
-    started = {}
-    outcome = {}
-
-    cfg = DQMConfig(agents=3, seed=1, mode=mode, job=f"kill-{mode}-{state}")
-
-    def go():
-        try:
-            outcome["ok"] = run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update,
-                                    ready_timeout_s=8)
-        except RuntimeError as exc:
-            outcome["error"] = str(exc)
-
-    th = threading.Thread(target=go)
-    th.start()
-    t0 = time.monotonic()
-    while not marker.exists() and time.monotonic() - t0 < 60:
-        time.sleep(0.05)
-    assert marker.exists(), "the agent never reached the phase"
-    pid = started["agents"][victim].pid
-    os.kill(pid, signal.SIGKILL)
-    t_kill = time.monotonic()
-    th.join(timeout=60)
-    assert not th.is_alive()
-    assert time.monotonic() - t_kill < 20
-    if state == "wait_finish":
-        # the victim had delivered its result and statistics: the job completes correctly
-        np.testing.assert_array_equal(np.asarray(outcome["ok"]["labels"]), simulate(X, ids, cfg).labels)
-    elif state == "wait_start":
-        # the coordinator either saw the victim's token vanish or never saw it at all
-        assert "error" in outcome
-        assert f"agent {victim} died" in outcome["error"] or f"agents [{victim}] not ready" in outcome["error"]
-    else:
-        assert "error" in outcome
-        assert f"agent {victim} died" in outcome["error"]
-    for p in [started["router"], started["coordinator"], *started["agents"]]:
-        assert not alive(p.pid)
 
 
 def _inject(endpoint, job, n_agents, dim, ready):
@@ -160,7 +113,7 @@ def _inject(endpoint, job, n_agents, dim, ready):
                     sigma=np.ones(2), unit=np.zeros(2, np.int64))
         bad = [
             b"\x00garbage\xff",
-            messages.encode("start", job, -1, seed=1, agents=n_agents, mode="kmeans").replace(
+            messages.encode("finish", job, -1, clusters=1).replace(
                 b"\xa1v" + bytes([messages.VERSION]), b"\xa1v\x7f"),
             messages.encode("features", job, 0, descriptors=np.zeros((2, dim // 2), np.uint8), **good),
             messages.encode("features", "another-job", 0, descriptors=np.zeros((2, dim), np.uint8), **good),

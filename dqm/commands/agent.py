@@ -4,6 +4,11 @@
 
 FEATURES files as for `dqm match` (docs/formats.md), optionally with a
 `feature_ids` array of global ids (else ids are (agent << 32) + row).
+With --peer-features the process can take over a lost agent's images and cell.
+
+Exit codes: 0 done, 2 bad input or no router, 3 job failed or aborted,
+4 refused (a parameter differs from the coordinator's), 5 the coordinator was
+lost, 130 interrupted, 143 terminated (SIGTERM).
 """
 from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
@@ -18,22 +23,31 @@ def add_arguments(p) -> None:
     p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
     p.add_argument("--phase-timeout", type=float, default=120.0, help="longest wait in one protocol phase")
     p.add_argument("--max-message-bytes", type=int, default=64 << 20, help="reject larger messages")
+    p.add_argument("--peer-features", action="append", metavar="AGENT=FILE[,FILE...]",
+                   help="where another agent's FEATURES files can be read, so that this process can take over that "
+                        "agent's images and cell if its process is lost (repeat per agent; shared storage across hosts)")
     p.add_argument("features", nargs="+", help="FEATURES.npz file(s) of this agent's images")
     add_algorithm(p)
     add_tls(p)
 
 
 def run(args) -> int:
-    from ..runtime.agent import main_agent
+    from ..runtime.agent import main_agent, parse_peer_features
     from ..runtime.bus import RouterUnreachable
     from ..validation import InputError
 
+    if args.agents < 1:
+        raise InputError(f"--agents must be at least 1, got {args.agents}")
     if not 0 <= args.id < args.agents:
         raise InputError(f"--id must be in 0..{args.agents - 1}, got {args.id}")
     cfg = config_from(args, args.agents).validated()
+    peers = parse_peer_features(args.peer_features)
+    bad = [a for a in peers if not 0 <= a < args.agents]
+    if bad:
+        raise InputError(f"--peer-features names agent {bad[0]}, outside 0..{args.agents - 1}")
     try:
         return main_agent(args.id, cfg, args.connect, args.features, tls_from(args, listen=False),
                           connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout,
-                          max_message_bytes=args.max_message_bytes)
+                          max_message_bytes=args.max_message_bytes, peers=peers)
     except RouterUnreachable as exc:
         raise InputError(str(exc)) from None

@@ -1,26 +1,39 @@
 """Run the coordinator of a distributed job: waits for all agents, broadcasts the
-partition seed integer, collects results, writes the report (JSON).
+partition seed integer (and the parameters every agent checks), collects
+results, replaces lost agent processes, writes the report (JSON).
 
     dqm coordinator --agents 4 --seed 1 --connect tcp/ROUTER:7447 --job J --out report.json
+
+Give it the same algorithm options as the agents: an agent started with a
+different value refuses, and the coordinator names the parameter.
+
+Exit codes: 0 done, 2 bad input or no router, 3 job failed (see the paragraph
+it prints and REPORT.failure.json), 4 an agent refused the job, 130
+interrupted, 143 terminated (SIGTERM).
 """
-from .runtime_options import add_tls, tls_from
-from ..distributed.partition import PARTITION_MODES
+import argparse
+
+from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--agents", type=int, required=True)
+    p.add_argument("--agents", type=int, required=True, help="number of agents M")
     p.add_argument("--seed", type=int, default=0, help="the partition seed integer (the only thing broadcast)")
-    p.add_argument("--partition", choices=PARTITION_MODES, default="kmeans")
-    p.add_argument("--connect", required=True)
-    p.add_argument("--job", default="job")
-    p.add_argument("--out", help="report JSON (labels, traffic per link and kind)")
+    p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--out", help="report JSON (labels, traffic per link and kind); on failure OUT.failure.json")
     p.add_argument("--tcp-port", type=int, help="router port: also record kernel TCP byte counters")
-    p.add_argument("--ready-timeout", type=float, default=30.0)
-    p.add_argument("--job-timeout", type=float, default=600.0)
-    p.add_argument("--connect-timeout", type=float, default=5.0)
+    p.add_argument("--ready-timeout", type=float, default=30.0,
+                   help="seconds to wait for every agent process to appear (missing ones count as lost)")
+    p.add_argument("--job-timeout", type=float, default=600.0, help="seconds the whole job may take")
+    p.add_argument("--phase-timeout", type=float, default=120.0, help="seconds agent processes may take to get ready")
+    p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
+    p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
+                                                "(default: half of them, at least 1)")
+    p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
+    add_algorithm(p)
     add_tls(p)
 
 
@@ -32,9 +45,12 @@ def run(args) -> int:
 
     check_agents(args.agents)
     check_seed(args.seed)
+    if args.max_lost is not None and args.max_lost < 0:
+        raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
+    cfg = config_from(args, args.agents, args.seed).validated()
     try:
-        return main_coordinator(args.agents, args.seed, args.partition, args.connect, args.job, args.out,
-                                tls_from(args, listen=False), args.tcp_port, args.ready_timeout,
-                                args.job_timeout, args.connect_timeout)
+        return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port,
+                                args.ready_timeout, args.job_timeout, args.connect_timeout, args.max_lost,
+                                args.progress_fd, args.phase_timeout)
     except RouterUnreachable as exc:
         raise InputError(str(exc)) from None

@@ -4,10 +4,21 @@ coordinator; print the result and the traffic table.
 
     dqm run --agents 4                      # generated default data
     dqm run --agents 4 --features f.npz     # your FEATURES file (docs/formats.md)
+
+On a terminal it shows each agent's phase, features and bytes as the job runs.
+If an agent process dies, its images and cell go to the next live agent and
+the job starts again (identical clusters); losing more than --max-lost agents
+ends the job with a paragraph saying what failed (docs/runtime.md).
+
+Exit codes: 0 done, 1 --check found different clusters, 2 bad input,
+3 the job failed, 4 an agent refused the job (differing parameters),
+130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 from __future__ import annotations
 
 import json
+import os
+import sys
 import time
 
 import numpy as np
@@ -19,26 +30,34 @@ HELP = "run a distributed job (router + agents + coordinator processes) on this 
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--agents", type=int, default=4)
+    p.add_argument("--agents", type=int, default=4, help="number of agent processes M")
     p.add_argument("--seed", type=int, default=1, help="partition seed integer")
     p.add_argument("--features", help="FEATURES.npz (default: a generated SIFT-like scene with ground truth)")
     p.add_argument("--report", help="write the JSON report here")
-    p.add_argument("--timeout", type=float, default=600.0)
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds the whole job may take")
+    p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
+                                                "(default: half of them, at least 1)")
     p.add_argument("--check", action="store_true", help="also run the in-process simulator and compare")
     add_algorithm(p)
 
 
-def _terminate(signum, frame):
-    raise KeyboardInterrupt()
+def _check_report_path(path: str) -> None:
+    from pathlib import Path
+
+    from ..validation import InputError
+
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"--report {path} is a folder; give a file name")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(p.parent, os.W_OK):
+        raise InputError(f"--report {path}: cannot write in {p.parent}")
 
 
 def run(args) -> int:
-    import signal
-
-    signal.signal(signal.SIGTERM, _terminate)  # clean up children on SIGTERM as on Ctrl-C
     from .. import evaluation, io, synthetic
     from ..distributed.protocol import traffic_table
-    from ..runtime.launcher import run_job
+    from ..runtime.launcher import JobFailure, run_job
 
     truth = None
     if args.features:
@@ -53,14 +72,25 @@ def run(args) -> int:
     if len(X) == 0 or len(np.unique(ids)) < 2:
         raise InputError(f"a distributed job needs features of at least two images, got {len(np.unique(ids))}")
     cfg = config_from(args, args.agents, args.seed).validated(len(X))
+    if args.max_lost is not None and args.max_lost < 0:
+        raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
+    if args.report:
+        _check_report_path(args.report)
     t0 = time.perf_counter()
-    rep = run_job(X, ids, cfg, timeout_s=args.timeout)
+    try:
+        rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True)
+    except JobFailure as exc:
+        print(f"dqm run: {exc}", file=sys.stderr)
+        return 4 if exc.failure.get("refused") else 3
     wall = time.perf_counter() - t0
     labels = np.asarray(rep["labels"])
     sizes = np.bincount(labels)
     print(f"Distributed QuickMatch ({cfg.mode} mode, {cfg.agents} agent processes, partition {cfg.partition}, "
           f"seed {cfg.seed}): {len(labels)} features from {len(np.unique(ids))} images -> {rep['clusters']} clusters, "
           f"{int((sizes > 1).sum())} spanning 2+ images; {wall:.1f} s wall.")
+    for lost in rep.get("lost", []):
+        print(f"Agent process {lost['process']} was lost in phase {lost['phase']}; its agents were taken over "
+              f"(owners now {rep['owners']}) and the job restarted at epoch {lost['epoch'] + 1}.")
     if truth is not None and (np.asarray(truth) >= 0).any():
         s = evaluation.cluster_scores_landmarks(labels, np.asarray(truth), ids)
         print(f"Against ground truth: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f}.")

@@ -19,8 +19,9 @@ Modes (``mode=``):
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 from ..core.clustering import DEFAULT_RHO, KERNELS
 from ..validation import InputError, check_choice, check_positive
@@ -31,6 +32,10 @@ DEFAULT_MODE = "balanced"
 GHOST_RULES = ("one-way", "two-way")
 #: the default dimension of the lower-bound sketches (docs/distributed.md, frontier table)
 DEFAULT_SKETCH_DIMS = 48
+#: the parameters every process of a job must share (they change the result or the protocol); the
+#: seed integer is not among them (the coordinator broadcasts it) nor the job id (it names the key space)
+SHARED_PARAMS = ("agents", "mode", "partition", "kernel", "rho", "halo", "samples_per_agent", "seed_norm",
+                 "cell_weights", "ghost_rule", "sketch_dims", "balance_rounds")
 
 
 def _check_int(value, name: str, low: int) -> int:
@@ -110,3 +115,25 @@ class DQMConfig:
     def but(self, **changes) -> "DQMConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+    def params_text(self) -> str:
+        """The shared parameters as ``name=value;...`` (the start message carries it and its hash)."""
+        return ";".join(f"{k}={getattr(self, k)!r}" for k in SHARED_PARAMS)
+
+
+def params_hash(text: str) -> str:
+    """A short sha256 of a parameter text."""
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def parse_params(text: str) -> Dict[str, str]:
+    return dict(item.partition("=")[::2] for item in text.split(";") if item)
+
+
+def differing_param(mine: str, theirs: str) -> Optional[Tuple[str, str, str]]:
+    """The first parameter whose value differs between two parameter texts: (name, mine, theirs), or None."""
+    a, b = parse_params(mine), parse_params(theirs)
+    for k in list(a) + [k for k in b if k not in a]:
+        if a.get(k) != b.get(k):
+            return k, a.get(k, "(absent)"), b.get(k, "(absent)")
+    return None

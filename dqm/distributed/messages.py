@@ -1,8 +1,12 @@
 """Messages between dqm processes: msgpack, versioned, validated on receipt.
 
-Every message is a msgpack map with at least ``v`` (schema version), ``kind``,
-``job`` (job id string: keeps concurrent jobs apart) and ``src`` (sender: agent
-index >= 0, or -1 for the coordinator). numpy arrays travel as
+Every message is a msgpack map with the header ``v`` (schema version), ``kind``,
+``job`` (job id string: keeps concurrent jobs apart), ``src`` (sender: agent
+index >= 0, or -1 for the coordinator), ``epoch`` (the coordinator's count of
+reassignments: messages of an older epoch are refused) and ``seq`` (the
+message's number on its (src, dst) link within the epoch; receivers drop a
+number they have seen, so a replayed message is never processed twice; an
+``ack`` carries the number it acknowledges, ``progress`` always 0). numpy arrays travel as
 ``{"dtype", "shape", "data"}`` maps of raw little-endian bytes.
 
 :func:`decode` checks everything a receiver relies on -- size, msgpack
@@ -21,7 +25,7 @@ from typing import Any, Dict, Optional
 import msgpack
 import numpy as np
 
-VERSION = 2
+VERSION = 3
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 
@@ -58,12 +62,24 @@ def _unpack_array(obj: Any, name: str) -> np.ndarray:
 
 # the envelope of every data message of a round: per-link sequence number (acknowledged,
 # resent, duplicates dropped) and the part index among the message's parts
-ENVELOPE = {"seq": "int", "part": "int", "parts": "int"}
+ENVELOPE = {"part": "int", "parts": "int"}
+#: kinds that are not numbered on their link (never deduplicated): acknowledgements, progress reports
+UNNUMBERED = ("ack", "progress")
 
 # kind -> {field: type spec}; "array:<dtypes>:<ndim>", "int", "float", "str" or "dict"
 SCHEMAS: Dict[str, Dict[str, str]] = {
-    # coordinator -> agents: start a job (the only thing the coordinator decides)
-    "start": {"seed": "int", "agents": "int", "mode": "str"},
+    # coordinator -> every agent process: start (or restart, at a new epoch) the job: the seed integer,
+    # the process hosting each agent's cell and images (owners), and the parameters that change the result
+    # (params: "name=value;..." and its sha256, checked by every agent before it takes part)
+    "start": {"seed": "int", "agents": "int", "owners": "array:<i8:1", "params": "str", "params_hash": "str"},
+    # agent process -> coordinator: ready for this epoch (inboxes of its hosted agents declared)
+    "ready": {"dim": "int", "dtype": "str", "hosted": "array:<i8:1", "features": "int"},
+    # agent process -> coordinator: refuses the job (param: the differing parameter, or "")
+    "refuse": {"reason": "str", "param": "str"},
+    # coordinator -> agent processes: every process is ready, run the protocol of this epoch
+    "go": {},
+    # agent -> coordinator: entered a phase (for the operator's progress display; not numbered)
+    "progress": {"state": "str", "features": "int", "bytes": "int"},
     # agent -> leader: sample of own descriptors (seeds, cell weights, sketch basis; may be empty)
     # and the number of own features alone in their image (their sigma needs everyone's)
     "sample": {"descriptors": "array:|u1,<f4:2", "lonely": "int"},
@@ -80,7 +96,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     # leader -> agents: refined weights (final = 1: route with these)
     "weights": {"weights": "array:<f8:1", "final": "int"},
     # agent -> agent: features (routing or lean hand-down); unit: hand-down unit of every row (empty: routing)
-    "features": {"phase": "str", "seq": "int", "ids": "array:<i8:1", "image_ids": "array:<i8:1",
+    "features": {"phase": "str", "ids": "array:<i8:1", "image_ids": "array:<i8:1",
                  "descriptors": "array:|u1,<f4:2", "sigma": "array:<f8:1", "unit": "array:<i8:1"},
     # agent -> agent: end of a phase from this sender to this receiver (count of feature messages);
     # moved: flattened (cell, target) pairs of the sender's hand-downs (2 x K, row-major)
@@ -107,8 +123,8 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
                   "parent": "array:<i8:1", "distance": "array:<f8:1"},
     # agent -> coordinator: final clusters of the features the agent decided
     "result": {"ids": "array:<i8:1", "labels": "array:<i8:1"},
-    # receiver -> sender: acknowledgement of a sequence number
-    "ack": {"seq": "int", "dst": "int"},
+    # receiver -> sender: acknowledgement of the sequence number in the header
+    "ack": {"dst": "int"},
     # agent -> coordinator: per-phase timings and local statistics (numbers only)
     "stats": {"values": "dict"},
     # coordinator -> agents: abort the job (reason)
@@ -140,11 +156,12 @@ def row_fields(kind: str, fields: Dict[str, Any]) -> tuple:
     return ROW_FIELDS.get(kind, ()) + tuple(f for f in OPTIONAL_ROW_FIELDS.get(kind, ()) if len(fields[f]))
 
 
-def encode(kind: str, job: str, src: int, **fields: Any) -> bytes:
-    """Encode a message; arrays become typed byte maps."""
+def encode(kind: str, job: str, src: int, *, seq: int = 0, epoch: int = 0, **fields: Any) -> bytes:
+    """Encode a message (header: ``seq`` on its link, ``epoch``); arrays become typed byte maps."""
     if kind not in SCHEMAS:
         raise MessageError(f"unknown message kind {kind!r}")
-    body: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": job, "src": int(src)}
+    body: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": job, "src": int(src), "epoch": int(epoch),
+                            "seq": int(seq)}
     for k, v in fields.items():
         body[k] = _pack_array(v) if isinstance(v, np.ndarray) else v
     return msgpack.packb(body, use_bin_type=True)
@@ -177,7 +194,12 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
     src = body.get("src")
     if not isinstance(src, int) or src < -1 or (n_agents is not None and src >= n_agents):
         raise MessageError(f"bad sender {src!r}")
-    out: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": body["job"], "src": src}
+    for field in ("epoch", "seq"):
+        val = body.get(field)
+        if not isinstance(val, int) or isinstance(val, bool) or not 0 <= val < 1 << 62:
+            raise MessageError(f"bad {field} {val!r}")
+    out: Dict[str, Any] = {"v": VERSION, "kind": kind, "job": body["job"], "src": src, "epoch": body["epoch"],
+                           "seq": body["seq"]}
     for field, spec in SCHEMAS[kind].items():
         if field not in body:
             raise MessageError(f"{kind} message lacks field {field!r}")
@@ -217,8 +239,10 @@ def _nonneg(arr: np.ndarray, what: str, allow_inf: bool = False) -> None:
 
 def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim: Optional[int]) -> None:
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
-    if "parts" in out and not (0 <= out["part"] < out["parts"] <= 1 << 20 and out["seq"] >= 0):
-        raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']} or seq {out['seq']}")
+    if "parts" in out and not 0 <= out["part"] < out["parts"] <= 1 << 20:
+        raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']}")
+    if (kind in ("start", "go", "abort", "finish")) != (out["src"] == -1):
+        raise MessageError(f"{kind} message from the wrong sender {out['src']}")
     rows = row_fields(kind, out)
     if rows:
         n = len(out[rows[0]])
@@ -271,11 +295,20 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         for f in ("minima", "slack"):
             if np.isnan(out[f]).any():
                 raise MessageError(f"bounds.{f} holds NaN")
+    if kind == "start" and (out["agents"] < 1 or len(out["owners"]) != out["agents"]
+                            or (len(out["owners"]) and ((out["owners"] < 0) | (out["owners"] >= out["agents"])).any())):
+        raise MessageError(f"start names {len(out['owners'])} owners for {out['agents']} agents")
+    if kind == "ready" and (out["dim"] < 1 or out["features"] < 0 or out["dtype"] not in ("|u1", "<f4")):
+        raise MessageError("ready has a bad dimension, feature count or dtype")
+    if kind in ("progress",) and (out["features"] < 0 or out["bytes"] < 0):
+        raise MessageError("negative progress counts")
     if kind == "result" and len(out["ids"]) != len(out["labels"]):
         raise MessageError("result ids and labels differ in length")
     if n_agents is None:
         return
-    if kind in ("phase_end", "ack") and not 0 <= out["dst"] < n_agents:
+    if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= n_agents)).any():
+        raise MessageError("ready names an agent outside the job")
+    if kind == "phase_end" and not 0 <= out["dst"] < n_agents or kind == "ack" and not 0 <= out["dst"] < n_agents:
         raise MessageError(f"bad destination agent {out['dst']}")
     for f in ("child_agent", "target"):
         if f in out and len(out[f]) and ((out[f] < 0) | (out[f] >= n_agents)).any():

@@ -32,8 +32,14 @@ parts of at most :data:`PART_BYTES` (every part carries ``seq``, ``part`` and
 ``parts``; the receiver has a sender's round when it holds all parts).
 
 Every agent then sends ``result`` (ids, labels) and ``stats`` to the coordinator.
-Every ``features`` chunk and every data part is acknowledged (``ack``) and resent
-until it is.
+Every ``features`` chunk and every data part (:data:`ACKED`) is acknowledged
+(``ack``) and resent until it is. Every message but ``ack`` and ``progress`` is
+numbered on its link (``seq``), so a receiver processes each number once.
+
+Start and restart (the coordinator's side, docs/runtime.md): ``start`` (epoch,
+seed, owners, parameters) to every live agent process, ``ready`` (or ``refuse``)
+back, then ``go``; a lost process makes the coordinator give its agents to a
+survivor and start again at the next epoch.
 """
 from __future__ import annotations
 
@@ -61,7 +67,7 @@ def wire_descriptors(descriptors: np.ndarray) -> np.ndarray:
 
 
 def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors, sigma, unit=None,
-                     seq0: int = 0) -> List[bytes]:
+                     seq0: int = 0, epoch: int = 0) -> List[bytes]:
     """The ``features`` chunks of one (src, dst, phase), numbered ``seq0, seq0 + 1, ...``.
 
     Sequence numbers are per directed link and never reused within a job, so
@@ -74,7 +80,7 @@ def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors
     for k, s in enumerate(range(0, n, CHUNK_ROWS)):
         sl = slice(s, s + CHUNK_ROWS)
         out.append(messages.encode(
-            "features", job, src, phase=phase, seq=seq0 + k, ids=np.asarray(ids[sl], np.int64),
+            "features", job, src, phase=phase, seq=seq0 + k, epoch=epoch, ids=np.asarray(ids[sl], np.int64),
             image_ids=np.asarray(image_ids[sl], np.int64), descriptors=np.ascontiguousarray(desc[sl]),
             sigma=np.asarray(sigma[sl], np.float64),
             unit=np.zeros(0, np.int64) if unit is None else np.asarray(unit[sl], np.int64)))
@@ -82,9 +88,9 @@ def feature_messages(job: str, src: int, phase: str, ids, image_ids, descriptors
 
 
 def phase_end(job: str, src: int, dst: int, phase: str, n_messages: int, n_features: int,
-              moved: np.ndarray | None = None) -> bytes:
+              moved: np.ndarray | None = None, seq: int = 0, epoch: int = 0) -> bytes:
     mv = np.zeros(0, np.int64) if moved is None else np.asarray(moved, np.int64).reshape(-1)
-    return messages.encode("phase_end", job, src, phase=phase, dst=dst, messages=int(n_messages),
+    return messages.encode("phase_end", job, src, seq=seq, epoch=epoch, phase=phase, dst=dst, messages=int(n_messages),
                            features=int(n_features), moved=mv)
 
 
@@ -103,8 +109,13 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
     return flat.reshape(2, -1)
 
 
-def ack(job: str, src: int, dst: int, seq: int) -> bytes:
-    return messages.encode("ack", job, src, seq=int(seq), dst=int(dst))
+#: kinds that are acknowledged by the receiver and resent until they are (bulk payloads)
+ACKED = ("features", "sigmas", "bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density",
+         "proposal", "notify", "fragments", "assign", "component")
+
+
+def ack(job: str, src: int, dst: int, seq: int, epoch: int = 0) -> bytes:
+    return messages.encode("ack", job, src, seq=int(seq), epoch=epoch, dst=int(dst))
 
 
 def part_count(kind: str, payload: Dict[str, np.ndarray]) -> int:
@@ -118,7 +129,8 @@ def part_count(kind: str, payload: Dict[str, np.ndarray]) -> int:
     return max(1, (n + per - 1) // per)
 
 
-def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray], seq0: int = 0) -> List[bytes]:
+def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray], seq0: int = 0,
+                  epoch: int = 0) -> List[bytes]:
     """The parts of one round message from ``src``, numbered ``seq0, seq0 + 1, ...``.
 
     Row fields (one row per feature) are split across the parts; other fields
@@ -135,7 +147,7 @@ def data_messages(kind: str, job: str, src: int, payload: Dict[str, np.ndarray],
             if f in rows:
                 v = np.ascontiguousarray(np.asarray(v)[p * per:(p + 1) * per])
             fields[f] = v
-        out.append(messages.encode(kind, job, src, seq=seq0 + p, part=p, parts=k, **fields))
+        out.append(messages.encode(kind, job, src, seq=seq0 + p, epoch=epoch, part=p, parts=k, **fields))
     return out
 
 

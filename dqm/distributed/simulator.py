@@ -22,7 +22,7 @@ from ..core.tree import canonical_labels
 from ..validation import InputError, check_descriptors, check_image_ids
 from . import cascade, keys, messages, protocol, seeding
 from .balanced import ROUNDS, BalancedCore
-from .config import DQMConfig
+from .config import DQMConfig, params_hash
 from .shard import Shard
 
 COORDINATOR = -1
@@ -144,10 +144,20 @@ class _Wire:
     def _decode(self, payload: bytes) -> dict:
         return messages.decode(payload, job=self.job, n_agents=self.m, dim=self.dim)
 
+    def _next(self, src: int, dst: int) -> int:
+        seq = self.seqs[(src, dst)]
+        self.seqs[(src, dst)] = seq + 1
+        return seq
+
     def single(self, kind: str, src: int, dst: int, **fields) -> dict:
-        payload = messages.encode(kind, self.job, src, **fields)
+        payload = messages.encode(kind, self.job, src, seq=self._next(src, dst), **fields)
         self.add(src, dst, kind, payload)
         return self._decode(payload)
+
+    def phase_end(self, src: int, dst: int, phase: str, n_messages: int, n_features: int,
+                  moved: Optional[np.ndarray] = None) -> None:
+        self.add(src, dst, "phase_end", protocol.phase_end(self.job, src, dst, phase, n_messages, n_features, moved,
+                                                           seq=self._next(src, dst)))
 
     def _numbered(self, src: int, dst: int, kind: str, build: Callable[[int], List[bytes]]) -> List[bytes]:
         """Messages numbered on the (src, dst) link from its next sequence number, each with its ack."""
@@ -169,7 +179,7 @@ class _Wire:
         """The features chunks of one (src, dst, phase), their acks and the phase end."""
         msgs = self._numbered(src, dst, "features", lambda seq0: protocol.feature_messages(
             self.job, src, phase, shard.ids, shard.image_ids, shard.descriptors, shard.sigma, units, seq0=seq0))
-        self.add(src, dst, "phase_end", protocol.phase_end(self.job, src, dst, phase, len(msgs), len(shard), moved))
+        self.phase_end(src, dst, phase, len(msgs), len(shard), moved)
         self.traffic.features_moved += len(shard)
 
 
@@ -236,9 +246,17 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     clock = _Clock(m)
     gid = np.arange(n, dtype=np.int64)
 
-    # the coordinator broadcasts the seed integer
+    # the coordinator broadcasts the seed integer (and the parameters every agent checks); every agent
+    # answers ready; the coordinator says go
+    text = cfg.params_text()
     for a in range(m):
-        wire.single("start", COORDINATOR, a, seed=cfg.seed, agents=m, mode=cfg.partition)
+        wire.single("start", COORDINATOR, a, seed=cfg.seed, agents=m, owners=np.arange(m, dtype=np.int64),
+                    params=text, params_hash=params_hash(text))
+    for a in range(m):
+        wire.single("ready", a, COORDINATOR, dim=dim, dtype=store.dtype.str, hosted=np.array([a], np.int64),
+                    features=int((owners == a).sum()))
+    for a in range(m):
+        wire.single("go", COORDINATOR, a)
     sources = []
     for a in range(m):
         own = np.flatnonzero(owners == a)
@@ -379,7 +397,7 @@ def _run_cascade(cfg, wire, clock, sources, parts_for, seeds, weights, n, progre
             if len(sh):
                 wire.features(a, b, "handdown", sh, units, out.moved)
             else:
-                wire.add(a, b, "phase_end", protocol.phase_end(wire.job, a, b, "handdown", 0, 0, out.moved))
+                wire.phase_end(a, b, "handdown", 0, 0, out.moved)
         moves[a] = out.moved
         cur, res = out.final, out.final_result
         if len(cur):

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..distributed import cascade, messages, partition, protocol, seeding
 from ..distributed.balanced import ROUNDS, BalancedCore
-from ..distributed.config import DQMConfig
+from ..distributed.config import DQMConfig, differing_param, params_hash
 from ..distributed.shard import Shard
 from ..distributed import keys
 from .bus import Bus, open_client
@@ -65,8 +65,11 @@ class AgentProcess:
     cascade), ``wait_acks``, ``wait_finish``."""
 
     def __init__(self, me: int, cfg: DQMConfig, bus: Bus, ids: np.ndarray, image_ids: np.ndarray,
-                 descriptors: np.ndarray, phase_timeout_s: float = 120.0, log=None):
+                 descriptors: np.ndarray, phase_timeout_s: float = 120.0, log=None, epoch: int = 0,
+                 home: Optional[int] = None):
         self.me = me
+        self.epoch = epoch
+        self.home = me if home is None else home
         self.cfg = cfg
         self.m = cfg.agents
         self.bus = bus
@@ -79,6 +82,7 @@ class AgentProcess:
         self.phase_started = time.monotonic()
         self.log = log or (lambda text: print(f"[agent {me}] {text}", file=sys.stderr, flush=True))
         self.seed: Optional[int] = None
+        self.core = None
         self.source: Optional[seeding.SourceSide] = None
         self.leader: Optional[seeding.Leader] = None
         self.singles: Dict[Tuple[str, int], Deque[dict]] = defaultdict(deque)
@@ -89,18 +93,20 @@ class AgentProcess:
         self.times: Dict[str, float] = {}
         self.cpu0 = time.process_time()
         self.stats: Dict[str, float] = {}
-        _fault_hook(me, "wait_start")
+        self._hook("wait_start")
+
+    def _hook(self, state: str) -> None:
+        if self.me == self.home and self.epoch == 0:  # faults are injected into the first run only
+            _fault_hook(self.me, state)
 
     # ------------------------------------------------------------------ messages
+    def begin(self, seed: int) -> None:
+        """The coordinator said go: run the protocol with this seed integer."""
+        self.seed = partition.check_seed(seed)
+
     def handle(self, msg: dict) -> None:
         kind, src = msg["kind"], msg["src"]
-        if kind == "start" and src == -1:
-            if msg["agents"] != self.m:
-                raise JobAborted(f"coordinator runs {msg['agents']} agents, this agent was started with {self.m}")
-            if msg["mode"] != self.cfg.partition:
-                raise JobAborted(f"coordinator uses partition {msg['mode']!r}, this agent {self.cfg.partition!r}")
-            self.seed = partition.check_seed(msg["seed"])
-        elif kind in _SINGLE and src >= 0:
+        if kind in _SINGLE and src >= 0:
             self.singles[(kind, src)].append(msg)
         elif "parts" in msg and src >= 0:
             self.parts[(kind, src)][msg["part"]] = msg
@@ -108,10 +114,6 @@ class AgentProcess:
             self.chunks[(src, msg["phase"])].append(msg)
         elif kind == "phase_end" and src >= 0 and msg["dst"] == self.me:
             self.ends[(src, msg["phase"])] = msg
-        elif kind == "abort" and src == -1:
-            raise JobAborted(f"coordinator aborted the job: {msg['reason']}")
-        elif kind == "finish" and src == -1:
-            self.finished = True
 
     def _have(self, kind: str, senders) -> bool:
         return all(self.singles[(kind, a)] for a in senders)
@@ -139,18 +141,25 @@ class AgentProcess:
 
     def _send_numbered(self, dst: int, kind: str, count: int, build) -> int:
         """Send ``count`` messages numbered from the link's next sequence number (kept until acknowledged)."""
-        seq0 = self.bus.next_seq(dst, count)
+        seq0 = self.bus.next_seq(self.me, dst, count)
         msgs = build(seq0)
         for j, msg in enumerate(msgs):
-            self.bus.send(dst, kind, msg, seq=seq0 + j)
+            self.bus.send(self.me, dst, kind, msg, seq=seq0 + j)
         return len(msgs)
 
     def _send_parts(self, kind: str, dst: int, payload: dict) -> None:
-        self._send_numbered(dst, kind, protocol.part_count(kind, payload),
-                            lambda seq0: protocol.data_messages(kind, self.cfg.job, self.me, payload, seq0=seq0))
+        self._send_numbered(dst, kind, protocol.part_count(kind, payload), lambda seq0: protocol.data_messages(
+            kind, self.cfg.job, self.me, payload, seq0=seq0, epoch=self.epoch))
 
     def _send_single(self, kind: str, dst: int, **fields) -> None:
-        self.bus.send(dst, kind, messages.encode(kind, self.cfg.job, self.me, **fields))
+        seq = self.bus.next_seq(self.me, dst)
+        self.bus.send(self.me, dst, kind, messages.encode(kind, self.cfg.job, self.me, seq=seq, epoch=self.epoch,
+                                                          **fields))
+
+    def _phase_end(self, dst: int, phase: str, n_messages: int, n_features: int, moved=None) -> None:
+        seq = self.bus.next_seq(self.me, dst)
+        self.bus.send(self.me, dst, "phase_end", protocol.phase_end(self.cfg.job, self.me, dst, phase, n_messages,
+                                                                    n_features, moved, seq=seq, epoch=self.epoch))
 
     def _complete(self, src: int, phase: str) -> bool:
         end = self.ends.get((src, phase))
@@ -174,14 +183,19 @@ class AgentProcess:
     def _send_features(self, dst: int, phase: str, shard: Shard, units: Optional[np.ndarray]) -> int:
         return self._send_numbered(dst, "features", protocol.chunk_count(len(shard)), lambda seq0: (
             protocol.feature_messages(self.cfg.job, self.me, phase, shard.ids, shard.image_ids, shard.descriptors,
-                                      shard.sigma, units, seq0=seq0)))
+                                      shard.sigma, units, seq0=seq0, epoch=self.epoch)))
 
     def _enter(self, state: str) -> None:
         now = time.monotonic()
         self.times[f"time_{self.state}"] = self.times.get(f"time_{self.state}", 0.0) + now - self.phase_started
         self.state = state
         self.phase_started = now
-        _fault_hook(self.me, state)
+        sent = self.bus.meter.snapshot()[0]
+        self.bus.send(self.me, -1, "progress", messages.encode(
+            "progress", self.cfg.job, self.me, epoch=self.epoch, state=state,
+            features=int(len(self.ids) if self.core is None else self.core_features()),
+            bytes=int(sum(b for (src, _, _), (b, _) in sent.items() if src == self.me))))
+        self._hook(state)
 
     def _others(self) -> List[int]:
         return [b for b in range(self.m) if b != self.me]
@@ -210,7 +224,7 @@ class AgentProcess:
         self.own_part = parts[self.me]
         for b in self._others():
             k = self._send_features(b, "route", parts[b], None)
-            self.bus.send(b, "phase_end", protocol.phase_end(self.cfg.job, self.me, b, "route", k, len(parts[b])))
+            self._phase_end(b, "route", k, len(parts[b]))
         self._enter("wait_routed")
 
     def _leader_round(self, collect: str, reply: str, own: dict, compute, apply, then, parts: bool = False) -> bool:
@@ -287,8 +301,7 @@ class AgentProcess:
         self._enter(f"wait_{name}")
 
     def _result(self, ids: np.ndarray, labels: np.ndarray, stats: Dict[str, float]) -> None:
-        self.bus.send(-1, "result", messages.encode("result", self.cfg.job, self.me, ids=ids,
-                                                    labels=labels.astype(np.int64)))
+        self._send_single("result", -1, ids=ids, labels=labels.astype(np.int64))
         self.stats.update({k: float(v) for k, v in stats.items()})
         self._enter("wait_acks")
 
@@ -319,8 +332,7 @@ class AgentProcess:
             for b in range(self.me):
                 sh, units = out.sends.get(b, (None, None))
                 k = self._send_features(b, "handdown", sh, units) if sh is not None else 0
-                self.bus.send(b, "phase_end", protocol.phase_end(
-                    self.cfg.job, self.me, b, "handdown", k, len(sh) if sh is not None else 0, out.moved))
+                self._phase_end(b, "handdown", k, len(sh) if sh is not None else 0, out.moved)
             labels = out.final_result.labels if out.final_result is not None else np.zeros(0, np.int64)
             self._result(out.final.ids, labels, {
                 "features_routed": float(len(self.core.shard)), "features_final": float(len(out.final)),
@@ -328,41 +340,43 @@ class AgentProcess:
                 "arrival_check_failures": float(out.arrival_failures),
                 "handed_down": float(sum(len(v[0]) for v in out.sends.values())),
             })
-        elif s == "wait_acks" and self.bus.unacknowledged() == 0:
+        elif s == "wait_acks" and self.bus.unacknowledged(self.me) == 0:
             stats = dict(self.stats)
             stats.update(self.times)
             stats["cpu_s"] = time.process_time() - self.cpu0
+            stats["host"] = float(self.home)
             sent, rejected, duplicates, resent = self.bus.meter.snapshot()
-            for reason, count in rejected.items():
-                stats[f"rejected:{reason}"] = float(count)
-            stats["duplicates"] = float(duplicates)
-            stats["resent"] = float(resent)
+            if self.me == self.home:  # the process's counters, reported once
+                for reason, count in rejected.items():
+                    stats[f"rejected:{reason}"] = float(count)
+                stats["duplicates"] = float(duplicates)
+                stats["resent"] = float(resent)
             for (src, dst, kind), (b, c) in sent.items():
-                stats[f"sent:{dst}:{kind}:bytes"] = float(b)
-                stats[f"sent:{dst}:{kind}:messages"] = float(c)
-            self.bus.send(-1, "stats", messages.encode("stats", self.cfg.job, self.me, values=stats))
+                if src == self.me:
+                    stats[f"sent:{dst}:{kind}:bytes"] = float(b)
+                    stats[f"sent:{dst}:{kind}:messages"] = float(c)
+            self._send_single("stats", -1, values=stats)
             self._enter("wait_finish")
-        elif s == "wait_finish" and self.finished:
-            self._enter("done")
 
-    def run(self, overall_timeout_s: float = 600.0) -> None:
-        t0 = time.monotonic()
-        while self.state != "done":
-            msg = self.bus.receive(timeout=0.05)
-            if msg is not None:
-                self.handle(msg)
-            before = None
-            while before != self.state:  # advance as far as possible
-                before = self.state
-                self.advance()
-            self.bus.resend_due()
-            if self.state not in ("wait_start",) and self.bus.coordinator_alive() is False:
-                raise JobAborted("the coordinator vanished (liveliness token lost)")
-            if time.monotonic() - self.phase_started > self.phase_timeout_s:
-                raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s in state "
-                                   f"{self.state!r}")
-            if time.monotonic() - t0 > overall_timeout_s:
-                raise TimeoutError(f"agent {self.me} exceeded the overall timeout of {overall_timeout_s:.0f} s")
+    def core_features(self) -> int:
+        """Features this agent's cell holds (after routing)."""
+        for name in ("own", "shard"):
+            held = getattr(self.core, name, None)
+            if held is not None:
+                return len(held)
+        return 0
+
+    def settle(self) -> None:
+        """Advance as far as the messages received allow."""
+        before = None
+        while before != self.state:
+            before = self.state
+            self.advance()
+
+    def check_timeout(self) -> None:
+        if self.state != "wait_finish" and time.monotonic() - self.phase_started > self.phase_timeout_s:
+            raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s in state "
+                               f"{self.state!r}")
 
 
 def load_agent_features(paths, me: int):
@@ -386,24 +400,185 @@ def load_agent_features(paths, me: int):
     return np.concatenate(ids), np.concatenate(imgs), np.concatenate(descs)
 
 
+class Refused(RuntimeError):
+    """This process will not take part in the job (a parameter differs, a takeover is impossible)."""
+
+
+class CoordinatorLost(RuntimeError):
+    """The coordinator's liveliness token vanished."""
+
+
+class AgentHost:
+    """One agent process: its own agent (``home``) and any lost agents' cells the coordinator gave it.
+
+    Control messages (``start``, ``go``, ``abort``, ``finish``) come from the
+    coordinator; each ``start`` opens an epoch with a fresh :class:`AgentProcess`
+    for every agent this process hosts (its own features, and the features of
+    a lost agent re-read from that agent's files).
+    """
+
+    def __init__(self, home: int, cfg: DQMConfig, bus: Bus, sources: Dict[int, List[str]],
+                 phase_timeout_s: float = 120.0, log=None, own=None):
+        self.home = home
+        self.cfg = cfg
+        self.bus = bus
+        self.sources = sources
+        self.phase_timeout_s = phase_timeout_s
+        self.log = log or (lambda text: print(f"[agent {home}] {text}", file=sys.stderr, flush=True))
+        self.features: Dict[int, Tuple[np.ndarray, np.ndarray, np.ndarray]] = {
+            home: own if own is not None else load_agent_features(sources[home], home)}
+        bus.dim = self.features[home][2].shape[1]
+        self.slots: Dict[int, AgentProcess] = {}
+        self.epoch = -1
+        self.seed: Optional[int] = None
+        self.done = False
+        self.t0 = time.monotonic()
+
+    @property
+    def phase(self) -> str:
+        """Where this process is, for messages: its own agent's state."""
+        slot = self.slots.get(self.home)
+        return slot.state if slot is not None else "wait_start"
+
+    def _load(self, agent: int):
+        if agent not in self.features:
+            if agent not in self.sources:
+                raise Refused(f"cannot take over agent {agent}: this process has no path to its FEATURES files "
+                              f"(start agents with --peer-features {agent}=FILE)")
+            try:
+                self.features[agent] = load_agent_features(self.sources[agent], agent)
+            except (OSError, ValueError) as exc:
+                raise Refused(f"cannot take over agent {agent}: {exc}") from None
+        return self.features[agent]
+
+    def _refuse(self, reason: str, param: str = "") -> None:
+        self.bus.send(self.home, -1, "refuse", messages.encode(
+            "refuse", self.cfg.job, self.home, seq=self.bus.next_seq(self.home, -1), epoch=self.bus.epoch,
+            reason=reason, param=param))
+        raise Refused(reason)
+
+    def control(self, msg: dict) -> None:
+        kind = msg["kind"]
+        if kind == "start":
+            if msg["epoch"] <= self.epoch:
+                return  # a repeated start of this epoch
+            self.bus.set_epoch(msg["epoch"])
+            mine = self.cfg.params_text()
+            if msg["params_hash"] != params_hash(mine) or msg["agents"] != self.cfg.agents:
+                name, ours, theirs = differing_param(mine, msg["params"]) or ("params", "?", "?")
+                self._refuse(f"parameter {name} differs: this agent has {name}={ours}, the coordinator "
+                             f"{name}={theirs}; start every process of a job with the same algorithm options", name)
+            hosted = [int(a) for a in np.flatnonzero(msg["owners"] == self.home)]
+            if self.home not in hosted:
+                self._refuse(f"the coordinator gave this process's own agent {self.home} to another process")
+            try:
+                feats = {a: self._load(a) for a in hosted}
+            except Refused as exc:
+                self._refuse(str(exc))
+            dims = {f[2].shape[1] for f in feats.values()} | {self.features[self.home][2].shape[1]}
+            if len(dims) != 1:
+                self._refuse(f"the FEATURES files of agents {hosted} have different dimensions {sorted(dims)}",
+                             "dimension")
+            self.bus.dim = dims.pop()
+            self.bus.host(hosted)
+            self.epoch = msg["epoch"]
+            self.seed = msg["seed"]
+            self.slots = {a: AgentProcess(a, self.cfg, self.bus, *feats[a], phase_timeout_s=self.phase_timeout_s,
+                                          log=self.log, epoch=self.epoch, home=self.home) for a in hosted}
+            if self.epoch > 0:
+                self.log(f"epoch {self.epoch}: hosting agents {hosted}")
+            own = self.features[self.home][2]
+            self.bus.send(self.home, -1, "ready", messages.encode(
+                "ready", self.cfg.job, self.home, seq=self.bus.next_seq(self.home, -1), epoch=self.epoch,
+                dim=int(own.shape[1]), dtype=own.dtype.str, hosted=np.asarray(hosted, np.int64),
+                features=int(sum(len(f[0]) for f in feats.values()))))
+        elif kind == "go" and msg["epoch"] == self.epoch:
+            for slot in self.slots.values():
+                slot.begin(self.seed)
+        elif kind == "abort":
+            raise JobAborted(f"the coordinator aborted the job: {msg['reason']}")
+        elif kind == "finish":
+            self.done = True
+
+    def run(self) -> None:
+        while not self.done:
+            item = self.bus.receive(timeout=0.05)
+            if item is not None:
+                dst, msg = item
+                if msg["src"] == -1:
+                    self.control(msg)
+                elif dst in self.slots:
+                    self.slots[dst].handle(msg)
+            for a in sorted(self.slots):
+                self.slots[a].settle()
+            self.bus.resend_due()
+            if self.epoch >= 0 and self.bus.coordinator_alive() is False:
+                raise CoordinatorLost(f"the coordinator vanished (its liveliness token was lost) while this agent was "
+                                      f"in phase {self.phase}")
+            for slot in self.slots.values():
+                slot.check_timeout()
+            if self.epoch < 0 and time.monotonic() - self.t0 > self.phase_timeout_s:
+                raise TimeoutError(f"no start from a coordinator within {self.phase_timeout_s:.0f} s")
+
+
+def parse_peer_features(specs: Optional[List[str]]) -> Dict[int, List[str]]:
+    """``["2=/data/a2.npz,/data/a2b.npz", ...]`` -> {2: [...]}: where a lost agent's images can be re-read."""
+    from ..validation import InputError
+
+    out: Dict[int, List[str]] = {}
+    for spec in specs or []:
+        agent, sep, paths = spec.partition("=")
+        if not sep or not agent.strip().isdigit() or not paths:
+            raise InputError(f"--peer-features must look like AGENT=FILE[,FILE...], got {spec!r}")
+        out[int(agent)] = [p for p in paths.split(",") if p]
+    return out
+
+
+#: exit codes of ``dqm agent`` (docs/runtime.md)
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_COORDINATOR_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 3, 4, 5, 130, 143
+
+
 def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,
                connect_timeout_s: float = 5.0, phase_timeout_s: float = 120.0,
-               max_message_bytes: int = messages.MAX_MESSAGE_BYTES) -> int:
+               max_message_bytes: int = messages.MAX_MESSAGE_BYTES,
+               peers: Optional[Dict[int, List[str]]] = None) -> int:
     """Entry point of ``dqm agent``: returns the process exit code."""
+    from .lifeline import watch_parent
+
     signal.signal(signal.SIGTERM, _on_sigterm)
+    watch_parent()
     keys.check_job(cfg.job)
-    ids, imgs, desc = load_agent_features(paths, me)
+    sources = dict(peers or {})
+    sources[me] = list(paths)
+    log = lambda text: print(f"[agent {me}] {text}", file=sys.stderr, flush=True)  # noqa: E731
+    own = load_agent_features(paths, me)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
-    bus = Bus(session, cfg.job, me, cfg.agents, dim=desc.shape[1], max_bytes=max_message_bytes)
-    agent = AgentProcess(me, cfg, bus, ids, imgs, desc, phase_timeout_s=phase_timeout_s)
+    host = None
+    bus = None
     try:
-        agent.run()
-        return 0
+        bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=max_message_bytes)
+        host = AgentHost(me, cfg, bus, sources, phase_timeout_s=phase_timeout_s, log=log, own=own)
+        host.run()
+        return EXIT_OK
+    except Refused as exc:
+        log(f"refused: {exc}")
+        time.sleep(0.3)  # let the refusal reach the coordinator before the token goes
+        return EXIT_REFUSED
+    except CoordinatorLost as exc:
+        log(f"error: {exc}. This agent leaves; to run the job again, start the coordinator and every agent again "
+            "with the same options (a job restarts from the beginning).")
+        return EXIT_COORDINATOR_LOST
     except (JobAborted, TimeoutError) as exc:
-        agent.log(f"error: {exc}")
-        return 3
-    except (KeyboardInterrupt, Terminated):
-        agent.log("interrupted, leaving")
-        return 130
+        log(f"error: {exc}")
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        log("interrupted, leaving")
+        return EXIT_INTERRUPTED
+    except Terminated:
+        log("terminated, leaving")
+        return EXIT_TERMINATED
     finally:
-        bus.close()
+        if bus is not None:
+            bus.close()
+        else:
+            session.close()

@@ -25,7 +25,7 @@ import time
 from collections import defaultdict
 from typing import Dict, List, Optional, Tuple
 
-from ..distributed import messages
+from ..distributed import messages, protocol
 from ..distributed import keys
 
 ROUTER_RETRY_S = 5.0
@@ -35,10 +35,18 @@ class RouterUnreachable(RuntimeError):
     """No zenoh router answered at the given endpoint within the retry deadline."""
 
 
+#: liveliness lease (ms): a process cut off from the router is declared lost after about this long
+#: (a process that dies on a reachable host loses its token within milliseconds: its socket closes)
+LEASE_MS = 2000
+#: keep-alive messages per lease
+KEEP_ALIVE = 4
+
+
 def _base_config(extra: Optional[dict] = None) -> dict:
     cfg = {
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"shared_memory": {"enabled": False}},
+        "transport": {"shared_memory": {"enabled": False},
+                      "link": {"tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVE}}},
     }
     if extra:
         for k, v in extra.items():
@@ -52,7 +60,7 @@ def client_config(endpoint: str, tls: Optional[dict] = None) -> "object":
 
     cfg = _base_config({"mode": "client", "connect": {"endpoints": [endpoint]}})
     if tls:
-        cfg["transport"]["link"] = {"tls": tls}
+        cfg["transport"]["link"]["tls"] = tls
     return zenoh.Config.from_json5(json.dumps(cfg))
 
 
@@ -61,7 +69,7 @@ def router_config(endpoints: List[str], tls: Optional[dict] = None) -> "object":
 
     cfg = _base_config({"mode": "router", "listen": {"endpoints": list(endpoints)}})
     if tls:
-        cfg["transport"]["link"] = {"tls": tls}
+        cfg["transport"]["link"]["tls"] = tls
     return zenoh.Config.from_json5(json.dumps(cfg))
 
 
@@ -137,40 +145,71 @@ class Meter:
 
 
 class Bus:
-    """One process's view of the job's key space."""
+    """One process's view of the job's key space.
 
-    def __init__(self, session, job: str, me: int, n_agents: int, dim: Optional[int] = None,
+    ``home`` is the process's own index (-1: the coordinator); it declares the
+    liveliness token ``alive/agent/<home>`` and always receives on its home
+    inbox. A process that takes over a lost agent's cell also receives on that
+    agent's inbox (:meth:`host`). Every message belongs to an epoch
+    (:meth:`set_epoch`): older ones are refused and counted, and sequence
+    numbers, acknowledgements and duplicate detection start afresh in each.
+    """
+
+    def __init__(self, session, job: str, home: int, n_agents: int, dim: Optional[int] = None,
                  max_bytes: int = messages.MAX_MESSAGE_BYTES):
         import zenoh
 
         self._zenoh = zenoh
         self.session = session
         self.job = job
-        self.me = me
+        self.home = home
+        self.me = home
         self.n_agents = n_agents
         self.dim = dim
         self.max_bytes = max_bytes
-        self.inbox: "queue.Queue" = queue.Queue()  # decoded messages for the main thread
-        self._raw: "queue.Queue" = queue.Queue()  # payloads as they arrive
+        self.epoch = 0
+        self.inbox: "queue.Queue" = queue.Queue()  # (inbox agent, decoded message) for the main thread
+        self._raw: "queue.Queue" = queue.Queue()  # (inbox agent, payload) as they arrive
         self.meter = Meter()
         self.alive: Dict[str, bool] = {}
         self._alive_lock = threading.Lock()
+        self._lock = threading.Lock()  # epoch, pending, seen
         self._closed = False
-        self._pending: Dict[Tuple[int, int], Tuple[float, int, bytes, str]] = {}  # (dst, seq) -> (t, tries, payload, kind)
-        self._pending_lock = threading.Lock()
+        # (src, dst, seq) -> (t, tries, payload, kind)
+        self._pending: Dict[Tuple[int, int, int], Tuple[float, int, bytes, str]] = {}
         self._seen: set = set()
-        self._receiver = threading.Thread(target=self._receive_loop, name=f"dqm-bus-{me}", daemon=True)
+        self._next_seq: Dict[Tuple[int, int], int] = defaultdict(int)
+        self._subs: Dict[int, object] = {}
+        self._receiver = threading.Thread(target=self._receive_loop, name=f"dqm-bus-{home}", daemon=True)
         self._receiver.start()
-        self._next_seq: Dict[int, int] = defaultdict(int)
-        my_key = keys.coordinator_inbox(job) if me < 0 else keys.agent_inbox(job, me)
-        self._sub = session.declare_subscriber(my_key, self._on_sample)
+        self.host([home])
         self._live_sub = session.liveliness().declare_subscriber(keys.alive_all(job), self._on_alive, history=True)
         self._token = session.liveliness().declare_token(
-            keys.alive_coordinator(job) if me < 0 else keys.alive_agent(job, me))
+            keys.alive_coordinator(job) if home < 0 else keys.alive_agent(job, home))
+
+    # ------------------------------------------------------------------ inboxes and epochs
+    def _key(self, dst: int) -> str:
+        return keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
+
+    def host(self, agents) -> None:
+        """Receive on the inboxes of exactly these agents (and the home inbox)."""
+        want = set(int(a) for a in agents) | {self.home}
+        for a in sorted(set(self._subs) - want):
+            self._subs.pop(a).undeclare()
+        for a in sorted(want - set(self._subs)):
+            self._subs[a] = self.session.declare_subscriber(self._key(a), lambda smp, a=a: self._on_sample(a, smp))
+
+    def set_epoch(self, epoch: int) -> None:
+        """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
+        with self._lock:
+            self.epoch = int(epoch)
+            self._pending.clear()
+            self._seen.clear()
+            self._next_seq.clear()
 
     # ------------------------------------------------------------------ callbacks (tiny)
-    def _on_sample(self, sample) -> None:
-        self._raw.put(bytes(sample.payload.to_bytes()))
+    def _on_sample(self, dst: int, sample) -> None:
+        self._raw.put((dst, bytes(sample.payload.to_bytes())))
 
     def _on_alive(self, sample) -> None:
         alive = str(sample.kind) == str(self._zenoh.SampleKind.PUT)
@@ -180,6 +219,7 @@ class Bus:
 
     # ------------------------------------------------------------------ liveliness
     def agent_alive(self, i: int) -> Optional[bool]:
+        """Whether agent process ``i``'s token is present (None: never seen)."""
         with self._alive_lock:
             return self.alive.get(keys.alive_agent(self.job, i))
 
@@ -188,64 +228,65 @@ class Bus:
             return self.alive.get(keys.alive_coordinator(self.job))
 
     # ------------------------------------------------------------------ sending
-    def next_seq(self, dst: int, count: int = 1) -> int:
-        s = self._next_seq[dst]
-        self._next_seq[dst] += count
-        return s
+    def next_seq(self, src: int, dst: int, count: int = 1) -> int:
+        """The first of ``count`` sequence numbers on the link ``src -> dst`` in this epoch."""
+        with self._lock:
+            s = self._next_seq[(src, dst)]
+            self._next_seq[(src, dst)] = s + count
+            return s
 
-    def _put(self, dst: int, kind: str, payload: bytes) -> None:
-        key = keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
+    def _put(self, src: int, dst: int, kind: str, payload: bytes) -> None:
+        key = self._key(dst)
         self.session.put(key, payload, congestion_control=self._zenoh.CongestionControl.BLOCK)
-        self.meter.add(self.me, dst, kind, len(payload) + len(key))
+        self.meter.add(src, dst, kind, len(payload) + len(key))
 
-    def send(self, dst: int, kind: str, payload: bytes, seq: Optional[int] = None) -> None:
-        """Put a message to agent ``dst`` (or the coordinator, dst = -1), metered.
+    def send(self, src: int, dst: int, kind: str, payload: bytes, seq: Optional[int] = None) -> None:
+        """Put a message from hosted agent ``src`` to agent ``dst`` (or the coordinator, dst = -1), metered.
 
-        With ``seq`` the message is kept until acknowledged and resent by
-        :meth:`resend_due`.
+        Kinds in :data:`protocol.ACKED` (pass their ``seq``) are kept until
+        acknowledged and resent by :meth:`resend_due`.
         """
-        if seq is not None:
-            with self._pending_lock:  # before the put: the ack may come back at once
-                self._pending[(dst, seq)] = (time.monotonic(), 1, payload, kind)
-        self._put(dst, kind, payload)
+        if seq is not None and kind in protocol.ACKED:
+            with self._lock:  # before the put: the ack may come back at once
+                self._pending[(src, dst, seq)] = (time.monotonic(), 1, payload, kind)
+        self._put(src, dst, kind, payload)
 
-    def acknowledged(self, src: int, seq: int) -> None:
-        with self._pending_lock:
-            self._pending.pop((src, seq), None)
+    def unacknowledged(self, src: Optional[int] = None) -> int:
+        with self._lock:
+            return sum(1 for k in self._pending if src is None or k[0] == src)
 
-    def unacknowledged(self) -> int:
-        with self._pending_lock:
-            return len(self._pending)
-
-    def resend_due(self, timeout_s: float = 2.0, max_tries: int = 5) -> None:
-        """Resend chunks not acknowledged within ``timeout_s``; raise after ``max_tries``."""
+    def resend_due(self, timeout_s: float = 2.0) -> None:
+        """Resend messages not acknowledged within ``timeout_s`` (a lost receiver is the coordinator's
+        business: it starts a new epoch, which drops what is pending)."""
         now = time.monotonic()
-        with self._pending_lock:
+        with self._lock:
             due = [(k, v) for k, v in self._pending.items() if now - v[0] >= timeout_s]
-        for (dst, seq), (t, tries, payload, kind) in due:
-            if tries >= max_tries:
-                raise TimeoutError(f"agent {dst} did not acknowledge message {seq} after {tries} sends")
-            with self._pending_lock:
-                if (dst, seq) not in self._pending:
-                    continue  # acknowledged meanwhile
-                self._pending[(dst, seq)] = (now, tries + 1, payload, kind)
-            self._put(dst, kind, payload)
+        for (src, dst, seq), (t, tries, payload, kind) in due:
+            with self._lock:
+                if (src, dst, seq) not in self._pending:
+                    continue  # acknowledged meanwhile (or a new epoch)
+                self._pending[(src, dst, seq)] = (now, tries + 1, payload, kind)
+            self._put(src, dst, kind, payload)
             with self.meter.lock:
                 self.meter.resent += 1
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
-        """The receiver thread: decode, acknowledge, drop duplicates, hand over."""
+        """The receiver thread: decode, check the epoch, acknowledge, drop duplicates, hand over."""
         while not self._closed:
             try:
-                raw = self._raw.get(timeout=0.2)
+                dst, raw = self._raw.get(timeout=0.2)
             except queue.Empty:
                 continue
-            msg = self._accept(raw)
+            try:
+                msg = self._accept(dst, raw)
+            except Exception as exc:  # noqa: BLE001 - never let one message stop the receiver
+                self.meter.reject(f"receiver error {type(exc).__name__}")
+                continue
             if msg is not None:
-                self.inbox.put(msg)
+                self.inbox.put((dst, msg))
 
-    def _accept(self, raw: bytes) -> Optional[dict]:
+    def _accept(self, dst: int, raw: bytes) -> Optional[dict]:
         """A valid new message for the main thread, or None (counted bad message, duplicate, ack)."""
         try:
             msg = messages.decode(raw, job=self.job, n_agents=self.n_agents, max_bytes=self.max_bytes, dim=self.dim)
@@ -253,22 +294,38 @@ class Bus:
             self.meter.reject(str(exc).split(" (")[0])
             return None
         msg["_bytes"] = len(raw)
-        if "seq" in msg and msg["kind"] != "ack":
-            key = (msg["src"], msg["seq"])
-            # acknowledge every copy (the first ack may have been lost), process once
-            self._put(msg["src"], "ack", messages.encode("ack", self.job, self.me, seq=msg["seq"], dst=msg["src"]))
-            if key in self._seen:
+        kind, src, seq = msg["kind"], msg["src"], msg["seq"]
+        with self._lock:
+            epoch = self.epoch
+        if msg["epoch"] < epoch:
+            self.meter.reject("message of an earlier epoch")
+            return None
+        if msg["epoch"] > epoch and kind != "start":
+            self.meter.reject("message of a later epoch")
+            return None
+        if kind == "ack":
+            if msg["dst"] != dst:
+                self.meter.reject("ack for another agent")
+                return None
+            with self._lock:
+                self._pending.pop((dst, src, seq), None)
+            return None
+        if kind not in messages.UNNUMBERED:
+            key = (msg["epoch"], dst, src, seq)
+            if kind in protocol.ACKED:
+                # acknowledge every copy (the first ack may have been lost), process once
+                self._put(dst, src, "ack", protocol.ack(self.job, dst, src, seq, epoch=msg["epoch"]))
+            with self._lock:
+                dup = key in self._seen
+                self._seen.add(key)
+            if dup:
                 with self.meter.lock:
                     self.meter.duplicates += 1
                 return None
-            self._seen.add(key)
-        elif msg["kind"] == "ack":
-            self.acknowledged(msg["src"], msg["seq"])
-            return None
         return msg
 
-    def receive(self, timeout: float = 0.2) -> Optional[dict]:
-        """Next valid message, or None on timeout / liveliness wake-up. Bad messages are counted and dropped."""
+    def receive(self, timeout: float = 0.2) -> Optional[Tuple[int, dict]]:
+        """Next ``(inbox agent, message)``, or None on timeout / liveliness wake-up."""
         try:
             return self.inbox.get(timeout=timeout)
         except queue.Empty:
@@ -279,7 +336,7 @@ class Bus:
         if self._closed:
             return
         self._closed = True
-        for obj in (self._token, self._live_sub, self._sub):
+        for obj in (self._token, self._live_sub, *self._subs.values()):
             try:
                 obj.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway

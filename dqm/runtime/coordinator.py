@@ -1,7 +1,23 @@
-"""The coordinator: waits for every agent's liveliness token, broadcasts the
-partition seed integer, collects the agents' results and statistics, watches
-liveliness (a lost agent aborts the job with a clear message within seconds),
-and writes the report (labels + traffic per link and per kind).
+"""The coordinator: waits for every agent process's liveliness token, starts the
+job (the seed integer and the parameters every agent checks), collects the
+agents' results and statistics, and writes the report (labels + traffic per
+link and per kind).
+
+It also keeps the job alive when agent processes die (docs/runtime.md):
+
+* liveliness tells it that process p died, in any phase;
+* if p had already delivered every result and statistic it owed, nothing is
+  lost and the job goes on;
+* otherwise every agent p hosted goes to the next live process by index
+  (p+1, p+2, ... wrapping round), the epoch goes up by one, and the job starts
+  again: every process drops the old epoch's state, the new owner re-reads
+  the lost agent's FEATURES files, and the features routed to its cell are
+  sent again by their owners. Messages of older epochs are refused and
+  counted. The labels are those of a run without the failure: the cells,
+  the seeds and every round depend only on the seed integer and the data;
+* more than ``max_lost`` lost processes (default: half of them, at least 1),
+  or none left, ends the job with one paragraph saying what failed, which
+  agent, in which phase and what to do.
 """
 from __future__ import annotations
 
@@ -12,13 +28,14 @@ import sys
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from ..distributed import messages
 from ..core.tree import canonical_labels
 from ..distributed import keys
+from ..distributed.config import DQMConfig, params_hash
 from .agent import Terminated, _on_sigterm
 from .bus import Bus, open_client
 
@@ -42,64 +59,241 @@ def tcp_bytes_received(port: int) -> Optional[int]:
     return total
 
 
+class JobFailed(RuntimeError):
+    """The job cannot finish: ``what`` failed at ``agent`` in ``phase``; ``advice`` says what to do."""
+
+    def __init__(self, what: str, agent: Optional[int] = None, phase: str = "", advice: str = "",
+                 refused: bool = False):
+        super().__init__(what)
+        self.what, self.agent, self.phase, self.advice, self.refused = what, agent, phase, advice, refused
+
+    def as_dict(self) -> dict:
+        return {"what": self.what, "agent": self.agent, "phase": self.phase, "advice": self.advice,
+                "refused": self.refused}
+
+
+def failure_paragraph(failure: dict) -> str:
+    """The operator's paragraph for a failed job (what, which agent, which phase, what to do)."""
+    where = []
+    if failure.get("agent") is not None:
+        where.append(f"agent {failure['agent']}")
+    if failure.get("phase"):
+        where.append(f"phase {failure['phase']}")
+    text = f"The distributed job failed: {failure['what']}"
+    text += f" ({', '.join(where)})." if where else "."
+    if failure.get("advice"):
+        text += f" {failure['advice']}"
+    return text
+
+
+def default_max_lost(m: int) -> int:
+    """How many agent processes a job may lose by default: half of them, at least one (if m > 1)."""
+    return max(1 if m > 1 else 0, m // 2)
+
+
+class _Lost(Exception):
+    def __init__(self, process: int):
+        self.process = process
+
+
 class Coordinator:
-    def __init__(self, bus: Bus, job: str, m: int, seed: int, partition: str,
-                 ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0, log=None):
+    def __init__(self, bus: Bus, cfg: DQMConfig, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
+                 log=None, max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0):
         self.bus = bus
-        self.job = job
-        self.m = m
-        self.seed = seed
-        self.partition = partition
+        self.cfg = cfg
+        self.job = cfg.job
+        self.m = cfg.agents
+        self.seed = cfg.seed
         self.ready_timeout_s = ready_timeout_s
         self.job_timeout_s = job_timeout_s
+        self.phase_timeout_s = phase_timeout_s
+        self.max_lost = default_max_lost(self.m) if max_lost is None else max_lost
         self.results: Dict[int, dict] = {}
         self.stats: Dict[int, dict] = {}
         self.stats_bytes: Dict[int, int] = {}
         self.log = log or (lambda text: print(f"[coordinator] {text}", file=sys.stderr, flush=True))
+        self.view = view
         self.phase = "ready"
+        self.epoch = 0
+        self.owners = np.arange(self.m, dtype=np.int64)
+        self.dead: set = set()
+        self.lost: List[dict] = []
+        self.states: Dict[int, str] = {}
+        self.ready: Dict[int, dict] = {}
+        self.t0 = time.monotonic()
 
-    def _abort(self, reason: str) -> None:
-        payload = messages.encode("abort", self.job, -1, reason=reason)
+    # ------------------------------------------------------------------ helpers
+    def _send(self, p: int, kind: str, **fields) -> None:
+        self.bus.send(-1, p, kind, messages.encode(kind, self.job, -1, seq=self.bus.next_seq(-1, p),
+                                                   epoch=self.epoch, **fields))
+
+    def _hosts(self) -> List[int]:
+        return sorted(set(int(o) for o in self.owners))
+
+    def _event(self, text: str) -> None:
+        if self.view is None or self.view.stream is not sys.stderr:
+            self.log(text)
+        if self.view is not None:
+            self.view.event(text)
+
+    def _abort_all(self, reason: str) -> None:
+        for p in range(self.m):
+            if p not in self.dead:
+                try:
+                    self._send(p, "abort", reason=reason[:1000])
+                except Exception:  # noqa: BLE001 - best effort while failing
+                    pass
+
+    def fail(self, failure: JobFailed) -> None:
+        self._abort_all(failure.what)
+        raise failure
+
+    def _phase_of(self, p: int) -> str:
+        """The phase of process p's own agent (as last reported), for messages."""
+        if p in self.states:
+            state = self.states[p]
+            return state[5:] if state.startswith("wait_") else state
+        return "start" if self.phase == "start" else "before the start"
+
+    def _poll(self) -> None:
+        """Take the next message (if any) and record it: progress, refusal, ready, result, statistics."""
+        item = self.bus.receive(timeout=0.1)
+        if item is None:
+            return
+        _, msg = item
+        kind, src = msg["kind"], msg["src"]
+        if kind == "progress":
+            self.states[src] = msg["state"]
+            if self.view is not None:
+                self.view.update(src, int(self.owners[src]), msg["state"], msg["features"], msg["bytes"])
+        elif kind == "refuse":
+            self.fail(JobFailed(f"agent {src} refused the job: {msg['reason']}", src, self._phase_of(src),
+                                "Start every agent with the coordinator's algorithm options." if msg["param"] else
+                                "Check that agent's log.", refused=True))
+        elif kind == "ready" and self.phase == "start":
+            self.ready[src] = msg
+        elif kind == "result" and self.phase == "running":
+            self.results[src] = msg
+        elif kind == "stats" and self.phase == "running":
+            self.stats[src] = msg["values"]
+            # the stats message itself was sent after the agent's meter snapshot
+            self.stats_bytes[src] = msg["_bytes"] + len(keys.coordinator_inbox(self.job))
+
+    def _deaths(self) -> List[int]:
+        return [p for p in range(self.m) if p not in self.dead and self.bus.agent_alive(p) is False]
+
+    def _owes(self, p: int) -> bool:
+        """Whether process p still owes a result or statistics for an agent it hosts."""
+        return any(int(self.owners[a]) == p and a not in self.stats for a in range(self.m))
+
+    def _check_deaths(self) -> None:
+        gone = self._deaths()
+        if not gone:
+            return
+        t = time.monotonic()
+        while time.monotonic() - t < 0.3:  # a refusal sent just before the exit comes first
+            self._poll()
+        for p in gone:
+            self.dead.add(p)
+            if self.phase == "running" and not self._owes(p):
+                self._event(f"agent process {p} exited after delivering its results; nothing is lost")
+                continue
+            raise _Lost(p)
+
+    def _reassign(self, p: int) -> None:
+        """Give every agent hosted by a dead process to the next live process by index."""
+        live = [q for q in range(self.m) if q not in self.dead]
+        phase = self._phase_of(p)
+        self.lost.append({"process": p, "phase": phase, "epoch": self.epoch})
+        if not live:
+            self.fail(JobFailed("every agent process was lost", p, phase,
+                                "Check the agents' logs and hosts, then start the job again."))
+        if len(self.lost) > self.max_lost:
+            self.fail(JobFailed(
+                f"{len(self.lost)} agent processes were lost ({', '.join(str(x['process']) for x in self.lost)}), more "
+                f"than the limit of {self.max_lost}", p, phase,
+                "Check the agents' logs and hosts, then start the job again (raise --max-lost to let fewer "
+                "survivors carry more agents)."))
+        moved = {}
         for a in range(self.m):
-            try:
-                self.bus.send(a, "abort", payload)
-            except Exception:  # noqa: BLE001 - best effort while failing
-                pass
-        raise JobFailed(reason)
+            owner = int(self.owners[a])
+            if owner in self.dead:
+                nxt = next(q for q in [(owner + k) % self.m for k in range(1, self.m + 1)] if q not in self.dead)
+                self.owners[a] = nxt
+                moved[a] = nxt
+        self.epoch += 1
+        self._event(f"agent process {p} was lost in phase {phase}; "
+                    + ", ".join(f"agent {a} -> process {q}" for a, q in sorted(moved.items()))
+                    + f"; restarting at epoch {self.epoch}")
 
-    def run(self, tcp_port: Optional[int] = None) -> dict:
-        t0 = time.monotonic()
-        # readiness: every agent's token before anything is sent
-        while not all(self.bus.agent_alive(a) for a in range(self.m)):
+    def _check_time(self) -> None:
+        if time.monotonic() - self.t0 > self.job_timeout_s:
+            slow = [a for a in range(self.m) if a not in self.stats]
+            self.fail(JobFailed(f"the job did not finish within {self.job_timeout_s:.0f} s", slow[0] if slow else None,
+                                self._phase_of(slow[0]) if slow else "",
+                                "Raise --timeout, or check the slow agent's log."))
+
+    # ------------------------------------------------------------------ the job
+    def _wait_tokens(self) -> None:
+        while True:
+            missing = [p for p in range(self.m) if not self.bus.agent_alive(p)]
+            if not missing:
+                return
             self.bus.receive(timeout=0.1)
-            gone = [a for a in range(self.m) if self.bus.agent_alive(a) is False]
-            if gone:
-                self._abort(f"agent {gone[0]} died (its liveliness token vanished) before the job started; "
-                            "job aborted")
-            if time.monotonic() - t0 > self.ready_timeout_s:
-                missing = [a for a in range(self.m) if not self.bus.agent_alive(a)]
-                self._abort(f"agents {missing} not ready after {self.ready_timeout_s:.0f} s")
-        t_ready = time.monotonic()
-        start = messages.encode("start", self.job, -1, seed=self.seed, agents=self.m, mode=self.partition)
-        for a in range(self.m):
-            self.bus.send(a, "start", start)
+            if time.monotonic() - self.t0 > self.ready_timeout_s:
+                if len(missing) == self.m:
+                    self.fail(JobFailed(f"no agent process appeared within {self.ready_timeout_s:.0f} s", None,
+                                        "start", "Start the agents with the coordinator's --connect endpoint and "
+                                        "--job id."))
+                for p in missing:  # never appeared: lost before the start
+                    self.dead.add(p)
+                    self._reassign(p)
+                return
+
+    def _epoch(self) -> None:
+        """Start the current epoch and run it to the end; raises _Lost when a process owing work dies."""
+        self.bus.set_epoch(self.epoch)
+        self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
+        self.phase = "start"
+        text = self.cfg.params_text()
+        hosts = self._hosts()
+        for p in hosts:
+            self._send(p, "start", seed=self.seed, agents=self.m, owners=self.owners, params=text,
+                       params_hash=params_hash(text))
+        t = time.monotonic()
+        while len(self.ready) < len(hosts):
+            self._poll()
+            self._check_deaths()
+            self._check_time()
+            if time.monotonic() - t > self.phase_timeout_s:
+                slow = [p for p in hosts if p not in self.ready]
+                self.fail(JobFailed(f"agent process {slow[0]} did not get ready within {self.phase_timeout_s:.0f} s",
+                                    slow[0], "start", "Check that agent's log."))
+        ref = self.ready[hosts[0]]
+        for p in hosts:
+            for name, field in (("dimension", "dim"), ("dtype", "dtype")):
+                if self.ready[p][field] != ref[field]:
+                    self.fail(JobFailed(f"agent {p} holds descriptors of {name} {self.ready[p][field]}, agent "
+                                        f"{hosts[0]} of {name} {ref[field]}", p, "start",
+                                        "Give every agent FEATURES of the same descriptor type.", refused=True))
+        for p in hosts:
+            self._send(p, "go")
         self.phase = "running"
         while len(self.stats) < self.m:
-            msg = self.bus.receive(timeout=0.1)
-            if msg is not None:
-                if msg["kind"] == "result" and msg["src"] >= 0:
-                    self.results[msg["src"]] = msg
-                elif msg["kind"] == "stats" and msg["src"] >= 0:
-                    self.stats[msg["src"]] = msg["values"]
-                    # the stats message itself was sent after the agent's meter snapshot
-                    self.stats_bytes[msg["src"]] = msg["_bytes"] + len(keys.coordinator_inbox(self.job))
-            for a in range(self.m):
-                if a not in self.stats and self.bus.agent_alive(a) is False:
-                    where = "after sending its result" if a in self.results else "before sending its result"
-                    self._abort(f"agent {a} died (its liveliness token vanished) {where}; job aborted")
-            if time.monotonic() - t0 > self.job_timeout_s:
-                self._abort(f"job did not finish within {self.job_timeout_s:.0f} s "
-                            f"(results from {sorted(self.results)})")
+            self._poll()
+            self._check_deaths()
+            self._check_time()
+
+    def run(self, tcp_port: Optional[int] = None) -> dict:
+        self.t0 = t0 = time.monotonic()
+        self._wait_tokens()
+        t_ready = time.monotonic()
+        while True:
+            try:
+                self._epoch()
+                break
+            except _Lost as lost:
+                self._reassign(lost.process)
         t_done = time.monotonic()
         wire = tcp_bytes_received(tcp_port) if tcp_port else None
         ids = np.concatenate([self.results[a]["ids"] for a in range(self.m)])
@@ -112,11 +306,24 @@ class Coordinator:
         order = np.argsort(ids, kind="stable")
         ids, labels = ids[order], canonical_labels(labels[order])
         if len(np.unique(ids)) != len(ids):
-            self._abort("two agents reported the same feature")
-        finish = messages.encode("finish", self.job, -1, clusters=int(labels.max() + 1) if len(labels) else 0)
-        for a in range(self.m):
-            self.bus.send(a, "finish", finish)
+            self.fail(JobFailed("two agents reported the same feature (a bug)", None, "result"))
+        for p in self._hosts():
+            if p not in self.dead:
+                self._send(p, "finish", clusters=int(labels.max() + 1) if len(labels) else 0)
+        if self.view is not None:
+            self.view.close()
         return self.report(ids, labels, t_ready - t0, t_done - t_ready, wire)
+
+    def _rejected(self) -> Dict[str, float]:
+        """Messages refused, per reason, summed over the agent processes and the coordinator."""
+        out: Dict[str, float] = defaultdict(float)
+        for st in self.stats.values():
+            for k, v in st.items():
+                if k.startswith("rejected:"):
+                    out[k[9:]] += v
+        for k, v in self.bus.meter.snapshot()[1].items():
+            out[k] += v
+        return dict(out)
 
     def report(self, ids, labels, t_ready, t_run, wire) -> dict:
         links = defaultdict(lambda: [0, 0])
@@ -146,45 +353,67 @@ class Coordinator:
             "clusters": int(labels.max() + 1) if len(labels) else 0,
             "ids": ids.tolist(), "labels": labels.tolist(),
             "time_ready_s": t_ready, "time_run_s": t_run,
+            "epochs": self.epoch + 1, "lost": self.lost, "owners": [int(o) for o in self.owners],
             "links": [{"src": name(s), "dst": name(d), "bytes": b, "messages": c}
                       for (s, d), (b, c) in sorted(links.items())],
             "kinds": {k: {"bytes": b, "messages": c} for k, (b, c) in sorted(kinds.items())},
             "total_bytes": total, "wire_bytes_received_by_router": wire,
-            "rejected": {k: v for st in self.stats.values() for k, v in st.items() if k.startswith("rejected:")},
+            "rejected": self._rejected(),
             "per_agent": agents,
         }
 
 
-def main_coordinator(m: int, seed: int, partition: str, endpoint: str, job: str, out: Optional[str],
-                     tls: Optional[dict] = None, tcp_port: Optional[int] = None,
-                     ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
-                     connect_timeout_s: float = 5.0) -> int:
+#: exit codes of ``dqm coordinator`` (docs/runtime.md)
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 3, 4, 130, 143
+
+
+def failure_path(out: str) -> Path:
+    """Where the coordinator writes why a job failed, next to the report it could not write."""
+    p = Path(out)
+    return p.with_name(p.stem + ".failure.json")
+
+
+def _write_json(path: Path, obj: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj))
+    tmp.replace(path)
+
+
+def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict] = None,
+                     tcp_port: Optional[int] = None, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
+                     connect_timeout_s: float = 5.0, max_lost: Optional[int] = None,
+                     progress_fd: Optional[int] = None, phase_timeout_s: float = 120.0) -> int:
+    from .console import JobView
+    from .lifeline import watch_parent
+
     signal.signal(signal.SIGTERM, _on_sigterm)
-    keys.check_job(job)
+    watch_parent()
+    keys.check_job(cfg.job)
+    view = JobView.for_fd(progress_fd, cfg.agents)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
-    bus = Bus(session, job, -1, m)
-    coord = Coordinator(bus, job, m, seed, partition, ready_timeout_s, job_timeout_s)
+    bus = Bus(session, cfg.job, -1, cfg.agents)
+    coord = Coordinator(bus, cfg, ready_timeout_s, job_timeout_s, max_lost=max_lost, view=view,
+                        phase_timeout_s=phase_timeout_s)
     try:
         rep = coord.run(tcp_port=tcp_port)
         if out:
-            p = Path(out)
-            p.parent.mkdir(parents=True, exist_ok=True)
-            tmp = p.with_suffix(p.suffix + ".tmp")
-            tmp.write_text(json.dumps(rep))
-            tmp.replace(p)
-        coord.log(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered")
+            _write_json(Path(out), rep)
+        coord.log(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered"
+                  + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else ""))
         time.sleep(0.2)  # let the finish messages leave before closing
-        return 0
+        return EXIT_OK
     except JobFailed as exc:
-        coord.log(f"error: {exc}")
+        if view is not None:
+            view.close()
+        coord.log(failure_paragraph(exc.as_dict()))
+        if out:
+            _write_json(failure_path(out), exc.as_dict())
         time.sleep(0.2)
-        return 3
-    except (KeyboardInterrupt, Terminated):
+        return EXIT_REFUSED if exc.refused else EXIT_FAILED
+    except (KeyboardInterrupt, Terminated) as exc:
         coord.log("interrupted, aborting the job")
-        try:
-            coord._abort("coordinator interrupted")
-        except JobFailed:
-            pass
-        return 130
+        coord._abort_all("coordinator interrupted")
+        return EXIT_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else EXIT_TERMINATED
     finally:
         bus.close()

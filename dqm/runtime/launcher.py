@@ -1,8 +1,12 @@
 """``dqm run``: router, M agents and the coordinator as separate processes on this host.
 
-The launcher writes each agent's own features (the images it owns) to a file,
-starts the processes, waits with deadlines, and always cleans up: on success,
-on failure and on Ctrl-C / SIGTERM no child is left behind.
+The launcher writes each agent's own features (the images it owns) to a file
+(every agent also learns where the others' files are, so that it can take over
+a lost agent), starts the processes, waits with deadlines, and always cleans
+up: on success, on failure and on Ctrl-C / SIGTERM no child is left behind;
+the children also die with the launcher if it is killed outright
+(dqm.runtime.lifeline), and a killed launcher's temporary folder is removed
+by the next run.
 """
 from __future__ import annotations
 
@@ -22,6 +26,50 @@ import numpy as np
 from ..distributed import protocol
 from ..distributed.config import DQMConfig
 from ..distributed.simulator import image_owners
+from .coordinator import failure_paragraph, failure_path
+from .lifeline import PARENT_ENV, child_preexec
+
+#: temporary folders of ``dqm run``: dqm-run-<launcher pid>-<random>
+WORKDIR_PREFIX = "dqm-run-"
+
+
+class JobFailure(RuntimeError):
+    """A distributed job failed; ``str()`` is the operator's paragraph, ``failure`` the coordinator's
+    account (what, agent, phase, advice) when it gave one, ``logs`` the last lines of every log."""
+
+    def __init__(self, paragraph: str, exit_code: Optional[int], failure: Optional[dict] = None, logs: str = ""):
+        super().__init__(paragraph)
+        self.exit_code = exit_code
+        self.failure = failure or {}
+        self.logs = logs
+
+
+def remove_stale_workdirs(root: Optional[str] = None) -> int:
+    """Remove temporary folders left by launchers that no longer run (killed with SIGKILL); returns how many."""
+    import shutil
+
+    base = Path(root or tempfile.gettempdir())
+    removed = 0
+    for d in base.glob(WORKDIR_PREFIX + "*"):
+        try:
+            pid = int(d.name[len(WORKDIR_PREFIX):].split("-")[0])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+            continue  # its launcher still runs
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed += 1
+    return removed
+
+
+def log_tails(workdir: Path, lines: int = 5) -> str:
+    return "\n".join(f"--- {f.name}\n" + "".join(f.read_text(errors="replace").splitlines(True)[-lines:])
+                     for f in sorted(workdir.glob("*.log")))
 
 
 def free_port() -> int:
@@ -74,10 +122,15 @@ class Processes:
     def __init__(self):
         self.procs: List[subprocess.Popen] = []
 
-    def start(self, args: List[str], log_path: Path, env=None, prefix: Optional[List[str]] = None) -> subprocess.Popen:
+    def start(self, args: List[str], log_path: Path, env=None, prefix: Optional[List[str]] = None,
+              pass_fds=()) -> subprocess.Popen:
+        """Start ``python -m dqm ARGS`` (output to ``log_path``); it dies with this process."""
         fh = open(log_path, "w")
+        env = dict(os.environ if env is None else env)
+        env[PARENT_ENV] = str(os.getpid())
         p = subprocess.Popen((prefix or []) + [sys.executable, "-m", "dqm"] + args, stdout=fh, stderr=subprocess.STDOUT,
-                             env=env, start_new_session=True)
+                             env=env, start_new_session=True, preexec_fn=child_preexec(os.getpid()),
+                             pass_fds=tuple(pass_fds))
         fh.close()
         self.procs.append(p)
         return p
@@ -99,15 +152,55 @@ class Processes:
                 p.wait(timeout=5)
 
 
+def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: float,
+                     ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None) -> List[str]:
+    """Command-line options of the coordinator of ``cfg``'s job."""
+    args = ["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed), "--connect", connect,
+            "--out", str(report), "--job-timeout", str(job_timeout_s), *algorithm_args(cfg)]
+    if ready_timeout_s is not None:
+        args += ["--ready-timeout", str(ready_timeout_s)]
+    if max_lost is not None:
+        args += ["--max-lost", str(max_lost)]
+    return args
+
+
+def peer_args(files: List[Path], me: int) -> List[str]:
+    """--peer-features for every other agent's file: what a process needs to take over a lost agent."""
+    out: List[str] = []
+    for a, f in enumerate(files):
+        if a != me:
+            out += ["--peer-features", f"{a}={f}"]
+    return out
+
+
+def job_outcome(rc: Optional[int], report_path: Path, workdir: Path) -> dict:
+    """The coordinator's report, or JobFailure with its paragraph (and every log's last lines)."""
+    if rc == 0 and report_path.exists():
+        return json.loads(report_path.read_text())
+    logs = log_tails(workdir)
+    fp = failure_path(str(report_path))
+    if fp.exists():
+        failure = json.loads(fp.read_text())
+        raise JobFailure(failure_paragraph(failure), rc, failure, logs)
+    if rc is None:
+        raise JobFailure("The distributed job failed: the coordinator did not finish in time and was stopped. "
+                         f"The processes' logs end with:\n{logs}", rc, logs=logs)
+    raise JobFailure(f"The distributed job failed: the coordinator exited with code {rc} without a report. "
+                     f"The processes' logs end with:\n{logs}", rc, logs=logs)
+
+
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
             env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
-            ready_timeout_s: float = 30.0) -> dict:
+            ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
-    Raises RuntimeError with the coordinator's / agents' last log lines on failure.
+    Raises :class:`JobFailure` (a RuntimeError) whose text is the operator's
+    paragraph. ``progress``: show the live job table on this process's
+    standard error if it is a terminal.
     """
     cfg = cfg.validated(len(descriptors))
-    tmp = tempfile.mkdtemp(prefix="dqm-run-") if workdir is None else workdir
+    remove_stale_workdirs()
+    tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
     wd = Path(tmp)
     wd.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(descriptors, image_ids, cfg.agents, wd)
@@ -122,19 +215,18 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
             env.setdefault(var, share)
     # lean / paper: every agent may use all cores, the hand-down cascade runs one agent at a
     # time (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
+    tty = os.dup(2) if progress and sys.stderr.isatty() else None
     try:
         router = procs.start(["router", "--listen", endpoint], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
         agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", endpoint,
-                               *algorithm_args(cfg), *(agent_args or []), str(files[a])],
+                               *algorithm_args(cfg), *peer_args(files, a), *(agent_args or []), str(files[a])],
                               wd / f"agent{a}.log", env)
                   for a in range(cfg.agents)]
         report_path = wd / "report.json"
-        coord = procs.start(["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed),
-                             "--partition", cfg.partition, "--connect", endpoint, "--job", cfg.job,
-                             "--out", str(report_path), "--tcp-port", str(port),
-                             "--job-timeout", str(timeout_s), "--ready-timeout", str(ready_timeout_s)],
-                            wd / "coordinator.log", env)
+        cargs = coordinator_args(cfg, endpoint, report_path, timeout_s, ready_timeout_s, max_lost)
+        cargs += ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
+        coord = procs.start(cargs, wd / "coordinator.log", env, pass_fds=[tty] if tty is not None else [])
         if on_started is not None:
             on_started({"router": router, "agents": agents, "coordinator": coord, "workdir": wd, "port": port})
         try:
@@ -146,15 +238,13 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
                 p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 pass
-        if rc != 0 or not report_path.exists():
-            logs = "\n".join(f"--- {f.name}\n" + "".join(f.read_text().splitlines(True)[-5:])
-                             for f in sorted(wd.glob("*.log")))
-            raise RuntimeError(f"distributed job failed (coordinator exit code {rc}); last log lines:\n{logs}")
-        report = json.loads(report_path.read_text())
+        report = job_outcome(rc, report_path, wd)
         report["agent_exit_codes"] = [p.returncode for p in agents]
         report["workdir"] = str(wd)
         return report
     finally:
+        if tty is not None:
+            os.close(tty)
         procs.stop_all()
         if not keep_logs and workdir is None:
             import shutil

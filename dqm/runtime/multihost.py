@@ -27,7 +27,8 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
-from .launcher import Processes, algorithm_args, wait_listening, write_agent_files
+from .launcher import (Processes, algorithm_args, coordinator_args, job_outcome, peer_args, wait_listening,
+                       write_agent_files)
 
 SUBNET = "10.213"
 ROUTER_PORT = 7447
@@ -200,12 +201,11 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     env.setdefault("DQM_THREADS", "1")
     agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
                            "--phase-timeout", str(phase_timeout_s), *algorithm_args(cfg), *client_args(a),
-                           str(files[a])], workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
+                           *peer_args(list(files), a), str(files[a])], workdir / f"{tag}agent{a}.log", env,
+                          prefix=prefix(a))
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
-    coord = procs.start(["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed),
-                         "--partition", cfg.partition, "--connect", connect(-1), "--job", cfg.job,
-                         "--out", str(report_path), "--job-timeout", str(job_timeout_s), *client_args(-1)],
+    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s), *client_args(-1)],
                         workdir / f"{tag}coordinator.log", env, prefix=prefix(-1))
     return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
 
@@ -221,11 +221,7 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
             p.wait(timeout=10)
         except subprocess.TimeoutExpired:
             pass
-    if rc != 0 or not job.report_path.exists():
-        logs = "\n".join(f"--- {f.name}\n" + "".join(f.read_text().splitlines(True)[-6:])
-                         for f in sorted(job.workdir.glob("*.log")))
-        raise RuntimeError(f"job {job.cfg.job} failed (coordinator exit code {rc}); last log lines:\n{logs}")
-    report = json.loads(job.report_path.read_text())
+    report = job_outcome(rc, job.report_path, job.workdir)
     report["agent_exit_codes"] = [p.returncode for p in job.agents]
     report["wall_s"] = time.monotonic() - job.started
     return report

@@ -14,6 +14,8 @@ from .bus import router_config
 def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Optional[str] = None) -> int:
     import zenoh
 
+    from .lifeline import watch_parent
+
     stop = threading.Event()
 
     def _stop(signum, frame):
@@ -21,6 +23,7 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    watch_parent()
     try:
         session = zenoh.open(router_config(endpoints, tls))
     except Exception as exc:  # noqa: BLE001 - port in use, bad address, bad certificate

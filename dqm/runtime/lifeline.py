@@ -1,0 +1,54 @@
+"""Children that die with their parent: a launcher's processes never outlive it.
+
+``dqm run`` (and the multi-host helpers) start every router, agent and
+coordinator through :func:`child_preexec`, which asks Linux to send the child
+SIGTERM when its parent dies (``PR_SET_PDEATHSIG``; it survives the ``exec`` of
+``ip netns exec``), and sets ``DQM_PARENT_PID``. The child also runs
+:func:`watch_parent`: a thread that notices the parent gone (on systems without
+the signal, or if the parent died before the signal was armed) and ends the
+process, after a grace period for a clean exit, so that even SIGKILL of
+``dqm run`` leaves nothing running.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import threading
+import time
+
+PARENT_ENV = "DQM_PARENT_PID"
+_PR_SET_PDEATHSIG = 1
+
+
+def child_preexec(parent_pid: int):
+    """A ``preexec_fn`` for :class:`subprocess.Popen`: arm the parent-death signal (Linux)."""
+    def arm() -> None:
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+        if os.getppid() != parent_pid:  # the parent died before the signal was armed
+            os._exit(1)
+    return arm
+
+
+def watch_parent(grace_s: float = 3.0, poll_s: float = 0.5) -> None:
+    """If started by a launcher (``DQM_PARENT_PID``), end this process once that parent is gone:
+    SIGTERM to itself (a clean exit), then a hard exit after ``grace_s``."""
+    try:
+        parent = int(os.environ.get(PARENT_ENV, "0"))
+    except ValueError:
+        return
+    if parent <= 1:
+        return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(grace_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="dqm-lifeline", daemon=True).start()

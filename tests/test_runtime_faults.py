@@ -1,0 +1,256 @@
+"""A runtime that finishes the job when an agent process dies, refuses mismatched parameters,
+tells its operator what happens, and leaves nothing behind."""
+import os
+import pty
+import select
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dqm.distributed import DQMConfig, simulate
+from dqm.runtime.launcher import JobFailure, WORKDIR_PREFIX, run_job
+from dqm.synthetic import sift_like
+
+pytest.importorskip("zenoh")
+
+
+@pytest.fixture(scope="module")
+def data():
+    ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
+    return ds.descriptors, ds.image_ids
+
+
+def alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def job_processes(job):
+    """PIDs of dqm processes of this job still running (not zombies)."""
+    out = subprocess.run(["pgrep", "-f", f"job {job}"], capture_output=True, text=True).stdout.split()
+    return [int(p) for p in out if int(p) != os.getpid() and alive(int(p))]
+
+
+def children_of(launcher_pid):
+    """Running processes started by this launcher (router, agents, coordinator): DQM_PARENT_PID in their environment."""
+    found = []
+    tag = f"DQM_PARENT_PID={launcher_pid}".encode()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/environ", "rb") as fh:
+                    if tag in fh.read().split(b"\0") and alive(int(entry)):
+                        found.append(int(entry))
+            except OSError:
+                pass
+    return found
+
+
+def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), **kw):
+    """Run a job; SIGKILL the victim processes when the first of them enters ``state``."""
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE=f"{victims[0]}:{state}", DQM_FAULT_MARKER=str(marker))
+    started, outcome = {}, {}
+
+    def go():
+        try:
+            outcome["ok"] = run_job(X, ids, cfg, timeout_s=90, env=env, on_started=started.update,
+                                    ready_timeout_s=20, **kw)
+        except JobFailure as exc:
+            outcome["error"] = exc
+
+    th = threading.Thread(target=go)
+    th.start()
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.02)
+    assert marker.exists(), "the agent never reached the phase"
+    for v in victims:
+        os.kill(started["agents"][v].pid, signal.SIGKILL)
+    t_kill = time.monotonic()
+    th.join(timeout=120)
+    assert not th.is_alive()
+    for p in [started["router"], started["coordinator"], *started["agents"]]:
+        assert not alive(p.pid)
+    return outcome, time.monotonic() - t_kill
+
+
+@pytest.mark.parametrize("mode,state", [
+    ("balanced", "wait_start"), ("balanced", "wait_seeds"), ("balanced", "wait_routed"),
+    ("balanced", "wait_ghost"), ("balanced", "wait_density"), ("balanced", "wait_component"),
+    ("balanced", "wait_finish"), ("lean", "wait_minima"), ("lean", "wait_handdown"),
+])
+def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mode, state):
+    X, ids = data
+    cfg = DQMConfig(agents=3, seed=1, mode=mode, job=f"kill-{mode}-{state}")
+    outcome, _ = run_with_kill(X, ids, cfg, tmp_path, state)
+    assert "ok" in outcome, outcome.get("error")
+    rep = outcome["ok"]
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
+    if state == "wait_finish":
+        assert rep["lost"] == [] and rep["epochs"] == 1  # it had delivered everything: nothing to redo
+    else:
+        assert [x["process"] for x in rep["lost"]] == [1] and rep["epochs"] == 2
+        assert rep["owners"] == [0, 2, 2]  # the next live process by index takes agent 1
+        # messages of the abandoned epoch that arrived late were refused, not used
+        assert all("later epoch" not in k for k in rep["rejected"])
+
+
+def test_agent_killed_while_hosting_a_taken_over_agent(data, tmp_path):
+    """Two losses: process 0 (the leader) first, then process 1, which had taken agent 0 over."""
+    X, ids = data
+    cfg = DQMConfig(agents=4, seed=3, job="kill-two")
+    outcome, _ = run_with_kill(X, ids, cfg, tmp_path, "wait_ghost", victims=(0, 1))
+    assert "ok" in outcome, outcome.get("error")
+    rep = outcome["ok"]
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
+    assert sorted(x["process"] for x in rep["lost"]) == [0, 1]
+    assert rep["owners"] == [2, 2, 2, 3]
+
+
+def test_too_many_lost_fails_cleanly_and_fast(data, tmp_path):
+    X, ids = data
+    cfg = DQMConfig(agents=3, seed=1, job="kill-limit")
+    outcome, took = run_with_kill(X, ids, cfg, tmp_path, "wait_ghost", victims=(1,), max_lost=0)
+    exc = outcome["error"]
+    text = str(exc)
+    assert text.startswith("The distributed job failed: 1 agent processes were lost (1), more than the limit of 0")
+    assert "agent 1" in text and "phase" in text and "--max-lost" in text
+    assert exc.exit_code == 3
+    assert took < 10
+
+
+def test_differing_parameter_is_refused_and_named(data):
+    X, ids = data
+    cfg = DQMConfig(agents=2, seed=1, job="mismatch")
+    t0 = time.monotonic()
+    with pytest.raises(JobFailure) as info:
+        run_job(X, ids, cfg, timeout_s=60, agent_args=["--rho", "0.5"])
+    text = str(info.value)
+    assert "refused the job: parameter rho differs" in text
+    assert "rho=0.5" in text and f"rho={cfg.rho!r}" in text
+    assert info.value.failure["refused"] and info.value.exit_code == 4
+    assert "died" not in text and "lost" not in text
+    assert time.monotonic() - t0 < 30
+
+
+def test_coordinator_death_ends_the_agents_with_a_message(data, tmp_path):
+    X, ids = data
+    cfg = DQMConfig(agents=2, seed=1, job="coord-dies")
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE="1:wait_ghost", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="4")
+    started = {}
+    err = {}
+
+    def go():
+        try:
+            run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update, keep_logs=True)
+        except JobFailure as exc:
+            err["e"] = exc
+
+    th = threading.Thread(target=go)
+    th.start()
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.02)
+    os.kill(started["coordinator"].pid, signal.SIGKILL)
+    t_kill = time.monotonic()
+    for p in started["agents"]:
+        p.wait(timeout=30)
+    took = time.monotonic() - t_kill
+    th.join(timeout=60)
+    assert started["agents"][0].returncode == 5
+    log = (started["workdir"] / "agent0.log").read_text()
+    assert "the coordinator vanished" in log and "start the coordinator and every agent again" in log
+    assert took < 4 + 5  # agent 1 sleeps 4 s in the fault hook before it can notice
+    assert "e" in err
+
+
+def test_sigkill_of_dqm_run_leaves_nothing_behind(tmp_path):
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_bounds", DQM_FAULT_MARKER=str(marker), TMPDIR=str(tmp_path))
+    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", f"sigkill-{os.getpid()}"],
+                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    assert marker.exists()
+    assert len(children_of(p.pid)) == 4  # router, two agents, coordinator
+    p.kill()
+    p.wait(timeout=10)
+    t0 = time.monotonic()
+    while children_of(p.pid) and time.monotonic() - t0 < 10:
+        time.sleep(0.1)
+    assert children_of(p.pid) == [] and job_processes(f"sigkill-{os.getpid()}") == []
+    # the killed launcher's temporary folder is removed by the next start
+    assert list(tmp_path.glob(WORKDIR_PREFIX + "*"))
+    from dqm.runtime.launcher import remove_stale_workdirs
+
+    assert remove_stale_workdirs(str(tmp_path)) == 1
+    assert not list(tmp_path.glob(WORKDIR_PREFIX + "*"))
+
+
+def _run_on_pty(args, env=None, timeout=120):
+    """Run a command with its stdout and stderr on a pseudo-terminal; returns (exit code, output)."""
+    master, slave = pty.openpty()
+    p = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave, env=env, close_fds=True)
+    os.close(slave)
+    chunks = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        r, _, _ = select.select([master], [], [], 0.2)
+        if r:
+            try:
+                data = os.read(master, 65536)
+            except OSError:
+                break
+            if not data:
+                break
+            chunks.append(data)
+        elif p.poll() is not None:
+            break
+    p.wait(timeout=10)
+    os.close(master)
+    return p.returncode, b"".join(chunks).decode(errors="replace")
+
+
+def test_progress_is_shown_on_a_terminal_and_not_when_piped():
+    rc, out = _run_on_pty([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "pty-test"])
+    assert rc == 0, out
+    assert "dqm job:" in out and "agents done" in out
+    assert "agent 0" in out and "features" in out and "MB" in out
+    assert "\x1b[2K" in out  # redrawn in place
+    piped = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "pipe-test"],
+                           capture_output=True, text=True, timeout=120)
+    assert piped.returncode == 0
+    assert "dqm job:" not in piped.stdout + piped.stderr and "\x1b[" not in piped.stdout + piped.stderr
+
+
+def test_a_failed_run_prints_a_paragraph_and_no_traceback(tmp_path):
+    marker = tmp_path / "paused"
+    env = dict(os.environ, DQM_FAULT_PAUSE="1:wait_ghost", DQM_FAULT_MARKER=str(marker))
+    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--max-lost", "0", "--job",
+                          "fail-test"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.05)
+    os.kill(int(marker.read_text()), signal.SIGKILL)
+    t_kill = time.monotonic()
+    out, err = p.communicate(timeout=60)
+    assert time.monotonic() - t_kill < 10
+    assert p.returncode == 3
+    assert "Traceback" not in out + err
+    assert "dqm run: The distributed job failed: 1 agent processes were lost" in err
+    assert job_processes("fail-test") == []
