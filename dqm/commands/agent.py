@@ -20,12 +20,14 @@ def add_arguments(p) -> None:
     p.add_argument("--id", type=int, required=True, help="agent index 0..M-1")
     p.add_argument("--agents", type=int, required=True, help="number of agents M")
     p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
+    p.add_argument("--connect-timeout", type=float, default=5.0,
+                   help="seconds of retries to reach the router")
     p.add_argument("--phase-timeout", type=float, default=120.0, help="longest wait in one protocol phase")
     p.add_argument("--max-message-bytes", type=int, default=64 << 20, help="reject larger messages")
     p.add_argument("--peer-features", action="append", metavar="AGENT=FILE[,FILE...]",
-                   help="where another agent's FEATURES files can be read, so that this process can take over that "
-                        "agent's images and cell if its process is lost (repeat per agent; shared storage across hosts)")
+                   help="where another agent's FEATURES files can be read, so that this process can take over "
+                        "that agent's images and cell if its process is lost (repeat per agent; across hosts: "
+                        "shared storage)")
     p.add_argument("features", nargs="+", help="FEATURES.npz file(s) of this agent's images")
     add_algorithm(p)
     add_tls(p)

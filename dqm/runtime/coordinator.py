@@ -28,7 +28,7 @@ import sys
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -38,10 +38,6 @@ from ..distributed import keys
 from ..distributed.config import DQMConfig, params_hash
 from .agent import Terminated, _on_sigterm
 from .bus import Bus, open_client
-
-
-class JobFailed(RuntimeError):
-    pass
 
 
 def tcp_bytes_received(port: int) -> Optional[int]:
