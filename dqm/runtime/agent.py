@@ -34,8 +34,9 @@ class JobAborted(RuntimeError):
 
 
 def _fault_hook(me: int, state: str) -> None:
-    """Test hook: with DQM_FAULT_PAUSE="<agent>:<state>" the agent stops (writing the
-    file named by DQM_FAULT_MARKER) when it enters that state, so a test can kill it there."""
+    """Test hook: with DQM_FAULT_PAUSE="<agent>:<state>" the agent stops when it enters that state,
+    writing its pid to the file named by DQM_FAULT_MARKER, so that a test can kill it there. It goes on
+    after DQM_FAULT_SECONDS (default 60), or as soon as the test deletes the marker file."""
     spec = os.environ.get("DQM_FAULT_PAUSE")
     if not spec or spec != f"{me}:{state}":
         return
@@ -43,7 +44,9 @@ def _fault_hook(me: int, state: str) -> None:
     if marker:
         with open(marker, "w") as fh:
             fh.write(f"{os.getpid()}\n")
-    time.sleep(float(os.environ.get("DQM_FAULT_SECONDS", "60")))
+    end = time.monotonic() + float(os.environ.get("DQM_FAULT_SECONDS", "60"))
+    while time.monotonic() < end and (not marker or os.path.exists(marker)):
+        time.sleep(0.05)
 
 
 class Terminated(BaseException):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import threading
 import time
 from collections import defaultdict
@@ -130,8 +131,10 @@ class Meter:
             e[1] += 1
 
     def reject(self, reason: str) -> None:
+        """Count a refused message under its reason (numbers in it replaced by N, so that reasons group)."""
+        reason = re.sub(r"\d+", "N", reason)[:80]
         with self.lock:
-            self.rejected[reason[:80]] += 1
+            self.rejected[reason] += 1
 
     def snapshot(self) -> Tuple[Dict[Tuple[int, int, str], Tuple[int, int]], Dict[str, int], int, int]:
         """``(sent, rejected, duplicates, resent)`` copied under the lock."""
@@ -204,7 +207,7 @@ class Bus:
         with self._lock:
             self.epoch = int(epoch)
             self._pending.clear()
-            self._seen.clear()
+            self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
             self._next_seq.clear()
 
     # ------------------------------------------------------------------ callbacks (tiny)

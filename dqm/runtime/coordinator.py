@@ -355,6 +355,8 @@ class Coordinator:
             "kinds": {k: {"bytes": b, "messages": c} for k, (b, c) in sorted(kinds.items())},
             "total_bytes": total, "wire_bytes_received_by_router": wire,
             "rejected": self._rejected(),
+            "duplicates": int(sum(st.get("duplicates", 0) for st in self.stats.values())
+                              + self.bus.meter.snapshot()[2]),
             "per_agent": agents,
         }
 
