@@ -14,28 +14,14 @@ from dqm.distributed import DQMConfig
 from dqm.distributed import keys
 from dqm.runtime.launcher import run_job
 from dqm.distributed import simulate
-from dqm.synthetic import sift_like
+from runtime_helpers import job_data
 
 pytest.importorskip("zenoh")
 
 
 @pytest.fixture(scope="module")
 def data():
-    ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
-    return ds.descriptors, ds.image_ids
-
-
-def alive(pid):
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    # a zombie is not alive for our purposes
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().split()[2] != "Z"
-    except OSError:
-        return False
+    return job_data()
 
 
 @pytest.mark.parametrize("mode,partition", [("balanced", "kmeans"), ("balanced", "seeded"), ("lean", "kmeans")])

@@ -6,7 +6,6 @@ import select
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -14,27 +13,14 @@ import pytest
 
 from dqm.distributed import DQMConfig, simulate
 from dqm.runtime.launcher import JobFailure, WORKDIR_PREFIX, run_job
-from dqm.synthetic import sift_like
+from runtime_helpers import alive, job_data, start_held_job
 
 pytest.importorskip("zenoh")
 
 
 @pytest.fixture(scope="module")
 def data():
-    ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
-    return ds.descriptors, ds.image_ids
-
-
-def alive(pid):
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().split()[2] != "Z"
-    except OSError:
-        return False
+    return job_data()
 
 
 def job_processes(job):
@@ -62,21 +48,7 @@ def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), **kw):
     """Run a job; SIGKILL the victim processes when the first of them enters ``state``."""
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE=f"{victims[0]}:{state}", DQM_FAULT_MARKER=str(marker))
-    started, outcome = {}, {}
-
-    def go():
-        try:
-            outcome["ok"] = run_job(X, ids, cfg, timeout_s=90, env=env, on_started=started.update,
-                                    ready_timeout_s=20, **kw)
-        except JobFailure as exc:
-            outcome["error"] = exc
-
-    th = threading.Thread(target=go)
-    th.start()
-    t0 = time.monotonic()
-    while not marker.exists() and time.monotonic() - t0 < 60:
-        time.sleep(0.02)
-    assert marker.exists(), "the agent never reached the phase"
+    th, started, outcome = start_held_job(X, ids, cfg, marker, env, timeout_s=90, ready_timeout_s=20, **kw)
     for v in victims:
         os.kill(started["agents"][v].pid, signal.SIGKILL)
     t_kill = time.monotonic()
@@ -151,20 +123,7 @@ def test_coordinator_death_ends_the_agents_with_a_message(data, tmp_path):
     cfg = DQMConfig(agents=2, seed=1, job="coord-dies")
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE="1:wait_ghost", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="4")
-    started = {}
-    err = {}
-
-    def go():
-        try:
-            run_job(X, ids, cfg, timeout_s=60, env=env, on_started=started.update, keep_logs=True)
-        except JobFailure as exc:
-            err["e"] = exc
-
-    th = threading.Thread(target=go)
-    th.start()
-    t0 = time.monotonic()
-    while not marker.exists() and time.monotonic() - t0 < 60:
-        time.sleep(0.02)
+    th, started, outcome = start_held_job(X, ids, cfg, marker, env, timeout_s=60, keep_logs=True)
     os.kill(started["coordinator"].pid, signal.SIGKILL)
     t_kill = time.monotonic()
     for p in started["agents"]:
@@ -175,7 +134,7 @@ def test_coordinator_death_ends_the_agents_with_a_message(data, tmp_path):
     log = (started["workdir"] / "agent0.log").read_text()
     assert "the coordinator vanished" in log and "start the coordinator and every agent again" in log
     assert took < 4 + 5  # agent 1 sleeps 4 s in the fault hook before it can notice
-    assert "e" in err
+    assert "error" in outcome
 
 
 def test_sigkill_of_dqm_run_leaves_nothing_behind(tmp_path):

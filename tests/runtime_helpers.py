@@ -1,0 +1,47 @@
+"""Shared by the runtime tests: the job data, process checks, a job held at a phase."""
+import os
+import threading
+import time
+
+from dqm.synthetic import sift_like
+
+
+def job_data():
+    ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
+    return ds.descriptors, ds.image_ids
+
+
+def alive(pid):
+    """Whether the process runs (a zombie does not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def start_held_job(X, ids, cfg, marker, env, **kw):
+    """Start ``run_job`` in a thread and wait until an agent holds at its fault-hook phase (``marker`` written).
+
+    Returns (thread, started processes, outcome): outcome gets "ok" (the report) or "error" (JobFailure)."""
+    from dqm.runtime.launcher import JobFailure, run_job
+
+    started, outcome = {}, {}
+
+    def go():
+        try:
+            outcome["ok"] = run_job(X, ids, cfg, env=env, on_started=started.update, **kw)
+        except JobFailure as exc:
+            outcome["error"] = exc
+
+    th = threading.Thread(target=go)
+    th.start()
+    t0 = time.monotonic()
+    while not marker.exists() and time.monotonic() - t0 < 60:
+        time.sleep(0.02)
+    assert marker.exists(), "the agent never reached the phase"
+    return th, started, outcome
