@@ -30,29 +30,11 @@ sys.path.insert(0, str(ROOT))
 from dqm.distributed import DQMConfig, simulate  # noqa: E402
 from dqm.runtime.coordinator import default_max_lost  # noqa: E402
 from dqm.runtime.launcher import JobFailure, run_job  # noqa: E402
+from dqm.runtime.lifeline import launched_by  # noqa: E402
 from dqm.synthetic import sift_like  # noqa: E402
 
 BLOCK = ("<!-- soak: written by scripts/soak_faults.py --out docs -->", "<!-- /soak -->")
 CLEAN_FAILURE_S = 10.0
-
-
-def launched_children(pid: int):
-    """Live processes whose environment says this launcher started them (DQM_PARENT_PID)."""
-    tag = f"DQM_PARENT_PID={pid}".encode()
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/environ", "rb") as fh:
-                if tag not in fh.read().split(b"\0"):
-                    continue
-            with open(f"/proc/{entry}/stat") as fh:
-                if fh.read().split()[2] != "Z":
-                    found.append(int(entry))
-        except OSError:
-            pass
-    return found
 
 
 def watch_ready(port: int, job: str, m: int, ready: threading.Event, deadline_s: float = 60.0) -> None:
@@ -120,7 +102,7 @@ def one_run(k: int, rng: np.random.Generator, X, ids, sims, job_s: dict, timeout
     th.join(timeout_s + 60)
     hang = th.is_alive()
     time.sleep(0.5)
-    left = launched_children(os.getpid())
+    left = launched_by(os.getpid())
     row = {"run": k, "agents": m, "victims": victims, "moments_s": [round(x, 2) for x in moments],
            "killed": [v for v, _ in killed], "hang": hang, "left": len(left)}
     limit = default_max_lost(m)

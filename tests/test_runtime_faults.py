@@ -13,6 +13,7 @@ import pytest
 
 from dqm.distributed import DQMConfig, simulate
 from dqm.runtime.launcher import JobFailure, WORKDIR_PREFIX, run_job
+from dqm.runtime.lifeline import launched_by
 from runtime_helpers import alive, job_data, start_held_job
 
 pytest.importorskip("zenoh")
@@ -27,21 +28,6 @@ def job_processes(job):
     """PIDs of dqm processes of this job still running (not zombies)."""
     out = subprocess.run(["pgrep", "-f", f"job {job}"], capture_output=True, text=True).stdout.split()
     return [int(p) for p in out if int(p) != os.getpid() and alive(int(p))]
-
-
-def children_of(launcher_pid):
-    """Running processes started by this launcher (router, agents, coordinator): DQM_PARENT_PID in their environment."""
-    found = []
-    tag = f"DQM_PARENT_PID={launcher_pid}".encode()
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/environ", "rb") as fh:
-                    if tag in fh.read().split(b"\0") and alive(int(entry)):
-                        found.append(int(entry))
-            except OSError:
-                pass
-    return found
 
 
 def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), **kw):
@@ -146,13 +132,13 @@ def test_sigkill_of_dqm_run_leaves_nothing_behind(tmp_path):
     while not marker.exists() and time.monotonic() - t0 < 60:
         time.sleep(0.05)
     assert marker.exists()
-    assert len(children_of(p.pid)) == 4  # router, two agents, coordinator
+    assert len(launched_by(p.pid)) == 4  # router, two agents, coordinator
     p.kill()
     p.wait(timeout=10)
     t0 = time.monotonic()
-    while children_of(p.pid) and time.monotonic() - t0 < 10:
+    while launched_by(p.pid) and time.monotonic() - t0 < 10:
         time.sleep(0.1)
-    assert children_of(p.pid) == [] and job_processes(f"sigkill-{os.getpid()}") == []
+    assert launched_by(p.pid) == [] and job_processes(f"sigkill-{os.getpid()}") == []
     # the killed launcher's temporary folder is removed by the next start
     assert list(tmp_path.glob(WORKDIR_PREFIX + "*"))
     from dqm.runtime.launcher import remove_stale_workdirs

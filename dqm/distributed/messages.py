@@ -300,7 +300,7 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         raise MessageError(f"start names {len(out['owners'])} owners for {out['agents']} agents")
     if kind == "ready" and (out["dim"] < 1 or out["features"] < 0 or out["dtype"] not in ("|u1", "<f4")):
         raise MessageError("ready has a bad dimension, feature count or dtype")
-    if kind in ("progress",) and (out["features"] < 0 or out["bytes"] < 0):
+    if kind == "progress" and (out["features"] < 0 or out["bytes"] < 0):
         raise MessageError("negative progress counts")
     if kind == "result" and len(out["ids"]) != len(out["labels"]):
         raise MessageError("result ids and labels differ in length")
@@ -308,7 +308,7 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         return
     if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= n_agents)).any():
         raise MessageError("ready names an agent outside the job")
-    if kind == "phase_end" and not 0 <= out["dst"] < n_agents or kind == "ack" and not 0 <= out["dst"] < n_agents:
+    if kind in ("phase_end", "ack") and not 0 <= out["dst"] < n_agents:
         raise MessageError(f"bad destination agent {out['dst']}")
     for f in ("child_agent", "target"):
         if f in out and len(out[f]) and ((out[f] < 0) | (out[f] >= n_agents)).any():

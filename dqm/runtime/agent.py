@@ -92,7 +92,6 @@ class AgentProcess:
         self.parts: Dict[Tuple[str, int], Dict[int, dict]] = defaultdict(dict)
         self.chunks: Dict[Tuple[int, str], List[dict]] = defaultdict(list)
         self.ends: Dict[Tuple[int, str], dict] = {}
-        self.finished = False
         self.times: Dict[str, float] = {}
         self.cpu0 = time.process_time()
         self.stats: Dict[str, float] = {}
@@ -155,9 +154,7 @@ class AgentProcess:
             kind, self.cfg.job, self.me, payload, seq0=seq0, epoch=self.epoch))
 
     def _send_single(self, kind: str, dst: int, **fields) -> None:
-        seq = self.bus.next_seq(self.me, dst)
-        self.bus.send(self.me, dst, kind, messages.encode(kind, self.cfg.job, self.me, seq=seq, epoch=self.epoch,
-                                                          **fields))
+        self.bus.send_single(self.me, dst, kind, **fields)
 
     def _phase_end(self, dst: int, phase: str, n_messages: int, n_features: int, moved=None) -> None:
         seq = self.bus.next_seq(self.me, dst)
@@ -455,9 +452,7 @@ class AgentHost:
         return self.features[agent]
 
     def _refuse(self, reason: str, param: str = "") -> None:
-        self.bus.send(self.home, -1, "refuse", messages.encode(
-            "refuse", self.cfg.job, self.home, seq=self.bus.next_seq(self.home, -1), epoch=self.bus.epoch,
-            reason=reason, param=param))
+        self.bus.send_single(self.home, -1, "refuse", reason=reason, param=param)
         raise Refused(reason)
 
     def control(self, msg: dict) -> None:
@@ -478,7 +473,7 @@ class AgentHost:
                 feats = {a: self._load(a) for a in hosted}
             except Refused as exc:
                 self._refuse(str(exc))
-            dims = {f[2].shape[1] for f in feats.values()} | {self.features[self.home][2].shape[1]}
+            dims = {f[2].shape[1] for f in feats.values()}  # the home agent is among them
             if len(dims) != 1:
                 self._refuse(f"the FEATURES files of agents {hosted} have different dimensions {sorted(dims)}",
                              "dimension")
@@ -491,10 +486,9 @@ class AgentHost:
             if self.epoch > 0:
                 self.log(f"epoch {self.epoch}: hosting agents {hosted}")
             own = self.features[self.home][2]
-            self.bus.send(self.home, -1, "ready", messages.encode(
-                "ready", self.cfg.job, self.home, seq=self.bus.next_seq(self.home, -1), epoch=self.epoch,
-                dim=int(own.shape[1]), dtype=own.dtype.str, hosted=np.asarray(hosted, np.int64),
-                features=int(sum(len(f[0]) for f in feats.values()))))
+            self.bus.send_single(self.home, -1, "ready", dim=int(own.shape[1]), dtype=own.dtype.str,
+                                 hosted=np.asarray(hosted, np.int64),
+                                 features=int(sum(len(f[0]) for f in feats.values())))
         elif kind == "go" and msg["epoch"] == self.epoch:
             for slot in self.slots.values():
                 slot.begin(self.seed)

@@ -254,6 +254,13 @@ class Bus:
                 self._pending[(src, dst, seq)] = (time.monotonic(), 1, payload, kind)
         self._put(src, dst, kind, payload)
 
+    def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
+        """Encode and send one message of this epoch, numbered on its link (``src -> dst``)."""
+        with self._lock:
+            epoch = self.epoch
+        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=self.next_seq(src, dst), epoch=epoch,
+                                                  **fields))
+
     def unacknowledged(self, src: Optional[int] = None) -> int:
         with self._lock:
             return sum(1 for k in self._pending if src is None or k[0] == src)

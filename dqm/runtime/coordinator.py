@@ -32,7 +32,6 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..distributed import messages
 from ..core.tree import canonical_labels
 from ..distributed import keys
 from ..distributed.config import DQMConfig, params_hash
@@ -88,8 +87,7 @@ def default_max_lost(m: int) -> int:
 
 
 class _Lost(Exception):
-    def __init__(self, process: int):
-        self.process = process
+    """A process that owed work died: the coordinator reassigns and starts a new epoch."""
 
 
 class Coordinator:
@@ -120,8 +118,7 @@ class Coordinator:
 
     # ------------------------------------------------------------------ helpers
     def _send(self, p: int, kind: str, **fields) -> None:
-        self.bus.send(-1, p, kind, messages.encode(kind, self.job, -1, seq=self.bus.next_seq(-1, p),
-                                                   epoch=self.epoch, **fields))
+        self.bus.send_single(-1, p, kind, **fields)
 
     def _hosts(self) -> List[int]:
         return sorted(set(int(o) for o in self.owners))
@@ -183,25 +180,29 @@ class Coordinator:
         return any(int(self.owners[a]) == p and a not in self.stats for a in range(self.m))
 
     def _check_deaths(self) -> None:
+        """Mark processes whose token vanished as dead; raise _Lost if one of them still owed work."""
         gone = self._deaths()
         if not gone:
             return
         t = time.monotonic()
         while time.monotonic() - t < 0.3:  # a refusal sent just before the exit comes first
             self._poll()
+        owing = [p for p in gone if self.phase != "running" or self._owes(p)]
+        self.dead.update(gone)
         for p in gone:
-            self.dead.add(p)
-            if self.phase == "running" and not self._owes(p):
+            if p not in owing:
                 self._event(f"agent process {p} exited after delivering its results; nothing is lost")
-                continue
-            raise _Lost(p)
+        if owing:
+            raise _Lost()
 
-    def _reassign(self, p: int) -> None:
-        """Give every agent hosted by a dead process to the next live process by index."""
-        live = [q for q in range(self.m) if q not in self.dead]
-        phase = self._phase_of(p)
-        self.lost.append({"process": p, "phase": phase, "epoch": self.epoch})
-        if not live:
+    def _reassign(self) -> None:
+        """Give every agent hosted by a dead process to the next live process by index; each such process
+        counts as lost (also one that had exited after delivering its results of an earlier epoch)."""
+        orphaned = sorted({int(o) for o in self.owners} & self.dead)
+        for p in orphaned:
+            self.lost.append({"process": p, "phase": self._phase_of(p), "epoch": self.epoch})
+        p, phase = self.lost[-1]["process"], self.lost[-1]["phase"]
+        if len(self.dead) == self.m:
             self.fail(JobFailed("every agent process was lost", p, phase,
                                 "Check the agents' logs and hosts, then start the job again."))
         if len(self.lost) > self.max_lost:
@@ -218,7 +219,7 @@ class Coordinator:
                 self.owners[a] = nxt
                 moved[a] = nxt
         self.epoch += 1
-        self._event(f"agent process {p} was lost in phase {phase}; "
+        self._event(", ".join(f"agent process {q} was lost in phase {self._phase_of(q)}" for q in orphaned) + "; "
                     + ", ".join(f"agent {a} -> process {q}" for a, q in sorted(moved.items()))
                     + f"; restarting at epoch {self.epoch}")
 
@@ -241,9 +242,8 @@ class Coordinator:
                     self.fail(JobFailed(f"no agent process appeared within {self.ready_timeout_s:.0f} s", None,
                                         "start", "Start the agents with the coordinator's --connect endpoint and "
                                         "--job id."))
-                for p in missing:  # never appeared: lost before the start
-                    self.dead.add(p)
-                    self._reassign(p)
+                self.dead.update(missing)  # never appeared: lost before the start
+                self._reassign()
                 return
 
     def _epoch(self) -> None:
@@ -288,8 +288,8 @@ class Coordinator:
             try:
                 self._epoch()
                 break
-            except _Lost as lost:
-                self._reassign(lost.process)
+            except _Lost:
+                self._reassign()
         t_done = time.monotonic()
         wire = tcp_bytes_received(tcp_port) if tcp_port else None
         ids = np.concatenate([self.results[a]["ids"] for a in range(self.m)])

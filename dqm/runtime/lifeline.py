@@ -16,6 +16,7 @@ import os
 import signal
 import threading
 import time
+from typing import List
 
 PARENT_ENV = "DQM_PARENT_PID"
 _PR_SET_PDEATHSIG = 1
@@ -32,6 +33,26 @@ def child_preexec(parent_pid: int):
         if os.getppid() != parent_pid:  # the parent died before the signal was armed
             os._exit(1)
     return arm
+
+
+def launched_by(parent_pid: int) -> List[int]:
+    """Running processes (zombies aside) whose environment says ``parent_pid`` launched them: what a
+    launcher would leave behind."""
+    tag = f"{PARENT_ENV}={parent_pid}".encode()
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/environ", "rb") as fh:
+                if tag not in fh.read().split(b"\0"):
+                    continue
+            with open(f"/proc/{entry}/stat") as fh:
+                if fh.read().rsplit(")", 1)[1].split()[0] != "Z":
+                    found.append(int(entry))
+        except (OSError, IndexError):
+            pass
+    return found
 
 
 def watch_parent(grace_s: float = 3.0, poll_s: float = 0.5) -> None:
