@@ -62,6 +62,13 @@ def check_positive(value, name: str) -> float:
     return v
 
 
+def check_positive_int(value, name: str) -> int:
+    """Return ``value`` as an int >= 1, or raise InputError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InputError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def check_choice(value, name: str, choices: Tuple[str, ...]) -> str:
     if value not in choices:
         raise InputError(f"{name} must be one of {', '.join(repr(c) for c in choices)}; got {value!r}")

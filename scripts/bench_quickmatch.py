@@ -14,11 +14,26 @@ process so peak memory is that of the measured call alone:
 
 Prints a markdown table with ratios (quickmatch / floor, dense / quickmatch).
 
+``--memory`` (issue 11): on graf's real SIFT at rho 0.9 ... 2, the dense
+candidate-edge pass against the streaming parent pass (wall time, peak RSS,
+identical labels); the dense pass at rho 2 is only estimated (it would need
+more memory than this machine has).
+
+``--approximate`` (issue 11): the approximate mode (faiss IVF k-NN graph)
+against exact on generated sets and graf / wall / graf+wall real SIFT: wall
+times, co-membership precision / recall / F1 against exact, the kernel mass
+the truncation drops, and why parents differ; then 1M generated features
+(``--million``): wall time, peak RSS and the growth from 100k.
+
     python scripts/bench_quickmatch.py [--sizes 6254,25000,100000] [--repeat 3]
+    python scripts/bench_quickmatch.py --memory --sizes '' --no-graf
+    python scripts/bench_quickmatch.py --approximate --million --sizes '' --no-graf
 """
 import argparse
 import json
 import multiprocessing as mp
+import os
+import tempfile
 import resource
 import sys
 import time
@@ -29,14 +44,29 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
+CACHE = Path(os.environ.get("TMPDIR", "/tmp")) / "dqm-bench-cache"
+REAL = ("graf", "wall")
+
+
 def load(name):
+    """Descriptors and image ids: generated (a number), real SIFT (graf, wall) or graf+wall."""
     from dqm import synthetic
 
-    if name == "graf":
+    if "+" in name:
+        parts = [load(p) for p in name.split("+")]
+        offsets = np.cumsum([0] + [int(ids.max()) + 1 for _, ids in parts[:-1]])
+        return np.vstack([D for D, _ in parts]), np.concatenate([ids + o for (_, ids), o in zip(parts, offsets)])
+    if name in REAL:
+        cache = CACHE / f"{name}.npz"
+        if cache.exists():
+            z = np.load(cache)
+            return z["D"], z["ids"]
         from dqm import datasets, features
 
-        seq = datasets.load_homography_sequence(ROOT.parent / "shared" / "data" / "oxford" / "graf")
+        seq = datasets.load_homography_sequence(ROOT.parent / "shared" / "data" / "oxford" / name)
         D, ids, _ = features.extract_many(seq.image_paths)
+        CACHE.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, D=D, ids=ids)
         return D, ids
     ds = synthetic.sized(int(name))
     return ds.descriptors, ds.image_ids
@@ -84,7 +114,8 @@ def dense_quickmatch(X, ids, rho):
 
 
 def measure(task, q):
-    name, what = task
+    name, what = task[:2]
+    opts = task[2] if len(task) > 2 else {}
     X, ids = load(name)
     import dqm
 
@@ -92,9 +123,16 @@ def measure(task, q):
     t = time.perf_counter()
     info = {}
     if what == "quickmatch":
-        r = dqm.quickmatch(X, ids)
+        save = opts.pop("save", None)
+        if opts.pop("force_dense", False):
+            from dqm.core import memory
+
+            memory.max_dense_edges = lambda *a: 10 ** 15
+        r = dqm.quickmatch(X, ids, **opts)
         info = {k: v for k, v in r.stats.items()}
         info["clusters"] = r.n_clusters
+        if save:
+            np.savez(save, labels=r.labels, parent=r.parent, density=r.density)
     elif what == "knn_numpy":
         knn_numpy(X)
     elif what == "knn_faiss":
@@ -126,14 +164,84 @@ def run(task, repeat=1):
     return best
 
 
+def scratch(tag):
+    return str(Path(tempfile.gettempdir()) / f"dqm-bench-{os.getpid()}-{tag}.npz")
+
+
+def memory_section():
+    """Dense candidate edges against the streaming parent pass on graf's real SIFT."""
+    from dqm.core import memory
+
+    print("\n### Memory against rho (graf, 21,691 real SIFT)\n")
+    print("| rho | dense s | dense peak RSS MiB | dense edges | auto s | auto peak RSS MiB | auto pass | "
+          "labels identical |")
+    print("|---|---|---|---|---|---|---|---|")
+    for rho in (0.9, 1.2, 1.5, 2.0):
+        auto = run(("graf", "quickmatch", {"rho": rho, "save": scratch("auto")}))
+        a = np.load(scratch("auto"))["labels"]
+        if rho < 2.0:
+            dense = run(("graf", "quickmatch", {"rho": rho, "force_dense": True, "save": scratch("dense")}))
+            same = bool(np.array_equal(np.load(scratch("dense"))["labels"], a))
+            d = f"{dense['wall']:.2f} | {dense['peak_rss_mib']:.0f} | {int(dense['n_pass_edges']):,}"
+        else:  # 387M edges (~18 GiB at 48 bytes each): more than this machine can give it
+            d = f"not run | > {memory.format_bytes(0.7 * memory.available_bytes())} (the budget) | —"
+            same = "—"
+        mode = "streaming" if auto["streaming"] else "dense"
+        print(f"| {rho} | {d} | {auto['wall']:.2f} | {auto['peak_rss_mib']:.0f} | {mode} | {same} |", flush=True)
+
+
+def approximate_section(names, million):
+    from dqm.evaluation import comembership_scores
+
+    print("\n### Approximate mode against exact\n")
+    print("| data | n | exact s | approx s | exact / approx | precision | recall | F1 | dropped kernel mass "
+          "max (p99) | parents differ | of which: no parent in graph / order changed |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    times = {}
+    for name in names:
+        ex = run((name, "quickmatch", {"save": scratch("exact")}))
+        ap = run((name, "quickmatch", {"approximate": True, "save": scratch("approx")}))
+        e, a = np.load(scratch("exact")), np.load(scratch("approx"))
+        sc = comembership_scores(a["labels"], e["labels"])
+        missing = e["density"] - a["density"]
+        differ = a["parent"] != e["parent"]
+        no_parent = differ & (a["parent"] < 0) & (e["parent"] >= 0)
+        flipped = differ & ~no_parent
+        times[name] = (ex["wall"], ap["wall"])
+        print(f"| {name} | {ex['n']:,} | {ex['wall']:.2f} | {ap['wall']:.2f} | {ex['wall'] / ap['wall']:.2f} | "
+              f"{sc.precision:.4f} | {sc.recall:.4f} | {sc.f1:.4f} | {missing.max():.2e} "
+              f"({np.quantile(missing, 0.99):.2e}) | {differ.mean():.2%} | {no_parent.mean():.2%} / "
+              f"{flipped.mean():.2%} |", flush=True)
+    if million:
+        big = run(("1000000", "quickmatch", {"approximate": True, "progress": False}))
+        print(f"\n1M generated features, approximate: {big['wall']:.0f} s wall ({big['wall'] / 60:.1f} min), "
+              f"peak RSS "
+              f"{big['peak_rss_mib'] / 1024:.2f} GiB; phases: sigma {big['time_sigma']:.0f} s, k-NN "
+              f"{big['time_knn']:.0f} s, density {big['time_density']:.0f} s, tree {big['time_tree']:.0f} s")
+        if "100000" in times:
+            ex100, ap100 = times["100000"]
+            print(f"growth 100k -> 1M (10x features): approximate time x{big['wall'] / ap100:.1f}; "
+                  f"exact would be x100 (O(n^2)): {ex100 * 100 / 60:.0f} min extrapolated from the exact "
+                  f"100k run, {ex100 * 100 / big['wall']:.1f}x the approximate time")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="6254,25000,100000")
     ap.add_argument("--repeat", type=int, default=3, help="runs per small case (best is kept); 1 for >= 50k")
     ap.add_argument("--no-graf", action="store_true")
     ap.add_argument("--json", help="also write the raw numbers here")
+    ap.add_argument("--memory", action="store_true", help="dense edges against the streaming pass on graf")
+    ap.add_argument("--approximate", action="store_true", help="approximate mode against exact")
+    ap.add_argument("--approx-sets", default="25000,100000,graf,wall,graf+wall",
+                    help="data sets of --approximate (numbers are generated sizes)")
+    ap.add_argument("--million", action="store_true", help="with --approximate: also 1M generated features")
     args = ap.parse_args(argv)
-    names = args.sizes.split(",")
+    if args.memory:
+        memory_section()
+    if args.approximate:
+        approximate_section([x for x in args.approx_sets.split(",") if x], args.million)
+    names = [x for x in args.sizes.split(",") if x]
     if not args.no_graf and (ROOT.parent / "shared" / "data" / "oxford" / "graf").exists():
         names.append("graf")
     rows, raw = [], {}
@@ -148,6 +256,8 @@ def main(argv=None):
         raw[name] = {"quickmatch": qm, "knn_numpy": kn, "knn_faiss": kf, "dense": dense}
         rows.append((name, qm, kn, kf, floor, dense))
         print(f"{name}: quickmatch {qm['wall']:.2f}s, floor {floor:.2f}s", file=sys.stderr, flush=True)
+    if not rows:
+        return
     print("| data | n | quickmatch s | peak RSS MiB (base) | k-NN numpy s | k-NN faiss s | qm / floor | dense s | dense / qm |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, qm, kn, kf, floor, dense in rows:

@@ -7,19 +7,22 @@ features are extracted first (OpenCV; --preset, --max-features).
     dqm match features.npz --out clusters.npz
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
     dqm match photos/ --out clusters.npz --max-features 2000 --tracks-csv tracks.csv
+    dqm match big.npz --out clusters.npz --approximate      # a million features
 
 The CLUSTERS file keeps every feature's keypoint (x, y, size, angle) and the
 image paths, so the tracks can be used directly (see dqm/io.py for the fields).
 """
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
 
 from .. import io
 from ..features import PRESETS
-from ..core import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
+from ..core import DEFAULT_NEIGHBORS, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
+from ..core.memory import parse_size
 from ..progress import ProgressBar
 from ..validation import InputError
 
@@ -43,7 +46,25 @@ def add_arguments(p) -> None:
     p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
+    p.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
+                   help="memory budget, e.g. 8G or 512M (default: 70%% of the available memory); an exact run "
+                        "whose candidate edges would not fit streams its parents instead (same clusters), and "
+                        "an input that cannot fit at all is refused before any work")
+    p.add_argument("--approximate", action="store_true",
+                   help="approximate mode for very large sets (needs faiss-cpu): densities and parents from each "
+                        "feature's --neighbors nearest neighbours; co-membership F1 >= 0.99 against exact in "
+                        "our measurements (docs/quickmatch.md)")
+    p.add_argument("--neighbors", type=int, default=DEFAULT_NEIGHBORS, metavar="K",
+                   help=f"neighbours per feature with --approximate (default {DEFAULT_NEIGHBORS})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def memory_size(text: str) -> int:
+    """argparse type of --max-memory: bytes, checked before any work."""
+    try:
+        return parse_size(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def load_input(args) -> io.FeatureSet:
@@ -68,9 +89,10 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
-    bar = ProgressBar("quickmatch", force=False if args.quiet else None)
+    bar = ProgressBar("quickmatch", force=False if args.quiet else None, unit="features")
     result = quickmatch(fs.descriptors, fs.image_ids, rho=args.rho, ratio_density=args.ratio_density,
-                        kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar)
+                        kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar,
+                        max_memory=args.max_memory, approximate=args.approximate, n_neighbors=args.neighbors)
     io.save_clusters(args.out, fs, result)
     print(result.summary())
     if args.tracks_csv:

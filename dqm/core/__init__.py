@@ -3,6 +3,7 @@
 Both the in-process simulator and the multi-process runtime call these functions.
 """
 from .clustering import (
+    DEFAULT_NEIGHBORS,
     DEFAULT_RATIO_DENSITY,
     DEFAULT_RHO,
     KERNELS,
@@ -11,8 +12,9 @@ from .clustering import (
     QuickMatchResult,
     quickmatch,
 )
+from .memory import MemoryBudgetError
 
 __all__ = [
-    "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES",
-    "QuickMatch", "QuickMatchResult", "quickmatch",
+    "DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES",
+    "MemoryBudgetError", "QuickMatch", "QuickMatchResult", "quickmatch",
 ]

@@ -430,3 +430,107 @@ void dqm_any_within(const float *G, int64_t m, int64_t k, int64_t ldg,
         }
     }
 }
+
+/*
+ * Rank relation of candidate c to child j from density intervals [lo, hi]
+ * (float64, rigorous): 1 if c certainly ranks above j, -1 if certainly below,
+ * 0 if the intervals overlap and the exact densities must decide. Two exact
+ * (degenerate) equal intervals are certain: equal densities rank by index.
+ */
+static inline int rank_relation(const double *lo, const double *hi, int64_t c, int64_t j)
+{
+    if (lo[c] > hi[j])
+        return 1;
+    if (hi[c] < lo[j])
+        return -1;
+    if (lo[c] == hi[c] && lo[j] == hi[j])
+        return c < j ? 1 : -1;
+    return 0;
+}
+
+/* One (child, candidate) pair at squared distance v of the parent tile: a
+   certainly higher-ranked candidate lowers the child's tile minimum *tmin and
+   is written when v <= min(lim, *tmin + slack); an uncertain one is always
+   written. Returns -1 when the output is full. */
+static inline int consider(const double *lo, const double *hi, int64_t child, int64_t cand, float v,
+                           float *tmin, float lim, float slack,
+                           int64_t *out_child, int64_t *out_cand, float *out_g, int64_t *count, int64_t cap)
+{
+    int rel = rank_relation(lo, hi, cand, child);
+    if (rel < 0)
+        return 0;
+    if (rel > 0) {
+        if (v < *tmin)
+            *tmin = v;
+        if (*tmin + slack < lim)
+            lim = *tmin + slack;
+        if (v > lim)
+            return 0;
+    }
+    if (*count >= cap)
+        return -1;
+    out_child[*count] = child;
+    out_cand[*count] = cand;
+    out_g[*count] = v;
+    ++*count;
+    return 0;
+}
+
+/*
+ * Parent tile of the streaming parent pass (memory O(n) whatever rho is).
+ *
+ * G holds squared distances (float32, rows: features ra..ra+m, columns:
+ * cb..cb+k, row stride ldg). For each child (a row, and on an off-diagonal
+ * tile also a column) and each candidate within the child's radius
+ * (g < rad2 of the child) that is not in the child's image when img is given:
+ *   - a candidate that certainly ranks above the child lowers the child's
+ *     tile minimum (rmin / cmin, FLT_MAX when there is none) and is written
+ *     out when g <= min(lim_child, running tile minimum + slack_child);
+ *   - a candidate whose rank is uncertain is always written out (the caller
+ *     settles it with exact densities).
+ * lim_* are the caller's current global limits (best so far + slack), so
+ * nothing is written that cannot become the child's nearest higher-ranked
+ * candidate. diag != 0: rows and columns are the same features (ra == cb);
+ * only the row direction runs and the self pair is skipped.
+ * Writes (child, cand, g) with global indices; returns the count or -1 when
+ * more than cap.
+ */
+int64_t dqm_parent_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
+                        int64_t ra, int64_t cb, int32_t diag,
+                        const double *lo, const double *hi, const int32_t *img,
+                        const float *rad2r, const float *rad2c,
+                        const float *limr, const float *limc,
+                        const float *slackr, const float *slackc,
+                        float *rmin, float *cmin,
+                        int64_t *out_child, int64_t *out_cand, float *out_g, int64_t cap)
+{
+    int64_t count = 0;
+    for (int64_t c = 0; c < k; ++c)
+        cmin[c] = FLT_MAX;
+    for (int64_t r = 0; r < m; ++r) {
+        const float *g = G + r * ldg;
+        const int64_t jr = ra + r;
+        const float lr = rad2r[r];
+        float best_r = FLT_MAX;
+        for (int64_t c = 0; c < k; ++c) {
+            const float v = g[c];
+            const int64_t jc = cb + c;
+            const int as_row = v < lr;
+            const int as_col = !diag && v < rad2c[c];
+            if (!(as_row || as_col))
+                continue;
+            if (diag && c == r)
+                continue;
+            if (img && img[jr] == img[jc])
+                continue;
+            if (as_row && consider(lo, hi, jr, jc, v, &best_r, limr[r], slackr[r],
+                                   out_child, out_cand, out_g, &count, cap) < 0)
+                return -1;
+            if (as_col && consider(lo, hi, jc, jr, v, &cmin[c], limc[c], slackc[c],
+                                   out_child, out_cand, out_g, &count, cap) < 0)
+                return -1;
+        }
+        rmin[r] = best_r;
+    }
+    return count;
+}

@@ -38,19 +38,21 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Union
 
 import numpy as np
 
 from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
-from . import pairs, tree
+from . import approximate, memory, native, pairs, tree
 
 KERNELS = ("gaussian", "quadratic")
 PARENT_MODES = ("any", "other-image")
 #: default merge ratio, chosen by the sweep in scripts/sweep_rho.py (docs/quickmatch.md)
 DEFAULT_RHO = 0.9
 DEFAULT_RATIO_DENSITY = 0.25
+#: neighbours per feature in the approximate mode (scripts/bench_quickmatch.py --approximate)
+DEFAULT_NEIGHBORS = 32
 
 
 @dataclass(frozen=True)
@@ -107,8 +109,9 @@ class QuickMatchResult:
         matched = int(sizes[sizes > 1].sum())
         t = self.stats.get("time_total")
         tt = f" in {t:.2f} s" if t is not None else ""
+        mode = f", approximate with {self.stats['n_neighbors']:.0f} neighbours" if "n_neighbors" in self.stats else ""
         return (
-            f"QuickMatch ({self.kernel} kernel, rho={self.rho:g}) clustered {self.n_features} features "
+            f"QuickMatch ({self.kernel} kernel, rho={self.rho:g}{mode}) clustered {self.n_features} features "
             f"from {self.n_images} images into {self.n_clusters} clusters{tt}; "
             f"{multi} clusters span 2+ images and hold {matched} features "
             f"({100.0 * matched / max(1, self.n_features):.1f}%). Cluster sizes (size:count): {parts or 'none'}."
@@ -180,6 +183,26 @@ def kernel_weights(sigma: np.ndarray, kernel: str, ratio_density: float):
     return np.where(sigma > 0, w, 0.0), active
 
 
+def _sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, threads: int) -> np.ndarray:
+    """Computed distinctiveness, or the caller's after checking it."""
+    n = aug.n
+    if sigma is None:
+        return distinctiveness(aug, image_index, n_images, n_threads=threads)
+    sig = np.asarray(sigma, dtype=np.float64)
+    if sig.shape != (n,) or not np.isfinite(sig).all() or (sig < 0).any():
+        raise V.InputError(f"sigma must be {n} finite non-negative values, one per descriptor")
+    return sig
+
+
+def feature_progress(progress: ProgressArg, label: str, n: int):
+    """A stage's progress counted in features: its ``(done, total)`` work items map to
+    ``n * done / total`` of the ``n`` features."""
+    bar = resolve_progress(progress, label, unit="features")
+    if bar is None:
+        return None
+    return lambda done, total: bar(n if done >= total else int(n * done / max(1, total)), n)
+
+
 def quickmatch(
     descriptors,
     image_ids,
@@ -191,6 +214,9 @@ def quickmatch(
     sigma: Optional[np.ndarray] = None,
     n_threads: Optional[int] = None,
     progress: ProgressArg = None,
+    max_memory: Union[None, str, int, float] = None,
+    approximate: bool = False,
+    n_neighbors: int = DEFAULT_NEIGHBORS,
 ) -> QuickMatchResult:
     """Cluster features of many images so each cluster is one physical point.
 
@@ -205,7 +231,18 @@ def quickmatch(
     sigma : optional precomputed per-feature distinctiveness (>= 0), e.g. an
         agent's own in the distributed algorithm; computed when None.
     n_threads : worker threads for the all-pairs pass (default: CPU count).
-    progress : True for a terminal progress bar, or a callable ``(done, total)``.
+    progress : True for a terminal progress bar, or a callable ``(done, total)``
+        counting features.
+    max_memory : memory budget, bytes or a size such as ``"8G"`` (default: 70%
+        of the available memory). An exact run whose candidate edges would not
+        fit uses the streaming parent pass (same labels, a second GEMM over all
+        pairs, memory O(n) whatever rho is); an input that cannot fit even so
+        is refused with :class:`dqm.core.memory.MemoryBudgetError` before any
+        work.
+    approximate : use the approximate mode (:mod:`dqm.core.approximate`, needs
+        faiss-cpu): densities and parents from each feature's ``n_neighbors``
+        nearest neighbours, for sets too large for the exact O(n^2) pass.
+    n_neighbors : neighbours per feature in the approximate mode.
 
     Returns
     -------
@@ -230,21 +267,28 @@ def quickmatch(
                       "(every feature is its own cluster)", stacklevel=2)
     stats: Dict[str, float] = {}
 
+    threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
+    budget = memory.resolve_budget(max_memory)
+    if approximate and n > 2:
+        return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
+                                       n_neighbors, threads, budget, progress, t0)
+    base = memory.check_base(n, X.shape[1], threads, budget)
+
     aug = pairs.Augmented(X)
     t = time.perf_counter()
-    if sigma is None:
-        sig = distinctiveness(aug, image_index, n_images, n_threads=n_threads)
-    else:
-        sig = np.asarray(sigma, dtype=np.float64)
-        if sig.shape != (n,) or not np.isfinite(sig).all() or (sig < 0).any():
-            raise V.InputError(f"sigma must be {n} finite non-negative values, one per descriptor")
+    sig = _sigma(aug, sigma, image_index, n_images, threads)
     stats["time_sigma"] = time.perf_counter() - t
 
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
-    bar = resolve_progress(progress, "quickmatch")
-    dens_o, err, cr, cc = pairs.kernel_pass(aug, w, active, kernel, radius, n_threads=n_threads, progress=bar)
+    max_edges = memory.max_dense_edges(n, base, budget)
+    stats["memory_budget"] = float(budget)
+    dens_o, err, cr, cc = pairs.kernel_pass(aug, w, active, kernel, radius, n_threads=threads,
+                                            progress=feature_progress(progress, "quickmatch", n),
+                                            max_edges=max_edges)
+    streaming = cr is None
+    stats["streaming"] = float(streaming)
     stats["time_pass"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -252,33 +296,55 @@ def quickmatch(
     groups = duplicate_groups(X)
     gsize = np.bincount(groups)
     zero = sig == 0
-    if zero.any():
-        zcount = zero_sigma_counts(groups, gsize, zero)
+    zcount = zero_sigma_counts(groups, gsize, zero) if zero.any() else None
+    if zcount is not None:
         dens_o = dens_o + zcount - zero
-    if len(cr) > 20_000_000:  # ~0.5 GB of edge arrays: tell the user why memory is growing
-        warnings.warn(f"quickmatch: rho={rho:g} puts {len(cr)} candidate edges ({len(cr) / n:.0f} per feature) "
-                      "within reach; memory and time grow with rho on dense data (docs/quickmatch.md)",
-                      stacklevel=2)
-    # candidate edges, exact distances, within the child's radius
-    d = pairs.exact_distances(aug.exact, cr, cc)
-    keep = d < radius[cr]
-    if parent == "other-image":
-        keep &= image_index[cr] != image_index[cc]
-    cr, cc, d = cr[keep], cc[keep], d[keep]
-    # refine densities whose order on some candidate edge is not certain
-    uncertain = np.abs(dens_o[cr] - dens_o[cc]) <= err[cr] + err[cc]
-    refine = np.zeros(n, dtype=bool)
-    refine[cr[uncertain]] = True
-    refine[cc[uncertain]] = True
-    in_dup = gsize[groups] > 1
-    refine |= in_dup
+
+    def exact_others(idx):
+        exact = pairs.exact_density_others(aug, idx, w, active, kernel)
+        return exact if zcount is None else exact + zcount[idx] - zero[idx]
+
+    other_image = parent == "other-image"
+    if streaming:
+        # duplicates first: exact and equal, so the parent pass treats their order as certain
+        dup = np.flatnonzero(gsize[groups] > 1)
+        dens_o = dens_o.copy()
+        err = err.copy()
+        if len(dup):
+            dens_o[dup] = exact_others(dup)
+            err[dup] = 0.0
+            dens_o = equalize_duplicates(dens_o, groups, gsize)
+        lo, hi = dens_o - err, dens_o + err
+        tp = time.perf_counter()
+        cr, cc = pairs.parent_pass(aug, lo, hi, radius, image_index if other_image else None, n_threads=threads,
+                                   progress=feature_progress(progress, "quickmatch parents", n))
+        stats["time_parent_pass"] = time.perf_counter() - tp
+        d = pairs.exact_distances(aug.exact, cr, cc)
+        keep = d < radius[cr]
+        cr, cc, d = cr[keep], cc[keep], d[keep]
+        uncertain = native.rank_relation(lo, hi, cc, cr) == 0
+        refine = np.zeros(n, dtype=bool)
+        refine[cr[uncertain]] = True
+        refine[cc[uncertain]] = True
+        refine[dup] = False
+    else:
+        stats["n_pass_edges"] = float(len(cr))
+        # candidate edges, exact distances, within the child's radius
+        d = pairs.exact_distances(aug.exact, cr, cc)
+        keep = d < radius[cr]
+        if other_image:
+            keep &= image_index[cr] != image_index[cc]
+        cr, cc, d = cr[keep], cc[keep], d[keep]
+        # refine densities whose order on some candidate edge is not certain
+        uncertain = np.abs(dens_o[cr] - dens_o[cc]) <= err[cr] + err[cc]
+        refine = np.zeros(n, dtype=bool)
+        refine[cr[uncertain]] = True
+        refine[cc[uncertain]] = True
+        refine |= gsize[groups] > 1
     idx = np.flatnonzero(refine)
     if len(idx):
-        exact = pairs.exact_density_others(aug, idx, w, active, kernel)
-        if zero.any():
-            exact = exact + zcount[idx] - zero[idx]
         dens_o = dens_o.copy()
-        dens_o[idx] = exact
+        dens_o[idx] = exact_others(idx)
     density = 1.0 + equalize_duplicates(dens_o, groups, gsize)  # remove rounding between duplicates
     stats["n_candidate_edges"] = float(len(cr))
     stats["n_refined"] = float(len(idx))
@@ -289,11 +355,47 @@ def quickmatch(
     labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
     stats["time_tree"] = time.perf_counter() - t
     stats["time_total"] = time.perf_counter() - t0
-    return QuickMatchResult(
-        labels=labels, sigma=sig, density=density, parent=par, parent_distance=pdist,
-        image_ids=ids, rho=rho, ratio_density=ratio_density, kernel=kernel, parent_mode=parent,
-        stats=stats,
-    )
+    return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
+
+
+def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
+                            n_neighbors, threads, budget, progress, t0) -> QuickMatchResult:
+    """The approximate mode (:mod:`dqm.core.approximate`); arguments already checked."""
+    n, dim = X.shape
+    k = min(V.check_positive_int(n_neighbors, "n_neighbors"), n - 1)
+    memory.check_approximate(n, dim, k, threads, budget)
+    approximate.require_faiss()
+    stats: Dict[str, float] = {"n_neighbors": float(k), "memory_budget": float(budget)}
+    aug = pairs.Augmented(X)
+    t = time.perf_counter()
+    sig = _sigma(aug, sigma, image_index, n_images, threads)
+    stats["time_sigma"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    nbr, d2 = approximate.knn_graph(aug.left[:, :dim], k, n_threads=threads,
+                                    progress=feature_progress(progress, "quickmatch (approximate)", n))
+    stats["time_knn"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    w, active = kernel_weights(sig, kernel, ratio_density)
+    dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
+    groups = duplicate_groups(X)
+    gsize = np.bincount(groups)
+    zero = sig == 0
+    if zero.any():
+        dens_o = dens_o + zero_sigma_counts(groups, gsize, zero) - zero
+    density = 1.0 + equalize_duplicates(dens_o, groups, gsize)
+    stats["time_density"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    cr, cc, d = approximate.graph_edges(nbr, d2, rho * sig, image_index if parent == "other-image" else None)
+    del nbr, d2
+    par, pdist = tree.select_parents(n, cr, cc, d, density)
+    labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
+    stats["n_candidate_edges"] = float(len(cr))
+    stats["time_tree"] = time.perf_counter() - t
+    stats["time_total"] = time.perf_counter() - t0
+    return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
 
 
 class QuickMatch:
@@ -304,16 +406,22 @@ class QuickMatch:
     """
 
     def __init__(self, rho: float = DEFAULT_RHO, ratio_density: float = DEFAULT_RATIO_DENSITY,
-                 kernel: str = "gaussian", parent: str = "any", n_threads: Optional[int] = None):
+                 kernel: str = "gaussian", parent: str = "any", n_threads: Optional[int] = None,
+                 max_memory: Union[None, str, int, float] = None, approximate: bool = False,
+                 n_neighbors: int = DEFAULT_NEIGHBORS):
         self.rho = rho
         self.ratio_density = ratio_density
         self.kernel = kernel
         self.parent = parent
         self.n_threads = n_threads
+        self.max_memory = max_memory
+        self.approximate = approximate
+        self.n_neighbors = n_neighbors
 
     def get_params(self, deep: bool = True) -> Dict[str, object]:
         return {"rho": self.rho, "ratio_density": self.ratio_density, "kernel": self.kernel,
-                "parent": self.parent, "n_threads": self.n_threads}
+                "parent": self.parent, "n_threads": self.n_threads, "max_memory": self.max_memory,
+                "approximate": self.approximate, "n_neighbors": self.n_neighbors}
 
     def set_params(self, **params) -> "QuickMatch":
         for k, v in params.items():
@@ -323,8 +431,7 @@ class QuickMatch:
         return self
 
     def fit(self, descriptors, image_ids, progress: ProgressArg = None) -> "QuickMatch":
-        r = quickmatch(descriptors, image_ids, rho=self.rho, ratio_density=self.ratio_density,
-                       kernel=self.kernel, parent=self.parent, n_threads=self.n_threads, progress=progress)
+        r = quickmatch(descriptors, image_ids, progress=progress, **self.get_params())
         self.result_ = r
         self.labels_ = r.labels
         self.sigma_ = r.sigma

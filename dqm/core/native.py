@@ -64,6 +64,14 @@ def _load() -> Optional[ctypes.CDLL]:
         u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
         aw.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, f32, f32, u8]
         aw.restype = None
+        pt = lib.dqm_parent_tile
+        i64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
+        pt.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+            ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f64, f64, ctypes.c_void_p,
+            f32, f32, f32, f32, f32, f32, f32, f32, i64, i64, f32, ctypes.c_int64,
+        ]
+        pt.restype = ctypes.c_int64
         return lib
     return None
 
@@ -232,6 +240,79 @@ def any_within(G: np.ndarray, rad2r: np.ndarray, rad2c: np.ndarray, hit: np.ndar
         return
     _LIB.dqm_any_within(G.ctypes.data, m, k, G.strides[0] // 4, np.ascontiguousarray(rad2r, dtype=np.float32),
                         np.ascontiguousarray(rad2c, dtype=np.float32), hit)
+
+
+def rank_relation(lo: np.ndarray, hi: np.ndarray, cand: np.ndarray, child: np.ndarray) -> np.ndarray:
+    """Rank of ``cand`` relative to ``child`` from density intervals ``[lo, hi]``:
+    1 certainly above, -1 certainly below, 0 uncertain (exact densities decide).
+    Two exact (degenerate) equal intervals are certain: equal densities rank by index."""
+    lc, hc, lj, hj = lo[cand], hi[cand], lo[child], hi[child]
+    rel = np.zeros(len(cand), dtype=np.int8)
+    tie = (lc == hc) & (lj == hj) & (lc == lj)
+    rel[tie] = np.where(cand[tie] < child[tie], 1, -1)
+    rel[lc > hj] = 1
+    rel[hc < lj] = -1
+    return rel
+
+
+def parent_tile_numpy(G, ra, cb, diag, lo, hi, img, rad2r, rad2c, limr, limc, slackr, slackc):
+    """numpy version of the parent tile (see :func:`parent_tile`)."""
+    m, k = G.shape
+    out_child, out_cand, out_g = [], [], []
+    rmin = np.full(m, np.finfo(np.float32).max, dtype=np.float32)
+    cmin = np.full(k, np.finfo(np.float32).max, dtype=np.float32)
+    directions = [(G < rad2r[:, None], False)]
+    if not diag:
+        directions.append((G < rad2c[None, :], True))
+    for mask, col_child in directions:
+        if diag:
+            np.fill_diagonal(mask, False)
+        r, c = np.nonzero(mask)
+        g = G[r, c]
+        jr, jc = r + ra, c + cb
+        child, cand, loc = (jc, jr, c) if col_child else (jr, jc, r)
+        if img is not None:
+            other = img[child] != img[cand]
+            child, cand, loc, g = child[other], cand[other], loc[other], g[other]
+        rel = rank_relation(lo, hi, cand, child)
+        above = rel > 0
+        tmin = cmin if col_child else rmin
+        np.minimum.at(tmin, loc[above], g[above])
+        lim = np.minimum((limc if col_child else limr)[loc], tmin[loc] + (slackc if col_child else slackr)[loc])
+        keep = (rel == 0) | (above & (g <= lim))
+        out_child.append(child[keep])
+        out_cand.append(cand[keep])
+        out_g.append(g[keep])
+    return rmin, cmin, np.concatenate(out_child), np.concatenate(out_cand), np.concatenate(out_g)
+
+
+def parent_tile(G, ra, cb, diag, lo, hi, img, rad2r, rad2c, limr, limc, slackr, slackc, use_native=True):
+    """Tile of the streaming parent pass: rows are features ``ra..``, columns ``cb..``.
+
+    For every child (row; on an off-diagonal tile also column) returns the
+    tile minimum of ``G`` over candidates within its radius that certainly rank
+    above it (``rmin``, ``cmin``; float32 max when none), and writes out
+    ``(child, cand, g)`` (global indices) for those candidates within
+    ``min(lim, tile minimum + slack)`` of the child and for every candidate of
+    uncertain rank. ``img`` (int32 image index per feature, or None) excludes
+    same-image candidates. ``G`` C-contiguous float32.
+    """
+    m, k = G.shape
+    if _LIB is None or not use_native:
+        return parent_tile_numpy(G, ra, cb, diag, lo, hi, img, rad2r, rad2c, limr, limc, slackr, slackc)
+    cap = max(4096, 4 * (m + k))
+    rmin = np.empty(m, dtype=np.float32)
+    cmin = np.empty(k, dtype=np.float32)
+    img_ptr = None if img is None else img.ctypes.data
+    while True:
+        oc = np.empty(cap, dtype=np.int64)
+        od = np.empty(cap, dtype=np.int64)
+        og = np.empty(cap, dtype=np.float32)
+        got = _LIB.dqm_parent_tile(G.ctypes.data, m, k, G.strides[0] // 4, ra, cb, int(bool(diag)), lo, hi,
+                                   img_ptr, rad2r, rad2c, limr, limc, slackr, slackc, rmin, cmin, oc, od, og, cap)
+        if got >= 0:
+            return rmin, cmin, oc[:got], od[:got], og[:got]
+        cap *= 4
 
 
 def _blas_local_threads():

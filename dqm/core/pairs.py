@@ -196,6 +196,11 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     return sigma
 
 
+def search_rad2(aug: Augmented, radius: np.ndarray) -> np.ndarray:
+    """float32 squared search radii that cannot miss a pair within ``radius`` (error bound added)."""
+    return (np.asarray(radius, dtype=np.float64) ** 2 + aug.d2_slack(np.arange(aug.n))).astype(np.float32)
+
+
 def kernel_pass(
     aug: Augmented,
     weights: np.ndarray,
@@ -207,7 +212,9 @@ def kernel_pass(
     progress: ProgressFn = None,
     use_native: bool = True,
     rows_limit: Optional[int] = None,
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    candidates: bool = True,
+    max_edges: Optional[int] = None,
+) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
     """One pass over all pairs: approximate densities and candidate edges.
 
     ``weights[c]`` scales a squared distance into the kernel argument of
@@ -220,7 +227,11 @@ def kernel_pass(
     first L are visited (a distributed agent: its own features first, then
     copies of other cells' features, whose pairs among themselves are another
     agent's work). The candidate edges are then exactly those pairs; the
-    approximate densities are not restricted and should not be used.
+    approximate densities are not restricted and should not be used. With
+    ``candidates=False`` no edge is collected (densities only; the streaming
+    :func:`parent_pass` finds the parents). With ``max_edges``, collection
+    stops once more edges than that are found; the densities are still
+    complete and ``child`` and ``cand`` come back as None.
 
     Returns ``(density_others, density_error, child, cand)``: the density
     without the self term (float32 accuracy), a bound on its absolute error,
@@ -230,7 +241,9 @@ def kernel_pass(
     n = aug.n
     w = np.ascontiguousarray(weights, dtype=np.float32)
     s = np.ascontiguousarray(active, dtype=np.float32)
-    rad2 = (np.asarray(radius, dtype=np.float64) ** 2 + aug.d2_slack(np.arange(n))).astype(np.float32)
+    no_edges = np.full(n, -np.inf, dtype=np.float32)
+    rad2_all = search_rad2(aug, radius) if candidates else no_edges
+    collecting = [candidates]
     dens = np.zeros(n, dtype=np.float64)
     err = np.zeros(n, dtype=np.float64)
     starts = list(range(0, n, BLOCK))
@@ -241,6 +254,7 @@ def kernel_pass(
         a, b = task
         a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
         G = aug.left[a:a1] @ aug.right[b:b1].T
+        rad2 = rad2_all if collecting[0] else no_edges
         dr = np.zeros(a1 - a)
         er = np.zeros(a1 - a)
         if a == b:
@@ -254,24 +268,36 @@ def kernel_pass(
 
     child: List[np.ndarray] = []
     cand: List[np.ndarray] = []
+    held = 0
     with tile_pool(n_threads) as run:
         for done, (a, b, dr, er, dc, ec, r, c) in enumerate(run(work, tasks), start=1):
             dens[a:a + len(dr)] += dr
             err[a:a + len(er)] += er
+            if dc is not None:
+                dens[b:b + len(dc)] += dc
+                err[b:b + len(ec)] += ec
+            if progress is not None:
+                progress(done, len(tasks))
+            if not collecting[0]:
+                continue
+            held += len(r) * (1 if dc is None else 2)
+            if max_edges is not None and held > max_edges:
+                collecting[0] = False  # tiles in flight may still bring edges: ignored
+                child.clear()
+                cand.clear()
+                continue
             r = r.astype(np.int64) + a
             c = c.astype(np.int64) + b
             child.append(r)
             cand.append(c)
             if dc is not None:
-                dens[b:b + len(dc)] += dc
-                err[b:b + len(ec)] += ec
                 child.append(c)
                 cand.append(r)
-            if progress is not None:
-                progress(done, len(tasks))
     # error of a term is |dK/d(d2)| * |error of d2|
     err *= aug.gamma * (aug.norm2 + aug.max_norm2)
     err += 4.0 * _EPS32 * dens + 1e-300  # float32 rounding of the sums themselves
+    if candidates and not collecting[0]:
+        return dens, err, None, None
     if not child:
         return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
     child_a, cand_a = np.concatenate(child), np.concatenate(cand)
@@ -340,3 +366,83 @@ def exact_density_others(
         vals[rows, pos[rows]] = 0.0  # the self term
         out[s:s + step] = vals.sum(axis=1)
     return out
+
+
+def parent_pass(
+    aug: Augmented,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    radius: np.ndarray,
+    image_index: Optional[np.ndarray] = None,
+    *,
+    n_threads: Optional[int] = None,
+    progress: ProgressFn = None,
+    use_native: bool = True,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Streaming parent pass: candidate parents in memory O(n), whatever the radius.
+
+    Needs every feature's density interval ``[lo, hi]`` (rigorous bounds;
+    ``lo == hi`` for an exact value). One more GEMM over all pairs; for every
+    child j it keeps, of the features within ``radius[j]`` (and outside j's
+    image when ``image_index`` is given):
+
+    * those that certainly rank above j and lie within the float32 error bound
+      of the nearest such one (the exact nearest is among them), and
+    * all whose rank relative to j is uncertain (the caller settles them with
+      exact densities).
+
+    Returns directed pairs ``(child, cand)``: a superset of each child's nearest
+    higher-ranked feature within its radius, usually a few per feature.
+    """
+    n = aug.n
+    lo = np.ascontiguousarray(lo, dtype=np.float64)
+    hi = np.ascontiguousarray(hi, dtype=np.float64)
+    slack = aug.d2_slack(np.arange(n))
+    rad2 = search_rad2(aug, radius)
+    slack2 = (2.0 * slack).astype(np.float32)
+    img = None if image_index is None else np.ascontiguousarray(image_index, dtype=np.int32)
+    big = np.finfo(np.float32).max
+    best = np.full(n, big, dtype=np.float32)
+    starts = list(range(0, n, BLOCK))
+    tasks = [(a, b) for ia, a in enumerate(starts) for b in starts[ia:]]
+
+    def work(task):
+        a, b = task
+        a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
+        G = aug.left[a:a1] @ aug.right[b:b1].T
+        # a snapshot of the limits: stale values are larger, so they keep a superset
+        limr = np.minimum(best[a:a1] + slack2[a:a1], big)
+        limc = np.minimum(best[b:b1] + slack2[b:b1], big)
+        return a, b, native.parent_tile(G, a, b, a == b, lo, hi, img, rad2[a:a1], rad2[b:b1], limr, limc,
+                                        slack2[a:a1], slack2[b:b1], use_native=use_native)
+
+    kept_child: List[np.ndarray] = []
+    kept_cand: List[np.ndarray] = []
+    kept_g: List[np.ndarray] = []
+    held = 0
+    threshold = 4 * n + (1 << 20)
+
+    def prune():
+        child, cand, g = np.concatenate(kept_child), np.concatenate(kept_cand), np.concatenate(kept_g)
+        keep = (g <= best[child] + slack2[child]) | (native.rank_relation(lo, hi, cand, child) == 0)
+        kept_child[:], kept_cand[:], kept_g[:] = [child[keep]], [cand[keep]], [g[keep]]
+        return int(keep.sum())
+
+    with tile_pool(n_threads) as run:
+        for done, (a, b, (rmin, cmin, child, cand, g)) in enumerate(run(work, tasks), start=1):
+            np.minimum(best[a:a + len(rmin)], rmin, out=best[a:a + len(rmin)])
+            if a != b:
+                np.minimum(best[b:b + len(cmin)], cmin, out=best[b:b + len(cmin)])
+            kept_child.append(child)
+            kept_cand.append(cand)
+            kept_g.append(g)
+            held += len(child)
+            if held > threshold:
+                held = prune()
+                threshold = max(threshold, 2 * held)  # many uncertain pairs: do not prune every tile
+            if progress is not None:
+                progress(done, len(tasks))
+    if not kept_child:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    prune()
+    return kept_child[0], kept_cand[0]

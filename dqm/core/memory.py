@@ -1,0 +1,140 @@
+"""Memory budget of the centralized engine: the budget, what a run needs, and the plan.
+
+The all-pairs pass (:func:`dqm.core.pairs.kernel_pass`) keeps every candidate
+tree edge within ``rho * sigma`` of its child, which is fast while there are
+few but grows with rho (on dense data almost every pair is a candidate at rho
+2). The streaming parent pass (:func:`dqm.core.pairs.parent_pass`) needs memory
+O(n) whatever rho is, at the cost of a second GEMM over all pairs. The engine
+collects edges up to :func:`max_dense_edges` (the budget, or the point where
+streaming is faster) and switches to the streaming pass beyond it; the
+densities of the first pass are kept either way, so the switch wastes nothing
+but the edges collected so far. Before any work, :func:`check_base` refuses in
+one line an input whose O(n) arrays alone exceed the budget.
+"""
+from __future__ import annotations
+
+import os
+import re
+from typing import Union
+
+from ..validation import InputError
+
+#: peak bytes per directed candidate edge of the dense path (int64 child and
+#: candidate, their concatenation, float64 distance and the radius filter's
+#: temporaries): 39 measured on graf at rho 1.5 (86M edges, 3.2 GiB), with margin
+BYTES_PER_EDGE = 48
+#: the dense path handles an edge in ~0.5 us (exact distance, sort); the
+#: streaming pass costs a second GEMM over all pairs. On graf (21,691 SIFT) they
+#: break even near n^2 / 117 edges (rho 1.2: 3.15 s dense, 2.95 s streaming);
+#: past n^2 / BREAK_EVEN the engine streams even when memory would allow more
+BREAK_EVEN = 128
+#: fraction of the available memory used when no budget is given
+DEFAULT_FRACTION = 0.7
+
+_UNITS = {"": 1, "b": 1, "k": 1 << 10, "kb": 1 << 10, "kib": 1 << 10, "m": 1 << 20, "mb": 1 << 20,
+          "mib": 1 << 20, "g": 1 << 30, "gb": 1 << 30, "gib": 1 << 30, "t": 1 << 40, "tb": 1 << 40,
+          "tib": 1 << 40}
+
+
+class MemoryBudgetError(InputError):
+    """The input cannot be processed within the memory budget."""
+
+
+def parse_size(text: Union[str, int, float]) -> int:
+    """Bytes from ``"8G"``, ``"512MiB"``, ``"1.5 GB"`` or a plain number (binary units)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([a-zA-Z]*)\s*", str(text))
+        if not m or m.group(2).lower() not in _UNITS:
+            raise InputError(f"memory size {text!r} is not understood; write e.g. 8G, 512M or 2.5GiB")
+        value = float(m.group(1)) * _UNITS[m.group(2).lower()]
+    if not value > 0:
+        raise InputError(f"memory size must be positive, got {text!r}")
+    return int(value)
+
+
+def available_bytes() -> int:
+    """Memory this process can still use: MemAvailable, or the cgroup's limit minus its usage if lower."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            avail = 8 << 30
+    try:
+        with open("/sys/fs/cgroup/memory.max") as fh:
+            limit = fh.read().strip()
+        if limit != "max":
+            with open("/sys/fs/cgroup/memory.current") as fh:
+                used = int(fh.read().strip())
+            avail = min(avail, max(0, int(limit) - used))
+    except (OSError, ValueError):
+        pass
+    return int(avail)
+
+
+def resolve_budget(max_memory: Union[None, str, int, float]) -> int:
+    """The budget in bytes: ``max_memory`` if given, else 70% of the available memory."""
+    if max_memory is None:
+        return int(DEFAULT_FRACTION * available_bytes())
+    return parse_size(max_memory)
+
+
+def format_bytes(b: float) -> str:
+    """``1.5 GiB``, ``320 MiB``."""
+    if b >= 1 << 30:
+        return f"{b / (1 << 30):.1f} GiB"
+    return f"{b / (1 << 20):.0f} MiB"
+
+
+def base_bytes(n: int, dim: int, n_threads: int) -> int:
+    """Peak memory of an exact run apart from the candidate edges: the float64
+    input and its centred copy, the float32 GEMM operands, a compact copy,
+    about twenty per-feature arrays, and each worker's tiles and buffers."""
+    per_feature = dim * (8 + 8 + 4 + 4 + 1) + 8 + 20 * 8
+    per_thread = 48 << 20
+    return int(n * per_feature + n_threads * per_thread + (64 << 20))
+
+
+def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quickmatch") -> int:
+    """Refuse, in one line, an input whose arrays alone exceed the budget; returns the base bytes."""
+    base = base_bytes(n, dim, n_threads)
+    if base > budget:
+        raise MemoryBudgetError(
+            f"{what}: {n:,} features of dimension {dim} need about {format_bytes(base)} even with the "
+            f"streaming parent pass, more than the memory budget of {format_bytes(budget)} (max_memory / "
+            "--max-memory); raise the budget, use fewer features, or the approximate mode"
+        )
+    return base
+
+
+def check_approximate(n: int, dim: int, k: int, n_threads: int, budget: int) -> int:
+    """Refuse, in one line, an approximate run that would not fit the budget; returns its estimate.
+
+    The exact run's base arrays (sigma is exact), faiss' float32 copy of the
+    data, and the neighbour graph with its kernel-term temporaries (~40 bytes
+    per edge)."""
+    need = base_bytes(n, dim, n_threads) + n * dim * 4 + 40 * n * k
+    if need > budget:
+        raise MemoryBudgetError(
+            f"quickmatch: the approximate mode with {k} neighbours needs about {format_bytes(need)} for "
+            f"{n:,} features of dimension {dim}, more than the memory budget of {format_bytes(budget)} "
+            "(max_memory / --max-memory); raise the budget or lower n_neighbors")
+    return need
+
+
+def max_dense_edges(n: int, base: int, budget: int) -> int:
+    """Most candidate edges the dense pass may collect before the engine switches to the
+    streaming parent pass: what fits the budget beside the base arrays, and no more
+    than where the streaming pass becomes the faster one (``n^2 / BREAK_EVEN``)."""
+    fits = max(0, budget - base) // BYTES_PER_EDGE
+    return int(min(fits, n * n // BREAK_EVEN + (1 << 16)))

@@ -1,0 +1,186 @@
+"""Memory that does not grow with rho (streaming parent pass), the memory budget and its
+refusal, and the approximate mode (issue 11)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import dqm
+from dqm import io as dqm_io
+from dqm.core import memory, native, pairs
+from dqm.evaluation import comembership_scores
+from dqm.progress import ProgressBar
+from dqm.synthetic import sift_like, sized
+from conftest import assert_consistent
+from dense_reference import dense_quickmatch, same_partition
+from test_quickmatch_equivalence import clustered
+
+
+def tight_budget(X):
+    """A budget that holds the O(n) arrays but hardly any candidate edge."""
+    return memory.base_bytes(len(X), X.shape[1], pairs.default_threads()) + (256 << 10)
+
+
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+@pytest.mark.parametrize("parent", ["any", "other-image"])
+def test_high_rho_under_a_memory_cap_matches_the_dense_reference(kernel, parent):
+    X, ids = clustered(5, n_images=8, n_points=80, clutter=40)
+    rho = 2.5  # almost every pair lies within reach
+    r = dqm.quickmatch(X, ids, rho=rho, kernel=kernel, parent=parent, max_memory=tight_budget(X))
+    assert r.stats["streaming"] == 1.0
+    labels, sigma, density, par, pdist = dense_quickmatch(X, ids, rho, kernel=kernel, parent_mode=parent)
+    assert_consistent(r.labels, ids)
+    assert same_partition(r.labels, labels)
+    np.testing.assert_allclose(r.density, density, rtol=1e-3)
+    has = r.parent >= 0
+    np.testing.assert_array_equal(r.parent[has], par[has])
+    # the candidates kept are a few per feature, not the ~n per feature the dense pass holds
+    assert r.stats["n_candidate_edges"] < 10 * len(X)
+
+
+def test_streaming_and_dense_passes_give_identical_results_on_sift_like_data(monkeypatch):
+    ds = sized(3000, features_per_image=500, seed=3)
+    X, ids = ds.descriptors, ds.image_ids
+    for rho in (0.9, 1.8):
+        monkeypatch.setattr(memory, "max_dense_edges", lambda *a: 10 ** 15)
+        dense = dqm.quickmatch(X, ids, rho=rho)
+        monkeypatch.undo()
+        streamed = dqm.quickmatch(X, ids, rho=rho, max_memory=tight_budget(X))
+        assert dense.stats["streaming"] == 0.0 and streamed.stats["streaming"] == 1.0
+        np.testing.assert_array_equal(streamed.labels, dense.labels)
+        np.testing.assert_array_equal(streamed.parent, dense.parent)
+        np.testing.assert_array_equal(streamed.parent_distance, dense.parent_distance)
+
+
+def test_duplicates_and_ties_survive_the_streaming_pass():
+    """Exact duplicates (zero sigma, equal densities) and isolated features of the finite
+    kernel (density exactly 1) are ranked by index in both passes."""
+    rng = np.random.default_rng(2)
+    X = rng.integers(0, 4, size=(300, 8)).astype(np.float64)
+    X[50:60] = X[0]
+    ids = np.arange(300) % 5
+    for kernel in ("gaussian", "quadratic"):
+        r = dqm.quickmatch(X, ids, rho=3.0, kernel=kernel, max_memory=tight_budget(X))
+        labels, *_ = dense_quickmatch(X, ids, 3.0, kernel=kernel)
+        assert r.stats["streaming"] == 1.0
+        assert same_partition(r.labels, labels)
+
+
+def test_native_and_numpy_parent_tiles_agree():
+    if not native.native_available():
+        pytest.skip("the native tile kernel is not built")
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(700, 12))
+    aug = pairs.Augmented(X)
+    G = np.ascontiguousarray(aug.left[:300] @ aug.right[300:700].T)
+    dens = rng.random(700)
+    err = np.where(rng.random(700) < 0.2, 0.05, 0.0)
+    lo, hi = dens - err, dens + err
+    img = (np.arange(700) % 3).astype(np.int32)
+    rad2 = np.full(700, np.quantile(G, 0.3), dtype=np.float32)
+    lim = np.full(700, np.finfo(np.float32).max, dtype=np.float32)
+    slack = np.full(700, 1e-3, dtype=np.float32)
+    for image in (None, img):
+        args = (G, 0, 300, False, lo, hi, image, rad2[:300], rad2[300:], lim[:300], lim[300:], slack[:300],
+                slack[300:])
+        rn, cn, chn, can, gn = native.parent_tile(*args, use_native=True)
+        rp, cp, chp, cap, gp = native.parent_tile(*args, use_native=False)
+        np.testing.assert_array_equal(rn, rp)
+        np.testing.assert_array_equal(cn, cp)
+        # numpy keeps only what is near the final tile minimum; C, streaming, a superset of it
+        assert set(zip(chp.tolist(), cap.tolist())) <= set(zip(chn.tolist(), can.tolist()))
+        unsure = native.rank_relation(lo, hi, can, chn) == 0
+        assert unsure.any()
+        assert set(zip(chn[unsure].tolist(), can[unsure].tolist())) <= set(zip(chp.tolist(), cap.tolist()))
+
+
+def test_memory_refusal_names_sizes_before_any_work():
+    X = np.zeros((10_000, 128), np.uint8)
+    with pytest.raises(memory.MemoryBudgetError) as info:
+        dqm.quickmatch(X, np.arange(10_000) % 4, max_memory="20M")
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert "10,000 features of dimension 128" in msg and "20 MiB" in msg and "--max-memory" in msg
+    need = memory.base_bytes(10_000, 128, pairs.default_threads())
+    assert memory.format_bytes(need) in msg
+
+
+def test_memory_sizes_parse_and_reject():
+    assert memory.parse_size("8G") == 8 << 30
+    assert memory.parse_size("512MiB") == 512 << 20
+    assert memory.parse_size("1.5 gb") == int(1.5 * (1 << 30))
+    assert memory.parse_size(4096) == 4096
+    for bad in ("1x", "", "-5G", "0"):
+        with pytest.raises(dqm.InputError, match="memory size"):
+            memory.parse_size(bad)
+    assert memory.resolve_budget(None) > 0
+
+
+def test_base_estimate_is_an_upper_bound_of_the_measured_peak(tmp_path):
+    """Peak RSS of a streaming run stays below the base estimate the budget is checked against."""
+    code = (
+        "import resource, numpy as np, dqm\n"
+        "from dqm.synthetic import sized\n"
+        "from dqm.core import memory, pairs\n"
+        "ds = sized(12000, seed=1)\n"
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024\n"
+        "budget = memory.base_bytes(len(ds), 128, pairs.default_threads()) + (1 << 20)\n"
+        "r = dqm.quickmatch(ds.descriptors, ds.image_ids, rho=2.0, max_memory=budget)\n"
+        "peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024\n"
+        "print(int(r.stats['streaming']), peak - before, budget)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    streaming, grown, budget = int(out[0]), int(out[1]), int(out[2])
+    assert streaming == 1
+    assert grown < budget
+
+
+def test_cli_refuses_bad_and_too_small_budgets_in_one_line(tmp_path):
+    ds = sized(3000, seed=0)
+    src = tmp_path / "f.npz"
+    dqm_io.save_features(src, dqm_io.FeatureSet(ds.descriptors, ds.image_ids))
+    for value, needle in (("lots", "memory size 'lots' is not understood"), ("1M", "more than the memory budget")):
+        p = subprocess.run([sys.executable, "-m", "dqm", "match", str(src), "--out", str(tmp_path / "c.npz"),
+                            "--max-memory", value], capture_output=True, text=True)
+        assert p.returncode == 2
+        lines = p.stderr.strip().splitlines()  # argparse's usage lines come before its error line
+        assert needle in lines[-1] and lines[-1].startswith("dqm match: error:") and "Traceback" not in p.stderr
+        assert len(lines) == 1 or value == "lots"
+        assert not (tmp_path / "c.npz").exists()
+
+
+def test_progress_counts_features(capsys):
+    import io as _io
+
+    stream = _io.StringIO()
+    bar = ProgressBar("quickmatch", stream=stream, force=True, unit="features")
+    ds = sized(2500, seed=0)
+    dqm.quickmatch(ds.descriptors, ds.image_ids, progress=bar)
+    text = stream.getvalue()
+    assert f"{len(ds):,}/{len(ds):,} features" in text
+
+
+def test_approximate_mode_agrees_with_exact_on_a_small_set():
+    pytest.importorskip("faiss", reason="faiss-cpu is not installed (pip install 'dqm[approx]')")
+    ds = sift_like(n_images=10, n_points=600, clutter_per_image=200, seed=4)
+    X, ids = ds.descriptors, ds.image_ids
+    exact = dqm.quickmatch(X, ids)
+    approx = dqm.quickmatch(X, ids, approximate=True)
+    assert_consistent(approx.labels, ids)
+    assert approx.stats["n_neighbors"] == dqm.core.DEFAULT_NEIGHBORS
+    assert comembership_scores(approx.labels, exact.labels).f1 >= 0.99
+    again = dqm.quickmatch(X, ids, approximate=True)
+    np.testing.assert_array_equal(again.labels, approx.labels)  # deterministic
+    # too few neighbours to see the clusters' members: the approximation must lose something
+    poor = dqm.quickmatch(X, ids, approximate=True, n_neighbors=1)
+    assert comembership_scores(poor.labels, exact.labels).f1 < comembership_scores(approx.labels, exact.labels).f1
+
+
+def test_approximate_mode_validates_and_refuses():
+    pytest.importorskip("faiss", reason="faiss-cpu is not installed (pip install 'dqm[approx]')")
+    X = np.zeros((1000, 128), np.uint8)
+    with pytest.raises(dqm.InputError, match="n_neighbors must be a positive integer"):
+        dqm.quickmatch(X, np.arange(1000) % 3, approximate=True, n_neighbors=0)
+    with pytest.raises(memory.MemoryBudgetError, match="approximate mode with 32 neighbours"):
+        dqm.quickmatch(X, np.arange(1000) % 3, approximate=True, max_memory="60M")
