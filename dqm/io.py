@@ -118,6 +118,8 @@ def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = N
 
     params = {"rho": result.rho, "ratio_density": result.ratio_density, "kernel": result.kernel,
               "parent": result.parent_mode, "dqm_version": __version__}
+    if "n_neighbors" in result.stats:  # the approximate mode
+        params.update(approximate=True, n_neighbors=int(result.stats["n_neighbors"]))
     params.update(extra_params or {})
     arrays = _feature_arrays(fs)
     arrays.update(

@@ -184,3 +184,35 @@ def test_approximate_mode_validates_and_refuses():
         dqm.quickmatch(X, np.arange(1000) % 3, approximate=True, n_neighbors=0)
     with pytest.raises(memory.MemoryBudgetError, match="approximate mode with 32 neighbours"):
         dqm.quickmatch(X, np.arange(1000) % 3, approximate=True, max_memory="60M")
+
+
+def test_cli_match_approximate(tmp_path):
+    pytest.importorskip("faiss", reason="faiss-cpu is not installed (pip install 'dqm[approx]')")
+    ds = sized(4000, seed=2)
+    src = tmp_path / "f.npz"
+    dqm_io.save_features(src, dqm_io.FeatureSet(ds.descriptors, ds.image_ids))
+    out = tmp_path / "c.npz"
+    p = subprocess.run([sys.executable, "-m", "dqm", "match", str(src), "--out", str(out), "--approximate",
+                        "--neighbors", "16"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert "approximate with 16 neighbours" in p.stdout
+    saved = dqm_io.load_clusters(out)
+    labels = saved["labels"]
+    assert saved["params"]["approximate"] is True and saved["params"]["n_neighbors"] == 16
+    exact = dqm.quickmatch(ds.descriptors, ds.image_ids)
+    assert comembership_scores(labels, exact.labels).f1 >= 0.99
+
+
+def test_benchmark_script_small_approximate_run():
+    """The small version of scripts/bench_quickmatch.py --approximate (the full one: 1M features)."""
+    pytest.importorskip("faiss", reason="faiss-cpu is not installed (pip install 'dqm[approx]')")
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_quickmatch.py"
+    p = subprocess.run([sys.executable, str(script), "--approximate", "--approx-sets", "3000", "--sizes", "",
+                        "--no-graf"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    row = [line for line in p.stdout.splitlines() if line.startswith("| 3000 |")]
+    assert len(row) == 1
+    f1 = float(row[0].split("|")[8])
+    assert f1 >= 0.99

@@ -117,7 +117,7 @@ def _inject(endpoint, job, n_agents, dim, ready):
 def test_hostile_messages_are_rejected_and_counted(data):
     X, ids = data
     cfg = DQMConfig(agents=2, seed=3, job="hostile")
-    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_SECONDS="3")
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_SECONDS="6")  # room for a loaded machine
     ready = threading.Event()
 
     def on_started(info):

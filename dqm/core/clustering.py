@@ -128,10 +128,13 @@ def _empty_result(image_ids: np.ndarray, rho, ratio, kernel, parent_mode) -> Qui
 
 
 def duplicate_groups(X: np.ndarray) -> np.ndarray:
-    """Group id of every row; rows with identical values share an id (ids are 0..g-1)."""
+    """Group id of every row; rows with identical values share an id (ids are 0..g-1).
+
+    Pass the compact copy (:attr:`pairs.Augmented.exact`) where there is one:
+    uint8 rows sort 8x faster and in an eighth of the memory."""
     if len(X) == 0:
         return np.zeros(0, np.int64)
-    Z = np.ascontiguousarray(X + 0.0)  # -0.0 -> 0.0 so equal values have equal bytes
+    Z = np.ascontiguousarray(X if X.dtype.kind in "iu" else X + 0.0)  # -0.0 -> 0.0: equal values, equal bytes
     rows = Z.view(np.dtype((np.void, Z.dtype.itemsize * Z.shape[1]))).ravel()
     _, inverse = np.unique(rows, return_inverse=True)
     return inverse.ravel().astype(np.int64)
@@ -293,7 +296,7 @@ def quickmatch(
 
     t = time.perf_counter()
     # zero-sigma features contribute only to their exact duplicates (kernel limit)
-    groups = duplicate_groups(X)
+    groups = duplicate_groups(aug.exact)
     gsize = np.bincount(groups)
     zero = sig == 0
     zcount = zero_sigma_counts(groups, gsize, zero) if zero.any() else None
@@ -372,14 +375,19 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     stats["time_sigma"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    nbr, d2 = approximate.knn_graph(aug.left[:, :dim], k, n_threads=threads,
+    # keep only what the graph needs: uint8 SIFT as bytes, else float32 (the GEMM operands go)
+    compact = aug.exact
+    data = compact if compact.dtype == np.uint8 else np.ascontiguousarray(aug.left[:, :dim])
+    del aug
+    nbr, d2 = approximate.knn_graph(data, k, n_threads=threads,
                                     progress=feature_progress(progress, "quickmatch (approximate)", n))
+    del data
     stats["time_knn"] = time.perf_counter() - t
 
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
-    groups = duplicate_groups(X)
+    groups = duplicate_groups(compact)
     gsize = np.bincount(groups)
     zero = sig == 0
     if zero.any():
