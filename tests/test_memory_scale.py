@@ -81,9 +81,11 @@ def test_native_and_numpy_parent_tiles_agree():
     rad2 = np.full(700, np.quantile(G, 0.3), dtype=np.float32)
     lim = np.full(700, np.finfo(np.float32).max, dtype=np.float32)
     slack = np.full(700, 1e-3, dtype=np.float32)
-    for image in (None, img):
-        args = (G, 0, 300, False, lo, hi, image, rad2[:300], rad2[300:], lim[:300], lim[300:], slack[:300],
-                slack[300:])
+    D = np.ascontiguousarray(aug.left[:300] @ aug.right[:300].T)
+    for image, tile, cb, diag in ((None, G, 300, False), (img, G, 300, False), (img, D, 0, True)):
+        cols = slice(cb, cb + tile.shape[1])
+        args = (tile, 0, cb, diag, lo, hi, image, rad2[:300], rad2[cols], lim[:300], lim[cols], slack[:300],
+                slack[cols])
         rn, cn, chn, can, gn = native.parent_tile(*args, use_native=True)
         rp, cp, chp, cap, gp = native.parent_tile(*args, use_native=False)
         np.testing.assert_array_equal(rn, rp)
@@ -117,23 +119,52 @@ def test_memory_sizes_parse_and_reject():
     assert memory.resolve_budget(None) > 0
 
 
-def test_base_estimate_is_an_upper_bound_of_the_measured_peak(tmp_path):
-    """Peak RSS of a streaming run stays below the base estimate the budget is checked against."""
-    code = (
-        "import resource, numpy as np, dqm\n"
-        "from dqm.synthetic import sized\n"
-        "from dqm.core import memory, pairs\n"
-        "ds = sized(12000, seed=1)\n"
-        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024\n"
-        "budget = memory.base_bytes(len(ds), 128, pairs.default_threads()) + (1 << 20)\n"
-        "r = dqm.quickmatch(ds.descriptors, ds.image_ids, rho=2.0, max_memory=budget)\n"
-        "peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024\n"
-        "print(int(r.stats['streaming']), peak - before, budget)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    streaming, grown, budget = int(out[0]), int(out[1]), int(out[2])
-    assert streaming == 1
-    assert grown < budget
+def test_peak_memory_does_not_grow_with_the_candidate_edges(monkeypatch):
+    """numpy's allocations (traced): at rho 2 nearly every pair is a candidate; the dense
+    pass holds them all, the default engine streams and stays within the budget."""
+    import tracemalloc
+
+    ds = sized(2500, seed=1)
+    X, ids = ds.descriptors, ds.image_ids
+    budget = memory.base_bytes(len(X), 128, pairs.default_threads()) + (2 << 20)
+    peaks = {}
+    tracemalloc.start()
+    try:
+        for name, cap, dense in (("auto", None, False), ("budget", budget, False), ("dense", None, True)):
+            if dense:
+                monkeypatch.setattr(memory, "max_dense_edges", lambda *a: 10 ** 15)
+            tracemalloc.reset_peak()
+            r = dqm.quickmatch(X, ids, rho=2.0, max_memory=cap)
+            peaks[name] = tracemalloc.get_traced_memory()[1]
+            assert r.stats["streaming"] == (not dense)
+    finally:
+        tracemalloc.stop()
+    assert r.stats["n_pass_edges"] > 0.5 * len(X) ** 2  # the dense pass did hold nearly all pairs
+    assert peaks["auto"] < peaks["dense"] / 3
+    assert peaks["budget"] < budget
+
+
+def test_final_density_ties_rank_by_index_in_both_passes(monkeypatch):
+    """Densities that differ by less than float64 resolves around 1 are equal in the final
+    value 1 + d and rank by index; the streaming pass must not order them by the raw sums
+    (a case found in review: far features whose sums hold only underflowed terms)."""
+    th = np.deg2rad(66.1)
+    X = np.array([[20, 0], [21, 0], [20, 5], [21, 5], [2.2, 0], [2.2 * np.cos(th), 2.2 * np.sin(th)], [0, 0]])
+    ids = np.array([0, 0, 1, 1, 2, 3, 4])
+    cases = [(X, ids, dict(rho=2.5, n_threads=1))]
+    ds = sized(2000, features_per_image=250, seed=3)
+    cases.append((ds.descriptors, ds.image_ids, dict(rho=0.9, ratio_density=0.1)))
+    for X, ids, kw in cases:
+        dense = dqm.quickmatch(X, ids, **kw)
+        monkeypatch.setattr(memory, "max_dense_edges", lambda *a: 0)
+        streamed = dqm.quickmatch(X, ids, **kw)
+        monkeypatch.undo()
+        assert dense.stats["streaming"] == 0.0 and streamed.stats["streaming"] == 1.0
+        np.testing.assert_array_equal(streamed.labels, dense.labels)
+        np.testing.assert_array_equal(streamed.parent, dense.parent)
+        np.testing.assert_array_equal(streamed.density, dense.density)
+        labels, *_ = dense_quickmatch(X, ids, kw["rho"], ratio_density=kw.get("ratio_density", 0.25))
+        assert same_partition(dense.labels, labels)
 
 
 def test_cli_refuses_bad_and_too_small_budgets_in_one_line(tmp_path):

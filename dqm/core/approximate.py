@@ -38,6 +38,8 @@ NLIST_FACTOR = 1
 DEFAULT_NPROBE = 16
 #: k-means training sample per list
 TRAIN_PER_LIST = 40
+#: below this many features the graph is exact (faiss IndexFlatL2): cheaper than training
+EXACT_BELOW = 4096
 #: queries per faiss search call (progress granularity)
 QUERY_BATCH = 1 << 15
 
@@ -73,23 +75,34 @@ def knn_graph(X: np.ndarray, k: int, *, n_threads: int, nprobe: int = DEFAULT_NP
     The feature itself is never among its neighbours.
     """
     faiss = require_faiss()
+    threads_before = faiss.omp_get_max_threads()
     faiss.omp_set_num_threads(int(n_threads))
+    try:
+        return _knn_graph(faiss, X, k, nprobe, seed, progress)
+    finally:
+        faiss.omp_set_num_threads(threads_before)
+
+
+def _knn_graph(faiss, X, k, nprobe, seed, progress):
     n, dim = X.shape
     k = int(min(k, n - 1))
     nlist = n_lists(n)
     quantizer = faiss.IndexFlatL2(dim)
-    if X.dtype == np.uint8:
+    if n < EXACT_BELOW:  # small: an exact graph costs less than training an index
+        index = quantizer
+    elif X.dtype == np.uint8:
         index = faiss.IndexIVFScalarQuantizer(quantizer, dim, nlist, faiss.ScalarQuantizer.QT_8bit_direct,
                                               faiss.METRIC_L2, False)  # codes are the bytes, not residuals
     else:
         index = faiss.IndexIVFFlat(quantizer, dim, nlist, faiss.METRIC_L2)
-    index.cp.seed = int(seed)
-    rng = np.random.default_rng(seed)
-    sample = np.sort(rng.choice(n, size=min(n, TRAIN_PER_LIST * nlist), replace=False))
-    index.train(np.ascontiguousarray(X[sample], dtype=np.float32))
+    if index is not quantizer:
+        index.cp.seed = int(seed)
+        rng = np.random.default_rng(seed)
+        sample = np.sort(rng.choice(n, size=min(n, TRAIN_PER_LIST * nlist), replace=False))
+        index.train(np.ascontiguousarray(X[sample], dtype=np.float32))
+        index.nprobe = int(min(nprobe, nlist))
     for s in range(0, n, QUERY_BATCH):
         index.add(np.ascontiguousarray(X[s:s + QUERY_BATCH], dtype=np.float32))
-    index.nprobe = int(min(nprobe, nlist))
     nbr = np.empty((n, k), dtype=np.int64)
     dist = np.empty((n, k), dtype=np.float32)
     for s in range(0, n, QUERY_BATCH):
@@ -124,7 +137,7 @@ def knn_density_others(nbr: np.ndarray, sq_dist: np.ndarray, weights: np.ndarray
         nb = nbr[s:s + step]
         valid = nb >= 0
         src = np.where(valid, nb, 0)
-        arg = sq_dist[s:s + step].astype(np.float64)
+        arg = np.where(valid, sq_dist[s:s + step], 0.0)  # no inf * 0 where a neighbour is missing
         arg *= weights[src]
         terms = np.exp(-arg) if kernel == "gaussian" else np.maximum(0.0, 1.0 - arg)
         terms *= active[src] * valid

@@ -197,6 +197,24 @@ def _sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, 
     return sig
 
 
+def final_density_bounds(dens_o: np.ndarray, err: np.ndarray):
+    """Bounds ``[lo, hi]`` of every final density ``fl(1 + d)``, d within ``err`` of ``dens_o``.
+
+    The tree ranks features on the float64 value ``1 + d``, in which densities
+    closer than ~1e-16 are equal and rank by index. Bounding that value, not d,
+    makes the pair relation (:func:`dqm.core.native.rank_relation`) agree with
+    the final ranking: disjoint bounds order the pair, equal point bounds
+    (``lo == hi``: exact, or rounding to one value) rank it by index, and any
+    other pair is settled with exact densities. Rounding to nearest is
+    monotone, so ``lo <= fl(1 + d) <= hi``; a one-ulp widening covers the
+    rounding of ``dens_o -+ err`` itself.
+    """
+    exact = err == 0
+    lo = np.where(exact, dens_o, np.nextafter(dens_o - err, -np.inf))
+    hi = np.where(exact, dens_o, np.nextafter(dens_o + err, np.inf))
+    return 1.0 + lo, 1.0 + hi
+
+
 def feature_progress(progress: ProgressArg, label: str, n: int):
     """A stage's progress counted in features: its ``(done, total)`` work items map to
     ``n * done / total`` of the ``n`` features."""
@@ -270,6 +288,8 @@ def quickmatch(
                       "(every feature is its own cluster)", stacklevel=2)
     stats: Dict[str, float] = {}
 
+    if not isinstance(approximate, (bool, np.bool_)):
+        raise V.InputError(f"approximate must be True or False, got {approximate!r}")
     threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
     budget = memory.resolve_budget(max_memory)
     if approximate and n > 2:
@@ -308,28 +328,22 @@ def quickmatch(
         return exact if zcount is None else exact + zcount[idx] - zero[idx]
 
     other_image = parent == "other-image"
+    # duplicates first: exact and equal, so their order is certain (by index) in both passes
+    dup = np.flatnonzero(gsize[groups] > 1)
+    dens_o = dens_o.copy()
+    err = err.copy()
+    if len(dup):
+        dens_o[dup] = exact_others(dup)
+        err[dup] = 0.0
+        dens_o = equalize_duplicates(dens_o, groups, gsize)
+    lo, hi = final_density_bounds(dens_o, err)
     if streaming:
-        # duplicates first: exact and equal, so the parent pass treats their order as certain
-        dup = np.flatnonzero(gsize[groups] > 1)
-        dens_o = dens_o.copy()
-        err = err.copy()
-        if len(dup):
-            dens_o[dup] = exact_others(dup)
-            err[dup] = 0.0
-            dens_o = equalize_duplicates(dens_o, groups, gsize)
-        lo, hi = dens_o - err, dens_o + err
         tp = time.perf_counter()
         cr, cc = pairs.parent_pass(aug, lo, hi, radius, image_index if other_image else None, n_threads=threads,
                                    progress=feature_progress(progress, "quickmatch parents", n))
         stats["time_parent_pass"] = time.perf_counter() - tp
         d = pairs.exact_distances(aug.exact, cr, cc)
         keep = d < radius[cr]
-        cr, cc, d = cr[keep], cc[keep], d[keep]
-        uncertain = native.rank_relation(lo, hi, cc, cr) == 0
-        refine = np.zeros(n, dtype=bool)
-        refine[cr[uncertain]] = True
-        refine[cc[uncertain]] = True
-        refine[dup] = False
     else:
         stats["n_pass_edges"] = float(len(cr))
         # candidate edges, exact distances, within the child's radius
@@ -337,13 +351,14 @@ def quickmatch(
         keep = d < radius[cr]
         if other_image:
             keep &= image_index[cr] != image_index[cc]
-        cr, cc, d = cr[keep], cc[keep], d[keep]
-        # refine densities whose order on some candidate edge is not certain
-        uncertain = np.abs(dens_o[cr] - dens_o[cc]) <= err[cr] + err[cc]
-        refine = np.zeros(n, dtype=bool)
-        refine[cr[uncertain]] = True
-        refine[cc[uncertain]] = True
-        refine |= gsize[groups] > 1
+    cr, cc, d = cr[keep], cc[keep], d[keep]
+    # refine densities whose order on some candidate edge is not certain (the same rule in both passes,
+    # so both refine the same features and end with the same density values)
+    uncertain = native.rank_relation(lo, hi, cc, cr) == 0
+    refine = np.zeros(n, dtype=bool)
+    refine[cr[uncertain]] = True
+    refine[cc[uncertain]] = True
+    refine[dup] = False
     idx = np.flatnonzero(refine)
     if len(idx):
         dens_o = dens_o.copy()

@@ -49,8 +49,8 @@ def parse_size(text: Union[str, int, float]) -> int:
         if not m or m.group(2).lower() not in _UNITS:
             raise InputError(f"memory size {text!r} is not understood; write e.g. 8G, 512M or 2.5GiB")
         value = float(m.group(1)) * _UNITS[m.group(2).lower()]
-    if not value > 0:
-        raise InputError(f"memory size must be positive, got {text!r}")
+    if not (value > 0 and value < float(1 << 62)):
+        raise InputError(f"memory size must be positive and finite, got {text!r}")
     return int(value)
 
 
@@ -101,8 +101,8 @@ def base_bytes(n: int, dim: int, n_threads: int) -> int:
     input and its centred copy, the float32 GEMM operands, a compact copy,
     about twenty per-feature arrays, and each worker's tiles and buffers."""
     per_feature = dim * (8 + 8 + 4 + 4 + 1) + 8 + 20 * 8
-    per_thread = 48 << 20
-    return int(n * per_feature + n_threads * per_thread + (64 << 20))
+    per_thread = (48 << 20) * min(1.0, n / 1024)  # a tile and its buffers; smaller inputs, smaller tiles
+    return int(n * per_feature + n_threads * per_thread + (16 << 20))
 
 
 def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quickmatch") -> int:
