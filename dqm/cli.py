@@ -16,6 +16,7 @@ import sys
 from typing import List, Optional
 
 from . import __version__
+from .commands import HelpFormatter
 from .validation import InputError
 
 COMMANDS = [
@@ -39,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     for modname in COMMANDS:
         mod = importlib.import_module(modname)
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=(mod.__doc__ or mod.HELP).strip(),
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+                           formatter_class=HelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser

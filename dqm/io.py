@@ -30,6 +30,7 @@ import csv
 import json
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -63,6 +64,12 @@ class FeatureSet:
         return self
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_savez(path: Path, arrays: dict) -> None:
     """Write an npz next to ``path`` and rename it in place: no half-written file."""
     path = Path(path)
@@ -71,6 +78,7 @@ def _atomic_savez(path: Path, arrays: dict) -> None:
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a result file follows the umask like any other
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -96,10 +104,13 @@ def load_features(path) -> FeatureSet:
     p = Path(path)
     if not p.exists():
         raise InputError(f"features file not found: {p}")
+    if not zipfile.is_zipfile(p):
+        raise InputError(f"{p}: not an .npz features file (an .npz is a zip archive of numpy arrays; "
+                         "see docs/formats.md)")
     try:
         z = np.load(p, allow_pickle=False)
     except Exception as exc:  # noqa: BLE001 - any unreadable file
-        raise InputError(f"{p}: not a readable .npz features file ({exc})") from None
+        raise InputError(f"{p}: not a readable .npz features file ({type(exc).__name__})") from None
     with z:
         for key in ("descriptors", "image_ids"):
             if key not in z.files:
@@ -113,6 +124,12 @@ def load_features(path) -> FeatureSet:
     return fs.validate(str(p))
 
 
+def absolute_if_exists(name: str) -> str:
+    """The absolute path of an existing file, else the name as given."""
+    p = Path(str(name))
+    return str(p.resolve()) if p.is_file() else str(name)
+
+
 def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = None) -> None:
     from . import __version__
 
@@ -122,6 +139,8 @@ def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = N
         params.update(approximate=True, n_neighbors=int(result.stats["n_neighbors"]))
     params.update(extra_params or {})
     arrays = _feature_arrays(fs)
+    if "image_names" in arrays:  # absolute, so the file can be used from any folder
+        arrays["image_names"] = np.array([absolute_if_exists(n) for n in arrays["image_names"].tolist()])
     arrays.update(
         labels=result.labels, sigma=result.sigma, density=result.density, parent=result.parent,
         parent_distance=result.parent_distance, params=np.array(json.dumps(params)),

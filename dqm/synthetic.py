@@ -64,7 +64,7 @@ def sift_like(
     protos = rng.gamma(0.5, 1.0, size=(n_prototypes, dim))
     which = rng.integers(0, n_prototypes, size=n_points)
     base = 0.6 * protos[which] + rng.gamma(0.5, 1.0, size=(n_points, dim))
-    scale = base.mean()
+    scale = base.mean() if n_points else 1.0  # no points: clutter only
     descs, imgs, pids = [], [], []
     for img in range(n_images):
         seen = np.flatnonzero(rng.random(n_points) < visibility)

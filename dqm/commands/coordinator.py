@@ -45,6 +45,10 @@ def run(args) -> int:
 
     check_agents(args.agents)
     check_seed(args.seed)
+    if args.out:
+        from .. import outputs
+
+        outputs.check_file(args.out, "--out")
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
     cfg = config_from(args, args.agents, args.seed).validated()

@@ -29,7 +29,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from .. import __version__, baselines, benchmark, evaluation
+from .. import __version__, baselines, benchmark, evaluation, outputs
 from ..core import DEFAULT_RHO
 from ..features import PRESETS
 from ..validation import InputError
@@ -42,7 +42,9 @@ def add_arguments(p) -> None:
     p.add_argument("data", nargs="*", metavar="DATA",
                    help="graf | wall | boat | bikes | hotel | scene[:SEED] | FOLDER (default: all + scene)")
     p.add_argument("--data-root", default=None, help="folder holding oxford/ and cmu_hotel/")
-    p.add_argument("--out-dir", default="docs", help="where evaluation.md, evaluation.json and plots go")
+    p.add_argument("--out-dir", default=None,
+                   help="where evaluation.md, evaluation.json and plots go (default ./dqm-out/evaluate; "
+                        "--out-dir docs regenerates the committed docs)")
     p.add_argument("--methods", default=",".join(benchmark.METHODS),
                    help="comma-separated subset of: " + ", ".join(benchmark.METHODS))
     p.add_argument("--rho", type=float, default=DEFAULT_RHO, help="QuickMatch's operating point")
@@ -206,7 +208,7 @@ def run(args) -> int:
     explicit = bool(args.data)
     specs = args.data or list(benchmark.DATASETS) + ["scene"]
     say = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
-    out_dir = Path(args.out_dir)
+    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
     results: Dict[str, List[benchmark.MethodResult]] = {}
     benches: Dict[str, benchmark.Benchmark] = {}
     skipped = []

@@ -42,7 +42,9 @@ def _parse_list(text: str, kind, name: str) -> List:
 
 def add_arguments(p) -> None:
     p.add_argument("experiment", choices=EXPERIMENTS, help="which experiment")
-    p.add_argument("--out-dir", default="docs", help="where camnet.md and camnet.json go (default docs)")
+    p.add_argument("--out-dir", default=None,
+                   help="where camnet.md and camnet.json go (default ./dqm-out/experiment; "
+                        "--out-dir docs regenerates the committed docs)")
     p.add_argument("--img-dir", default=None, help="where the figures go (default OUT_DIR/img)")
     p.add_argument("--seeds", default="0",
                    help="comma-separated world seeds; the first gets the figures, all go in a table (default 0)")
@@ -73,6 +75,13 @@ def run(args) -> int:
 
     if args.experiment != "localization":  # argparse's choices already say so
         raise InputError(f"unknown experiment {args.experiment!r}")
+    from .. import outputs
+
+    args.out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("experiment"), "--out-dir")
+    if args.img_dir:
+        outputs.check_dir(args.img_dir, "--img-dir")
+    else:
+        outputs.check_dir(args.out_dir / "img", "--out-dir")
     seeds = _parse_list(args.seeds, int, "--seeds")
     if len(set(seeds)) != len(seeds):
         raise InputError(f"--seeds repeat: {args.seeds}")

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from .. import io
+from .. import io, outputs
 from ..features import PRESETS
 from ..core import DEFAULT_NEIGHBORS, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
 from ..core.memory import parse_size
@@ -36,7 +36,9 @@ def add_arguments(p) -> None:
     p.add_argument("--rho", type=float, default=DEFAULT_RHO, help=f"merge ratio (default {DEFAULT_RHO})")
     p.add_argument("--ratio-density", type=float, default=DEFAULT_RATIO_DENSITY,
                    help=f"Gaussian bandwidth / sigma (default {DEFAULT_RATIO_DENSITY})")
-    p.add_argument("--kernel", choices=KERNELS, default="gaussian")
+    p.add_argument("--kernel", choices=KERNELS, default="gaussian",
+                   help="density kernel: the reference code's Gaussian, or the finite quadratic one that dqm run "
+                        "uses (docs/quickmatch.md)")
     p.add_argument("--parent", choices=PARENT_MODES, default="any",
                    help="'other-image': a feature's tree parent must come from another image")
     p.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
@@ -83,6 +85,9 @@ def load_input(args) -> io.FeatureSet:
 
 def run(args) -> int:
     t0 = time.perf_counter()
+    outputs.check_file(args.out, "--out")
+    if args.tracks_csv:
+        outputs.check_file(args.tracks_csv, "--tracks-csv")
     fs = load_input(args)
     n_images = len(np.unique(fs.image_ids))
     if len(fs) == 0:

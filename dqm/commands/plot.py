@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import HelpFormatter
 from .. import io, plots
 from ..evaluation import PRCurve, cluster_pairs, reprojection_error
 from ..validation import InputError
@@ -32,27 +33,29 @@ HELP = "draw matches (pair, clusters), cluster sizes or PR curves"
 
 def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="what", metavar="WHAT", required=True)
-    a = sub.add_parser("pair", help="two images with lines between matched features")
+    a = sub.add_parser("pair", formatter_class=HelpFormatter, help="two images with lines between matched features")
     a.add_argument("clusters", metavar="CLUSTERS.npz")
     a.add_argument("--images", type=int, nargs=2, default=(0, 1), metavar=("I", "J"), help="image ids (default 0 1)")
-    a.add_argument("--out", required=True)
+    a.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
     a.add_argument("--truth", default=None, help="Oxford-layout folder with H1toNp: colour lines by correctness")
     a.add_argument("--tol", type=float, default=5.0, help="pixels, with --truth")
-    a.add_argument("--max-lines", type=int, default=300)
+    a.add_argument("--max-lines", type=int, default=300,
+                   help="draw at most this many matches (a random subset)")
     a.add_argument("--image-dir", default=None, help="folder for relative image names")
-    c = sub.add_parser("clusters", help="patches of the features of the largest clusters")
+    c = sub.add_parser("clusters", formatter_class=HelpFormatter,
+                       help="patches of the features of the largest clusters")
     c.add_argument("clusters", metavar="CLUSTERS.npz")
-    c.add_argument("--out", required=True)
+    c.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
     c.add_argument("--count", type=int, default=6, help="clusters to draw (largest first)")
-    c.add_argument("--min-size", type=int, default=2)
+    c.add_argument("--min-size", type=int, default=2, help="smallest cluster size drawn")
     c.add_argument("--radius", type=int, default=32, help="patch half-size in pixels")
     c.add_argument("--image-dir", default=None, help="folder for relative image names")
-    s = sub.add_parser("sizes", help="histogram of cluster sizes")
+    s = sub.add_parser("sizes", formatter_class=HelpFormatter, help="histogram of cluster sizes")
     s.add_argument("clusters", metavar="CLUSTERS.npz")
-    s.add_argument("--out", required=True)
-    r = sub.add_parser("pr", help="PR curves from a dqm evaluate JSON")
+    s.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
+    r = sub.add_parser("pr", formatter_class=HelpFormatter, help="PR curves from a dqm evaluate JSON")
     r.add_argument("evaluation", metavar="EVALUATION.json")
-    r.add_argument("--out-dir", required=True)
+    r.add_argument("--out-dir", required=True, help="folder for one pr_<data set>.png per data set")
 
 
 def _images(cl: dict, image_dir) -> list:
@@ -151,4 +154,10 @@ def _pr(args) -> int:
 
 
 def run(args) -> int:
+    from .. import outputs
+
+    if args.what == "pr":
+        outputs.check_dir(args.out_dir, "--out-dir")
+    else:
+        outputs.check_file(args.out, "--out", outputs.IMAGE_SUFFIXES)
     return {"pair": _pair, "clusters": _clusters, "sizes": _sizes, "pr": _pr}[args.what](args)

@@ -17,7 +17,6 @@ Exit codes: 0 done, 1 --check found different clusters, 2 bad input,
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 
@@ -41,19 +40,6 @@ def add_arguments(p) -> None:
     add_algorithm(p)
 
 
-def _check_report_path(path: str) -> None:
-    from pathlib import Path
-
-    from ..validation import InputError
-
-    p = Path(path)
-    if p.is_dir():
-        raise InputError(f"--report {path} is a folder; give a file name")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    if not os.access(p.parent, os.W_OK):
-        raise InputError(f"--report {path}: cannot write in {p.parent}")
-
-
 def run(args) -> int:
     from .. import evaluation, io, synthetic
     from ..distributed.protocol import traffic_table
@@ -75,7 +61,9 @@ def run(args) -> int:
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
     if args.report:
-        _check_report_path(args.report)
+        from .. import outputs
+
+        outputs.check_file(args.report, "--report")
     t0 = time.perf_counter()
     try:
         rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True)

@@ -14,15 +14,19 @@ def add_algorithm(p) -> None:
                    help="balanced (clusters identical to centralized, work spread evenly), lean (the hand-down "
                         "cascade: fewer bytes, work gathers at agent 0) or paper (the seed paper's literal "
                         "procedure); docs/distributed.md")
-    g.add_argument("--partition", choices=PARTITION_MODES, default="kmeans")
-    g.add_argument("--rho", type=float, default=DEFAULT_RHO)
-    g.add_argument("--kernel", choices=KERNELS, default="quadratic")
+    g.add_argument("--partition", choices=PARTITION_MODES, default="kmeans",
+                   help="how the cell seeds are drawn from the seed integer")
+    g.add_argument("--rho", type=float, default=DEFAULT_RHO, help="merge ratio")
+    g.add_argument("--kernel", choices=KERNELS, default="quadratic",
+                   help="density kernel. Quadratic here (finite support, so a density never needs features "
+                        "beyond a cell's halo), while dqm match and dqm demo default to the reference code's "
+                        "Gaussian; with the same kernel the clusters equal dqm.quickmatch's")
     g.add_argument("--halo", type=float, default=1.0, help="lean/paper: contested-test width factor (1 = safe)")
     g.add_argument("--samples", type=int, default=64, help="set-up sample descriptors per agent")
     g.add_argument("--seed-norm", type=float, default=512.0, help="descriptor norm for seeded seeds (SIFT: 512)")
     g.add_argument("--cell-weights", dest="cell_weights", action="store_true", default=None,
                    help="balance the cells with power-diagram weights (default: on in balanced mode)")
-    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false")
+    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false", help="plain Voronoi cells")
     g.add_argument("--ghost-rule", choices=GHOST_RULES, default="one-way",
                    help="balanced: one-way (default) or two-way (the plain bisector halo, for comparison)")
     g.add_argument("--sketch-dims", type=int, default=DEFAULT_SKETCH_DIMS,

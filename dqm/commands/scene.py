@@ -21,7 +21,7 @@ def add_arguments(p) -> None:
     p.add_argument("out", metavar="FOLDER", help="folder to write (created; existing img*/H1to* files replaced)")
     p.add_argument("--images", type=int, default=6, help="number of views (default 6)")
     p.add_argument("--size", type=int, nargs=2, default=(480, 640), metavar=("H", "W"), help="view size")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="generator seed")
     p.add_argument("--viewpoint", type=float, default=1.0, help="perspective change strength (0 = none)")
     p.add_argument("--photometric", type=float, default=1.0, help="gain/bias/gamma change strength")
     p.add_argument("--noise", type=float, default=3.0, help="sensor noise, grey levels")
@@ -30,6 +30,9 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if args.images < 2:
         raise InputError("--images must be at least 2")
+    from .. import outputs
+
+    outputs.check_dir(args.out, "FOLDER")
     scene = generate_scene(args.images, tuple(args.size), seed=args.seed, viewpoint=args.viewpoint,
                            photometric=args.photometric, noise=args.noise)
     seq = scene.write(args.out)

@@ -1,0 +1,152 @@
+"""What a new user meets around the happy path (issue 12): output paths checked before any
+work in one line naming the path, no default writes into the committed docs, result files
+that follow the umask, CLUSTERS usable from any folder, plain messages for bad inputs."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from dqm import io, outputs
+from dqm.cli import main
+from dqm.synthetic import sized
+
+#: an existing folder where no file can be created, and a folder that cannot be created
+#: (/proc refuses both, even to root, for whom permission bits do not apply)
+UNWRITABLE_DIR = "/proc/self"
+UNCREATABLE_DIR = "/proc/dqm-no-such-folder"
+
+
+@pytest.fixture(scope="module")
+def features(tmp_path_factory):
+    path = tmp_path_factory.mktemp("outputs") / "f.npz"
+    ds = sized(1500, seed=0)
+    io.save_features(path, io.FeatureSet(ds.descriptors, ds.image_ids))
+    return path
+
+
+def one_error_line(capsys, argv, *needles):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    for needle in needles:
+        assert needle in err[0], err[0]
+    return err[0]
+
+
+def test_match_refuses_a_folder_a_read_only_place_and_an_uncreatable_folder(tmp_path, features, capsys):
+    one_error_line(capsys, ["match", str(features), "--out", str(tmp_path)], str(tmp_path), "is a folder")
+    one_error_line(capsys, ["match", str(features), "--out", f"{UNWRITABLE_DIR}/c.npz"], "cannot write in /proc/self")
+    one_error_line(capsys, ["match", str(features), "--out", f"{UNCREATABLE_DIR}/c.npz"], "cannot create the folder")
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    one_error_line(capsys, ["match", str(features), "--out", str(blocker / "c.npz")], "is not a folder")
+    one_error_line(capsys, ["match", str(features), "--out", str(tmp_path / "c.npz"), "--tracks-csv",
+                            str(tmp_path)], "--tracks-csv", "is a folder")
+    assert not (tmp_path / "c.npz").exists()  # refused before the work, nothing half-written
+
+
+def test_match_creates_missing_parent_folders(tmp_path, features, capsys):
+    out = tmp_path / "new" / "deeper" / "c.npz"
+    assert main(["match", str(features), "--out", str(out), "--quiet"]) == 0
+    assert out.exists()
+
+
+def test_plot_checks_the_image_format_and_folder_before_reading_anything(tmp_path, capsys):
+    missing = str(tmp_path / "no-such-clusters.npz")
+    one_error_line(capsys, ["plot", "pair", missing, "--out", str(tmp_path / "p.xyz")], "unknown format .xyz",
+                   ".png")
+    one_error_line(capsys, ["plot", "sizes", missing, "--out", str(tmp_path / "p")], "(no suffix)")
+    one_error_line(capsys, ["plot", "pr", missing, "--out-dir", f"{UNCREATABLE_DIR}/pr"], "cannot create")
+
+
+def test_run_report_and_evaluate_out_dir_are_checked_first(tmp_path, capsys):
+    one_error_line(capsys, ["run", "--agents", "2", "--report", str(tmp_path)], "--report", "is a folder")
+    one_error_line(capsys, ["evaluate", "scene", "--out-dir", f"{UNWRITABLE_DIR}"], "--out-dir", "cannot write")
+    one_error_line(capsys, ["experiment", "localization", "--quick", "--out-dir", f"{UNCREATABLE_DIR}/x"],
+                   "--out-dir", "cannot create")
+
+
+def test_evaluate_and_experiment_default_to_dqm_out_not_docs(tmp_path):
+    """Run from an empty folder: the default output goes to ./dqm-out/<command>, never ./docs."""
+    assert outputs.default_dir("evaluate").as_posix() == "dqm-out/evaluate"
+    env = dict(os.environ, MPLBACKEND="Agg")
+    p = subprocess.run([sys.executable, "-m", "dqm", "evaluate", "scene:1", "--methods", "quickmatch", "--rhos",
+                        "0.9", "--ratios", "0.75", "--max-features", "300", "--quiet"],
+                       cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "dqm-out" / "evaluate" / "evaluation.md").exists()
+    assert not (tmp_path / "docs").exists()
+
+
+def test_check_file_accepts_a_writable_path(tmp_path):
+    assert outputs.check_file(tmp_path / "a" / "b.png", "--out", outputs.IMAGE_SUFFIXES) == tmp_path / "a" / "b.png"
+    assert (tmp_path / "a").is_dir() and not any((tmp_path / "a").iterdir())  # the probe leaves nothing
+
+
+def test_npz_results_follow_the_umask(tmp_path, features):
+    old = os.umask(0o022)
+    try:
+        io.save_features(tmp_path / "f.npz", io.load_features(features))
+        assert main(["match", str(features), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
+    finally:
+        os.umask(old)
+    for name in ("f.npz", "c.npz"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644
+
+
+def test_clusters_name_images_by_absolute_path(tmp_path):
+    assert main(["scene", str(tmp_path / "scene"), "--images", "2", "--size", "160", "200", "--seed", "2"]) == 0
+    p = subprocess.run([sys.executable, "-m", "dqm", "match", "scene", "--out", "c.npz", "--quiet",
+                        "--max-features", "200"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    names = io.load_clusters(tmp_path / "c.npz")["image_names"].tolist()
+    assert len(names) == 2 and all(os.path.isabs(n) and os.path.isfile(n) for n in names)
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    p = subprocess.run([sys.executable, "-m", "dqm", "plot", "pair", str(tmp_path / "c.npz"), "--out", "p.png"],
+                       cwd=other, capture_output=True, text=True, timeout=300, env=dict(os.environ, MPLBACKEND="Agg"))
+    assert p.returncode == 0, p.stderr
+    assert (other / "p.png").exists()
+
+
+def test_a_text_file_given_as_npz_gets_one_plain_line(tmp_path, capsys):
+    bad = tmp_path / "f.npz"
+    bad.write_text("descriptors,image_ids\n1,2\n")
+    line = one_error_line(capsys, ["match", str(bad), "--out", str(tmp_path / "c.npz")], "not an .npz features file")
+    assert "pickle" not in line
+
+
+def test_every_option_has_help_and_shows_its_default():
+    import argparse
+
+    from dqm.cli import build_parser
+
+    missing, undefaulted = [], []
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, path + [name])
+            elif action.option_strings and action.dest not in ("help", "version"):
+                if not action.help:
+                    missing.append((path, action.option_strings))
+                elif not any(action.default is v for v in (None, False, True)):
+                    shown = parser.formatter_class(prog="x")._get_help_string(action)
+                    if "default" not in shown.lower():
+                        undefaulted.append((path, action.option_strings))
+
+    walk(build_parser(), ["dqm"])
+    assert not missing, missing
+    assert not undefaulted, undefaulted
+
+
+def test_demo_messages_are_plain(capsys):
+    assert main(["demo", "--images", "1", "--points", "20"]) == 0
+    out = capsys.readouterr()
+    assert "note: all features come from one image" in out.out
+    assert "UserWarning" not in out.out + out.err and "recall" not in out.out
+    assert main(["demo", "--points", "0", "--images", "3"]) == 0
+    out = capsys.readouterr()
+    assert "no true pairs to find" in out.out and "RuntimeWarning" not in out.err
