@@ -30,11 +30,13 @@ def job_processes(job):
     return [int(p) for p in out if int(p) != os.getpid() and alive(int(p))]
 
 
-def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), **kw):
-    """Run a job; SIGKILL the victim processes when the first of them enters ``state``."""
+def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), settle_s=0.0, **kw):
+    """Run a job; SIGKILL the victim processes when the first of them enters ``state``
+    (``settle_s`` later: the paused agent's zenoh threads keep delivering what it sent)."""
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE=f"{victims[0]}:{state}", DQM_FAULT_MARKER=str(marker))
     th, started, outcome = start_held_job(X, ids, cfg, marker, env, timeout_s=90, ready_timeout_s=20, **kw)
+    time.sleep(settle_s)
     for v in victims:
         os.kill(started["agents"][v].pid, signal.SIGKILL)
     t_kill = time.monotonic()
@@ -53,7 +55,9 @@ def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), **kw):
 def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mode, state):
     X, ids = data
     cfg = DQMConfig(agents=3, seed=1, mode=mode, job=f"kill-{mode}-{state}")
-    outcome, _ = run_with_kill(X, ids, cfg, tmp_path, state)
+    # wait_finish: the agent has just sent its statistics; give them 2 s to reach the coordinator
+    # (on a loaded machine a kill right away could beat them, and the job would rightly redo it)
+    outcome, _ = run_with_kill(X, ids, cfg, tmp_path, state, settle_s=2.0 if state == "wait_finish" else 0.0)
     assert "ok" in outcome, outcome.get("error")
     rep = outcome["ok"]
     np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
