@@ -20,6 +20,7 @@ from .commands import HelpFormatter
 from .validation import InputError
 
 COMMANDS = [
+    "dqm.commands.extract",
     "dqm.commands.match",
     "dqm.commands.demo",
     "dqm.commands.evaluate",

@@ -13,7 +13,7 @@ import glob
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Iterable, List, Sequence, Tuple, Union
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -213,18 +213,49 @@ def extract_many(images: Sequence, preset: str = "opencv", max_features: int = 0
     return np.vstack(descs), np.concatenate(ids).astype(np.int64), np.vstack(kps)
 
 
-def extract_images(inputs, preset: str = "opencv", max_features: int = 0, progress=None, min_images: int = 2):
+def unreadable_images(paths: Sequence[Path]) -> List[Path]:
+    """The files OpenCV has no decoder for (by their header; cheap, nothing is decoded)."""
+    import cv2
+
+    return [p for p in paths if not cv2.haveImageReader(str(p))]
+
+
+def extract_images(inputs, preset: str = "opencv", max_features: int = 0, progress=None, min_images: int = 2,
+                   skip_bad: bool = False, skipped: Optional[List[str]] = None):
     """SIFT of every image in folders / globs / files: a :class:`dqm.io.FeatureSet` with keypoints and names.
 
+    Unreadable files are found before any SIFT runs: by default they are
+    refused in one line naming them; with ``skip_bad`` they are left out (and
+    appended to ``skipped``), as is an image that fails to decode later.
     Raises InputError when fewer than ``min_images`` images are found or fewer
     than ``min_images`` of them have any feature (nothing to match).
     """
     from .io import FeatureSet
 
     paths = collect_images(inputs)
+    bad = unreadable_images(paths)
+    if bad and not skip_bad:
+        raise InputError(f"cannot read image(s) (not an image or empty): {len(bad)} file(s): "
+                         + ", ".join(str(p) for p in bad[:5]) + (" ..." if len(bad) > 5 else "")
+                         + "; --skip-bad-images leaves them out")
+    paths = [p for p in paths if p not in bad]
+    lost = [str(p) for p in bad]
     if len(paths) < min_images:
         raise InputError(f"need at least {min_images} images to match, got {len(paths)}: "
                          + ", ".join(str(p) for p in paths))
+    if skip_bad:  # a file whose header looks fine can still fail to decode: leave it out too
+        readable = []
+        for p in paths:
+            try:
+                read_gray(p)
+                readable.append(p)
+            except InputError:
+                lost.append(str(p))
+        paths = readable
+    if skipped is not None:
+        skipped.extend(lost)
+    if len(paths) < min_images:
+        raise InputError(f"need at least {min_images} readable images, got {len(paths)}")
     D, ids, kp = extract_many(paths, preset=preset, max_features=max_features, progress=progress)
     with_features = len(np.unique(ids))
     if with_features < min_images:

@@ -150,3 +150,25 @@ def test_demo_messages_are_plain(capsys):
     assert main(["demo", "--points", "0", "--images", "3"]) == 0
     out = capsys.readouterr()
     assert "no true pairs to find" in out.out and "RuntimeWarning" not in out.err
+
+
+def test_extract_makes_a_features_file_that_match_and_run_take(tmp_path, capsys):
+    assert main(["scene", str(tmp_path / "scene"), "--images", "3", "--size", "160", "200", "--seed", "4"]) == 0
+    out = tmp_path / "f.npz"
+    assert main(["extract", str(tmp_path / "scene"), "--out", str(out), "--max-features", "150", "--quiet"]) == 0
+    fs = io.load_features(out)
+    assert len(fs.image_names) == 3 and len(fs) > 100 and fs.keypoints.shape == (len(fs), 4)
+    assert main(["match", str(out), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
+
+
+def test_bad_images_are_refused_before_sift_or_skipped_on_request(tmp_path, capsys):
+    assert main(["scene", str(tmp_path / "scene"), "--images", "3", "--size", "160", "200", "--seed", "4"]) == 0
+    (tmp_path / "scene" / "img9.png").write_text("not a picture")
+    line = one_error_line(capsys, ["extract", str(tmp_path / "scene"), "--out", str(tmp_path / "f.npz"), "--quiet"],
+                          "cannot read image", "img9.png", "--skip-bad-images")
+    assert not (tmp_path / "f.npz").exists() and "sift" not in line
+    assert main(["match", str(tmp_path / "scene"), "--out", str(tmp_path / "c.npz"), "--quiet",
+                 "--skip-bad-images", "--max-features", "150"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: skipped 1 unreadable image(s)" in out and "img9.png" in out
+    assert len(io.load_clusters(tmp_path / "c.npz")["image_names"]) == 3

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from .. import io, outputs
-from ..features import PRESETS
+from .extract import add_image_options, extract
 from ..core import DEFAULT_NEIGHBORS, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
 from ..core.memory import parse_size
 from ..progress import ProgressBar
@@ -42,10 +42,7 @@ def add_arguments(p) -> None:
     p.add_argument("--parent", choices=PARENT_MODES, default="any",
                    help="'other-image': a feature's tree parent must come from another image")
     p.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="opencv",
-                   help="SIFT settings when INPUT are images: OpenCV defaults, or the seed paper's "
-                        "(nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, sigma=1.0)")
-    p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
+    add_image_options(p)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
     p.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
@@ -73,14 +70,7 @@ def load_input(args) -> io.FeatureSet:
     """A FEATURES .npz as is, or SIFT of the images named by the inputs (progress bar per image)."""
     if len(args.inputs) == 1 and args.inputs[0].endswith(".npz"):
         return io.load_features(args.inputs[0])
-    from ..features import extract_images
-
-    bar = ProgressBar("sift", force=False if args.quiet else None)
-    fs = extract_images(args.inputs, preset=args.preset, max_features=args.max_features, progress=bar)
-    empty = [str(fs.image_names[k]) for k in range(len(fs.image_names)) if not (fs.image_ids == k).any()]
-    if empty:
-        print(f"note: no SIFT features in {len(empty)} image(s): {', '.join(empty[:5])}")
-    return fs
+    return extract(args, min_images=2)
 
 
 def run(args) -> int:

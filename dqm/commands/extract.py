@@ -1,0 +1,62 @@
+"""Extract SIFT features from images into a FEATURES file (the input of dqm match and dqm run).
+
+IMAGES: a folder, a glob pattern, or image files (natural order; image id k is
+the k-th image). The FEATURES format is in docs/formats.md.
+
+    dqm extract photos/ --out features.npz
+    dqm extract 'frames/*.png' --out features.npz --preset paper --max-features 2000
+    dqm match features.npz --out clusters.npz
+"""
+from __future__ import annotations
+
+import time
+
+from .. import io, outputs
+from ..features import PRESETS
+from ..progress import ProgressBar
+
+NAME = "extract"
+HELP = "SIFT features of images into a FEATURES .npz"
+
+
+def add_image_options(p) -> None:
+    """SIFT options shared by the commands that read images."""
+    p.add_argument("--preset", choices=sorted(PRESETS), default="opencv",
+                   help="SIFT settings: OpenCV's own, or the seed paper's "
+                        "(nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, sigma=1.0)")
+    p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
+    p.add_argument("--skip-bad-images", action="store_true",
+                   help="leave out unreadable image files (listed in a warning) instead of refusing the run")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("inputs", nargs="+", metavar="IMAGES", help="image folder, glob pattern or files")
+    p.add_argument("--out", required=True, help="FEATURES.npz to write")
+    add_image_options(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def extract(args, min_images: int) -> io.FeatureSet:
+    """SIFT of the images named by ``args.inputs``, with the shared options; reports skipped files."""
+    from ..features import extract_images
+
+    bar = ProgressBar("sift", force=False if args.quiet else None, unit="images")
+    skipped = []
+    fs = extract_images(args.inputs, preset=args.preset, max_features=args.max_features, progress=bar,
+                        min_images=min_images, skip_bad=args.skip_bad_images, skipped=skipped)
+    if skipped:
+        print(f"warning: skipped {len(skipped)} unreadable image(s): {', '.join(skipped)}")
+    empty = [str(fs.image_names[k]) for k in range(len(fs.image_names)) if not (fs.image_ids == k).any()]
+    if empty:
+        print(f"note: no SIFT features in {len(empty)} image(s): {', '.join(empty[:5])}")
+    return fs
+
+
+def run(args) -> int:
+    t0 = time.perf_counter()
+    outputs.check_file(args.out, "--out")
+    fs = extract(args, min_images=1)
+    io.save_features(args.out, fs)
+    print(f"wrote {len(fs)} features of {len(fs.image_names)} images to {args.out} "
+          f"({time.perf_counter() - t0:.1f} s)")
+    return 0
