@@ -13,10 +13,12 @@ import importlib
 import os
 import signal
 import sys
+import warnings
 from typing import List, Optional
 
 from . import __version__
 from .commands import HelpFormatter
+from .core.native import kernel_description
 from .validation import InputError
 
 COMMANDS = [
@@ -31,12 +33,14 @@ COMMANDS = [
     "dqm.commands.agent",
     "dqm.commands.coordinator",
     "dqm.commands.experiment",
+    "dqm.commands.doctor",
 ]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dqm", description="Consistent multi-image feature matching with QuickMatch.")
-    parser.add_argument("--version", action="version", version=f"dqm {__version__}")
+    parser.add_argument("--version", action="version", version=f"dqm {__version__}, tile kernel: "
+                        f"{kernel_description()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in COMMANDS:
         mod = importlib.import_module(modname)
@@ -55,12 +59,18 @@ def _on_sigterm(signum, frame):
     raise Terminated()
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings reach a CLI user as one plain line, not Python's file:line format."""
+    print(f"warning: {str(message).removeprefix('quickmatch: ')}", file=file or sys.stderr)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    warnings.showwarning = _one_line_warning
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:
@@ -68,6 +78,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except InputError as exc:
         print(f"dqm {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into a reader that stopped early (| head): not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Terminated:
         print(f"dqm {args.command}: terminated", file=sys.stderr)
         return 143

@@ -172,3 +172,46 @@ def test_bad_images_are_refused_before_sift_or_skipped_on_request(tmp_path, caps
     out = capsys.readouterr().out
     assert "warning: skipped 1 unreadable image(s)" in out and "img9.png" in out
     assert len(io.load_clusters(tmp_path / "c.npz")["image_names"]) == 3
+
+
+def test_plot_pair_refuses_a_truth_folder_that_does_not_fit(tmp_path, capsys):
+    for name, size in (("a", ("160", "200")), ("b", ("120", "160"))):
+        assert main(["scene", str(tmp_path / name), "--images", "2", "--size", *size, "--seed", "4"]) == 0
+    assert main(["match", str(tmp_path / "a"), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
+    capsys.readouterr()
+    one_error_line(capsys, ["plot", "pair", str(tmp_path / "c.npz"), "--out", str(tmp_path / "p.png"),
+                            "--truth", str(tmp_path / "b")], "does not fit these images", "200x160", "160x120")
+    assert main(["plot", "pair", str(tmp_path / "c.npz"), "--out", str(tmp_path / "p.png"),
+                 "--truth", str(tmp_path / "a")]) == 0
+
+
+def test_version_and_doctor_say_which_kernel_runs(capsys):
+    from dqm.core import native
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert "tile kernel: " + native.kernel_description() in capsys.readouterr().out
+    assert main(["doctor"]) == 0
+    out = capsys.readouterr().out
+    assert "tile kernel: " in out and "eclipse-zenoh" in out and "OpenCV" in out and "shared data" in out
+
+
+def test_the_numpy_fallback_warns_once_on_a_large_input(monkeypatch):
+    import warnings
+
+    from dqm.core import native
+
+    monkeypatch.setattr(native, "_LIB", None)
+    monkeypatch.setattr(native, "_WARNED_FALLBACK", False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        native.warn_if_fallback(1000)
+        native.warn_if_fallback(50_000)
+        native.warn_if_fallback(50_000)
+    assert len(caught) == 1 and "numpy fallback" in str(caught[0].message) and "dqm doctor" in str(caught[0].message)
+
+
+def test_doctor_piped_into_head_is_not_an_error(tmp_path):
+    p = subprocess.run(f"{sys.executable} -m dqm doctor | head -1", shell=True, capture_output=True, text=True,
+                       timeout=120)
+    assert "BrokenPipe" not in p.stderr and "error" not in p.stderr

@@ -101,6 +101,14 @@ def _pair(args) -> int:
         seq = load_homography_sequence(args.truth)
         if len(seq.image_paths) != len(images):
             raise InputError(f"--truth has {len(seq.image_paths)} images, the clusters {len(images)}")
+        from ..features import read_gray
+
+        for k in (i, j):  # the homographies are only meaningful for images of the same size
+            truth_shape, shape = read_gray(seq.image_paths[k]).shape, read_gray(images[k]).shape
+            if truth_shape != shape:
+                raise InputError(f"--truth {args.truth} does not fit these images: its image {k} "
+                                 f"({Path(seq.image_paths[k]).name}) is {truth_shape[1]}x{truth_shape[0]}, "
+                                 f"the clusters' ({Path(images[k]).name}) {shape[1]}x{shape[0]}")
         correct = reprojection_error(seq.homography(i, j), kp[pa, :2], kp[pb, :2]) <= args.tol
     fig = plots.pair_figure(images[i], images[j], kp[pa, :2], kp[pb, :2], correct, max_lines=args.max_lines,
                             title=f"{Path(images[i]).name} - {Path(images[j]).name}")

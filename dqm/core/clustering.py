@@ -296,6 +296,7 @@ def quickmatch(
         return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
                                        n_neighbors, threads, budget, progress, t0)
     base = memory.check_base(n, X.shape[1], threads, budget)
+    native.warn_if_fallback(n)
 
     aug = pairs.Augmented(X)
     t = time.perf_counter()

@@ -84,6 +84,31 @@ def native_available() -> bool:
     return _LIB is not None
 
 
+def kernel_description() -> str:
+    """Which tile kernel runs, in words (for ``dqm --version`` and ``dqm doctor``)."""
+    if _LIB is None:
+        why = "disabled by DQM_NATIVE=0" if os.environ.get("DQM_NATIVE", "1") == "0" else "not built"
+        return f"numpy fallback (native kernel {why}; about 12x slower on large inputs)"
+    fn = getattr(_LIB, "dqm_simd_level", None)
+    simd = "AVX2" if fn is not None and fn() else "portable C"
+    return f"native C ({simd})"
+
+
+_WARNED_FALLBACK = False
+
+
+def warn_if_fallback(n: int, threshold: int = 20_000) -> None:
+    """Warn once per process when the numpy fallback handles a large input."""
+    global _WARNED_FALLBACK
+    if _LIB is None and n >= threshold and not _WARNED_FALLBACK:
+        import warnings
+
+        _WARNED_FALLBACK = True
+        warnings.warn(f"quickmatch: the native tile kernel is not in use ({kernel_description()}); "
+                      "reinstall with a C compiler present (pip install -e .) and check with 'dqm doctor'",
+                      stacklevel=3)
+
+
 def tile_numpy(
     G: np.ndarray, w: np.ndarray, s: np.ndarray, kernel: str, rad2: np.ndarray,
     self_col: int, dens: np.ndarray, err: np.ndarray,
