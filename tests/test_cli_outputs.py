@@ -215,3 +215,16 @@ def test_doctor_piped_into_head_is_not_an_error(tmp_path):
     p = subprocess.run(f"{sys.executable} -m dqm doctor | head -1", shell=True, capture_output=True, text=True,
                        timeout=120)
     assert "BrokenPipe" not in p.stderr and "error" not in p.stderr
+
+
+def test_runtime_messages_are_plain(tmp_path, capsys):
+    from dqm.runtime.bus import zenoh_message
+
+    one_error_line(capsys, ["agent", "--id", "0", "--agents", "0", "--connect", "tcp/127.0.0.1:1", "x.npz"],
+                   "--agents must be at least 1")
+    one_error_line(capsys, ["agent", "--id", "0", "--agents", "1", "--connect", "127.0.0.1:7447", "x.npz"],
+                   "is not a zenoh endpoint", "did you mean tcp/127.0.0.1:7447")
+    one_error_line(capsys, ["coordinator", "--agents", "2", "--connect", "localhost"], "is not a zenoh endpoint")
+    rust = Exception("Unable to connect to any of [tcp/127.0.0.1:1]! at /root/.cargo/registry/src/"
+                     "index.crates.io-6f17d22bba15001f/zenoh-1.4.0/src/net/runtime/orchestrator.rs:417.")
+    assert zenoh_message(rust) == "Unable to connect to any of [tcp/127.0.0.1:1]!"

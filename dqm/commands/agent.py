@@ -40,6 +40,9 @@ def run(args) -> int:
 
     if args.agents < 1:
         raise InputError(f"--agents must be at least 1, got {args.agents}")
+    from ..runtime.bus import check_endpoint
+
+    check_endpoint(args.connect)
     if not 0 <= args.id < args.agents:
         raise InputError(f"--id must be in 0..{args.agents - 1}, got {args.id}")
     cfg = config_from(args, args.agents).validated()

@@ -45,6 +45,9 @@ def run(args) -> int:
 
     check_agents(args.agents)
     check_seed(args.seed)
+    from ..runtime.bus import check_endpoint
+
+    check_endpoint(args.connect)
     if args.out:
         from .. import outputs
 

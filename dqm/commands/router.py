@@ -16,6 +16,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from ..runtime.bus import check_endpoint
     from ..runtime.router import main_router
 
+    for endpoint in args.listen:
+        check_endpoint(endpoint, "--listen")
     return main_router(args.listen, tls_from(args, listen=True), args.ready_file)

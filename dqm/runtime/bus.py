@@ -74,9 +74,33 @@ def router_config(endpoints: List[str], tls: Optional[dict] = None) -> "object":
     return zenoh.Config.from_json5(json.dumps(cfg))
 
 
+#: transports a zenoh endpoint may name (PROTOCOL/ADDRESS)
+ENDPOINT_PROTOCOLS = ("tcp", "tls", "udp", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def check_endpoint(endpoint: str, option: str = "--connect") -> str:
+    """Refuse at once an endpoint that is not PROTOCOL/HOST:PORT (zenoh would retry it, then say 'unreachable')."""
+    from ..validation import InputError
+
+    proto, slash, addr = str(endpoint).partition("/")
+    if not slash or proto not in ENDPOINT_PROTOCOLS or not addr:
+        hint = f"; did you mean tcp/{endpoint}?" if not slash and ":" in str(endpoint) else ""
+        raise InputError(f"{option} {endpoint!r} is not a zenoh endpoint: write PROTOCOL/HOST:PORT, "
+                         f"e.g. tcp/127.0.0.1:7447{hint}")
+    return endpoint
+
+
+def zenoh_message(exc: BaseException) -> str:
+    """A zenoh error without the Rust source location it ends with (a path in zenoh's build tree)."""
+    text = re.sub(r"\s*(at\s+)?(/|[A-Za-z]:\\)?[\w./\\-]+\.rs:\d+(:\d+)?\.?", "", str(exc)).strip()
+    return text or type(exc).__name__
+
+
 def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = ROUTER_RETRY_S):
     """Open a client session, retrying until ``deadline_s``; RouterUnreachable names the endpoint."""
     import zenoh
+
+    check_endpoint(endpoint)
 
     t0 = time.monotonic()
     delay = 0.05
@@ -96,7 +120,7 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
     """Why ``open_client`` gave up: nothing listens, or something listens but refused the session (TLS)."""
     import socket
 
-    base = f"no zenoh router reachable at {endpoint} after {deadline_s:.0f} s of retries ({last})"
+    base = f"no zenoh router reachable at {endpoint} after {deadline_s:.0f} s of retries ({zenoh_message(last)})"
     proto, _, addr = endpoint.split("#")[0].split("?")[0].partition("/")
     host, _, port = addr.rpartition(":")
     try:
