@@ -228,3 +228,14 @@ def test_runtime_messages_are_plain(tmp_path, capsys):
     rust = Exception("Unable to connect to any of [tcp/127.0.0.1:1]! at /root/.cargo/registry/src/"
                      "index.crates.io-6f17d22bba15001f/zenoh-1.4.0/src/net/runtime/orchestrator.rs:417.")
     assert zenoh_message(rust) == "Unable to connect to any of [tcp/127.0.0.1:1]!"
+
+
+def test_run_check_says_what_it_does_and_keeps_the_report_first(tmp_path):
+    report = tmp_path / "r.json"
+    p = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "2", "--check", "--report", str(report)],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "Checking: the same job" in p.stderr
+    assert "identical clusters" in p.stdout
+    assert p.stdout.index(f"wrote {report}") < p.stdout.index("In-process simulator")
+    assert report.exists()

@@ -95,15 +95,20 @@ def run(args) -> int:
           + (f", {rep['wire_bytes_received_by_router']} bytes received by the router (kernel TCP counters)"
              if rep.get("wire_bytes_received_by_router") else "") + ".")
     print(traffic_table(rep))
+    if args.report:  # before the check: a long check must not put the job's result at risk
+        with open(args.report, "w") as fh:
+            json.dump(rep, fh)
+        print(f"wrote {args.report}")
     if args.check:
         from ..distributed.simulator import simulate
 
+        print(f"Checking: the same job ({len(labels)} features, {cfg.agents} agents, {cfg.mode} mode) in the "
+              "in-process simulator; this takes about as long as the job's CPU time ...", file=sys.stderr, flush=True)
+        t1 = time.perf_counter()
         sim = simulate(X, ids, cfg)
         same = np.array_equal(sim.labels, labels)
-        print(f"In-process simulator: {'identical clusters' if same else 'DIFFERENT clusters'}.")
+        print(f"In-process simulator: {'identical clusters' if same else 'DIFFERENT clusters'} "
+              f"({time.perf_counter() - t1:.1f} s).")
         if not same:
             return 1
-    if args.report:
-        with open(args.report, "w") as fh:
-            json.dump(rep, fh)
     return 0
