@@ -191,21 +191,30 @@ def landmark_descriptors(seq, size: float = 24.0) -> Tuple[np.ndarray, np.ndarra
 
 
 def extract_many(images: Sequence, preset: str = "opencv", max_features: int = 0,
-                 progress=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 progress=None, failed: Optional[List[int]] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Extract from a list of images (paths or arrays): ``(descriptors, image_ids, keypoints)`` stacked.
 
     Image ids are positions in ``images`` (0, 1, ...); an image without
     features simply has no rows. ``progress``: callable ``(done, total)``
     called after each image (e.g. a :class:`dqm.progress.ProgressBar`).
+    ``failed``: when a list is given, an image that cannot be read is left
+    out (its position is appended) instead of raising, and the ids count the
+    images kept.
     """
     descs, ids, kps = [], [], []
     images = list(images)
     create_sift(preset, max_features)  # validate the settings before any work
     for k, im in enumerate(images):
-        f = extract(im, preset, max_features)
+        try:
+            f = extract(im, preset, max_features)
+        except InputError:
+            if failed is None:
+                raise
+            failed.append(k)
+            continue
         descs.append(f.descriptors)
         kps.append(f.keypoints)
-        ids.append(np.full(len(f), k, np.int64))
+        ids.append(np.full(len(f), k - (0 if failed is None else len(failed)), np.int64))
         if progress is not None:
             progress(k + 1, len(images))
     if not descs:
@@ -243,20 +252,17 @@ def extract_images(inputs, preset: str = "opencv", max_features: int = 0, progre
     if len(paths) < min_images:
         raise InputError(f"need at least {min_images} images to match, got {len(paths)}: "
                          + ", ".join(str(p) for p in paths))
-    if skip_bad:  # a file whose header looks fine can still fail to decode: leave it out too
-        readable = []
-        for p in paths:
-            try:
-                read_gray(p)
-                readable.append(p)
-            except InputError:
-                lost.append(str(p))
-        paths = readable
+    # with skip_bad, a file whose header looks fine but fails to decode is left out too
+    failed: Optional[List[int]] = [] if skip_bad else None
+    D, ids, kp = extract_many(paths, preset=preset, max_features=max_features, progress=progress, failed=failed)
+    if failed:
+        gone = set(failed)
+        lost += [str(paths[k]) for k in failed]
+        paths = [p for k, p in enumerate(paths) if k not in gone]
     if skipped is not None:
         skipped.extend(lost)
     if len(paths) < min_images:
         raise InputError(f"need at least {min_images} readable images, got {len(paths)}")
-    D, ids, kp = extract_many(paths, preset=preset, max_features=max_features, progress=progress)
     with_features = len(np.unique(ids))
     if with_features < min_images:
         raise InputError(f"SIFT found features in only {with_features} of {len(paths)} images "

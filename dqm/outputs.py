@@ -64,7 +64,7 @@ def check_file(path, option: str, suffixes: Optional[Iterable[str]] = None) -> P
         raise InputError(f"{what} is a folder; give a file name")
     if p.exists() and not os.access(p, os.W_OK):
         raise InputError(f"{what}: the file exists and is read-only")
-    _probe(p.parent if str(p.parent) else Path("."), what)
+    _probe(p.parent, what)
     return p
 
 

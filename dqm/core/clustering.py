@@ -330,9 +330,8 @@ def quickmatch(
 
     other_image = parent == "other-image"
     # duplicates first: exact and equal, so their order is certain (by index) in both passes
+    # (dens_o and err are this call's own arrays: updated in place)
     dup = np.flatnonzero(gsize[groups] > 1)
-    dens_o = dens_o.copy()
-    err = err.copy()
     if len(dup):
         dens_o[dup] = exact_others(dup)
         err[dup] = 0.0
@@ -343,15 +342,13 @@ def quickmatch(
         cr, cc = pairs.parent_pass(aug, lo, hi, radius, image_index if other_image else None, n_threads=threads,
                                    progress=feature_progress(progress, "quickmatch parents", n))
         stats["time_parent_pass"] = time.perf_counter() - tp
-        d = pairs.exact_distances(aug.exact, cr, cc)
-        keep = d < radius[cr]
     else:
         stats["n_pass_edges"] = float(len(cr))
-        # candidate edges, exact distances, within the child's radius
-        d = pairs.exact_distances(aug.exact, cr, cc)
-        keep = d < radius[cr]
-        if other_image:
-            keep &= image_index[cr] != image_index[cc]
+    # candidate edges, exact distances, within the child's radius
+    d = pairs.exact_distances(aug.exact, cr, cc)
+    keep = d < radius[cr]
+    if other_image:  # the streaming pass has left same-image pairs out already; the dense pass has not
+        keep &= image_index[cr] != image_index[cc]
     cr, cc, d = cr[keep], cc[keep], d[keep]
     # refine densities whose order on some candidate edge is not certain (the same rule in both passes,
     # so both refine the same features and end with the same density values)
@@ -362,7 +359,6 @@ def quickmatch(
     refine[dup] = False
     idx = np.flatnonzero(refine)
     if len(idx):
-        dens_o = dens_o.copy()
         dens_o[idx] = exact_others(idx)
     density = 1.0 + equalize_duplicates(dens_o, groups, gsize)  # remove rounding between duplicates
     stats["n_candidate_edges"] = float(len(cr))

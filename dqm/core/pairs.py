@@ -212,7 +212,6 @@ def kernel_pass(
     progress: ProgressFn = None,
     use_native: bool = True,
     rows_limit: Optional[int] = None,
-    candidates: bool = True,
     max_edges: Optional[int] = None,
 ) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
     """One pass over all pairs: approximate densities and candidate edges.
@@ -228,10 +227,9 @@ def kernel_pass(
     copies of other cells' features, whose pairs among themselves are another
     agent's work). The candidate edges are then exactly those pairs; the
     approximate densities are not restricted and should not be used. With
-    ``candidates=False`` no edge is collected (densities only; the streaming
-    :func:`parent_pass` finds the parents). With ``max_edges``, collection
-    stops once more edges than that are found; the densities are still
-    complete and ``child`` and ``cand`` come back as None.
+    ``max_edges``, collection stops once more edges than that are found; the
+    densities are still complete and ``child`` and ``cand`` come back as None
+    (the streaming :func:`parent_pass` then finds the parents).
 
     Returns ``(density_others, density_error, child, cand)``: the density
     without the self term (float32 accuracy), a bound on its absolute error,
@@ -242,8 +240,8 @@ def kernel_pass(
     w = np.ascontiguousarray(weights, dtype=np.float32)
     s = np.ascontiguousarray(active, dtype=np.float32)
     no_edges = np.full(n, -np.inf, dtype=np.float32)
-    rad2_all = search_rad2(aug, radius) if candidates else no_edges
-    collecting = [candidates]
+    rad2_all = search_rad2(aug, radius)
+    collecting = [True]
     dens = np.zeros(n, dtype=np.float64)
     err = np.zeros(n, dtype=np.float64)
     starts = list(range(0, n, BLOCK))
@@ -296,7 +294,7 @@ def kernel_pass(
     # error of a term is |dK/d(d2)| * |error of d2|
     err *= aug.gamma * (aug.norm2 + aug.max_norm2)
     err += 4.0 * _EPS32 * dens + 1e-300  # float32 rounding of the sums themselves
-    if candidates and not collecting[0]:
+    if not collecting[0]:
         return dens, err, None, None
     if not child:
         return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
