@@ -1,56 +1,52 @@
-"""A dependency-free progress bar: drawn on a terminal, silent when output is piped."""
+"""Progress for long work: a tqdm bar on a terminal, nothing when output is piped.
+
+The engine reports progress as ``callback(done, total)``, so the core stays free of any display
+library; :class:`ProgressBar` adapts that callback to tqdm, which does the drawing, rate and ETA.
+"""
 from __future__ import annotations
 
 import sys
-import time
 from typing import Callable, Optional, TextIO, Union
+
+from tqdm import tqdm
 
 
 class ProgressBar:
-    """Callable ``bar(done, total)`` that redraws one line on a TTY and prints nothing otherwise."""
+    """Callable ``bar(done, total)`` drawn with tqdm on a TTY; silent otherwise.
+
+    ``force`` overrides the terminal test (``True`` draws into any stream, ``False`` never draws).
+    A call whose ``done`` is below the previous one starts a new stage: the bar resets.
+    """
 
     def __init__(self, label: str, stream: Optional[TextIO] = None, force: Optional[bool] = None,
                  unit: str = ""):
         self.label = label
-        self.unit = f" {unit}" if unit else ""
+        self.unit = unit or "it"
         self.stream = stream if stream is not None else sys.stderr
         tty = getattr(self.stream, "isatty", lambda: False)()
         self.enabled = tty if force is None else force
-        self.start = time.perf_counter()
-        self._last = 0.0
+        self._bar: Optional[tqdm] = None
         self._done = 0
-        self._open = False
 
     def __call__(self, done: int, total: int) -> None:
         if not self.enabled:
             return
-        now = time.perf_counter()
-        if done < self._done:  # a new stage counting from zero again
-            self.start = now
+        if self._bar is None or done < self._done:
+            self.close()
+            self._bar = tqdm(total=total, desc=self.label, unit=self.unit, file=self.stream,
+                             dynamic_ncols=True, mininterval=0.1, leave=True)
+            self._done = 0
+        elif self._bar.total != total:
+            self._bar.total = total
+        self._bar.update(done - self._done)
         self._done = done
-        if done < total and now - self._last < 0.1:
-            return
-        self._last = now
-        frac = done / total if total else 1.0
-        width = 30
-        fill = int(round(frac * width))
-        elapsed = now - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
-        self.stream.write(
-            f"\r{self.label} [{'#' * fill}{'.' * (width - fill)}] {done:,}/{total:,}{self.unit} "
-            f"{elapsed:5.1f}s eta {eta:5.1f}s"
-        )
-        self._open = True
         if done >= total:
-            self.stream.write("\n")
-            self._open = False
-        self.stream.flush()
+            self.close()
 
     def close(self) -> None:
-        if self._open and self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
-            self._open = False
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 ProgressArg = Union[None, bool, Callable[[int, int], None]]

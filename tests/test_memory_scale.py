@@ -189,7 +189,7 @@ def test_progress_counts_features(capsys):
     ds = sized(2500, seed=0)
     dqm.quickmatch(ds.descriptors, ds.image_ids, progress=bar)
     text = stream.getvalue()
-    assert f"{len(ds):,}/{len(ds):,} features" in text
+    assert f"{len(ds)}/{len(ds)}" in text and "features/s" in text
 
 
 def test_approximate_mode_agrees_with_exact_on_a_small_set():

@@ -5,6 +5,10 @@ The coordinator feeds :class:`JobView` with the agents' ``progress`` reports
 process, a restart). On a terminal the table is redrawn in place, one line per
 agent, at most four times a second, and events are printed as lines above it.
 When the output is not a terminal (piped, a log file) nothing is drawn.
+
+Why not tqdm (which draws the single-job bars in :mod:`dqm.progress`): this is a table of
+per-agent states fed by remote reports, written to a file descriptor the launcher hands over,
+with event lines printed above it; tqdm's bars count one quantity each and have no such rows.
 """
 from __future__ import annotations
 
