@@ -69,17 +69,57 @@ class PairwiseCandidates:
         return self.query[keep], self.train[keep]
 
 
-def _knn2(matcher: str, q: np.ndarray, t: np.ndarray, seed: int):
-    """Two nearest neighbours in ``t`` of every row of ``q``: (idx1, d1, d2) arrays."""
+def _flann_knn(q: np.ndarray, t: np.ndarray, k: int, seed: int):
     import cv2
 
-    if matcher == "bf":
-        m = cv2.BFMatcher(cv2.NORM_L2)
-    else:
-        cv2.setRNGSeed(seed)
-        m = cv2.FlannBasedMatcher(dict(FLANN_INDEX_PARAMS), dict(FLANN_SEARCH_PARAMS))
+    cv2.setRNGSeed(seed)
+    m = cv2.FlannBasedMatcher(dict(FLANN_INDEX_PARAMS), dict(FLANN_SEARCH_PARAMS))
+    return m.knnMatch(q, t, k=k)
+
+
+def _in_new_thread(fn, *args):
+    """``fn(*args, stop)`` run in a new thread; an interrupt here sets ``stop`` and waits for it to end.
+
+    FLANN runs this way. OpenCV's kd-tree search takes its branch heap from a pool kept per
+    thread, whose capacity only grows. After a search on a larger index, a search on a small one
+    drops fewer branches and can return other neighbours: on CMU hotel (30 features per image)
+    3 of 115,365 ratio-test matches changed after FLANN had run on the Oxford sets in the same
+    process. A new thread starts with a new pool entry, as a fresh process does, so the result
+    depends only on the input and the seed. OpenCV's RNG, which draws the trees, is per thread
+    too: seeding it there leaves the caller's RNG alone.
+    """
+    import threading
+
+    stop = threading.Event()
+    box: dict = {}
+
+    def work():
+        try:
+            fn(*args, stop)
+        except BaseException as e:  # re-raised in the caller's thread
+            box["err"] = e
+
+    th = threading.Thread(target=work, name="dqm-flann", daemon=True)
+    th.start()
+    try:
+        while th.is_alive():
+            th.join(0.1)
+    finally:
+        stop.set()
+        th.join()
+    if "err" in box:
+        raise box["err"]
+
+
+def _knn2(matcher: str, q: np.ndarray, t: np.ndarray, seed: int):
+    """Two nearest neighbours in ``t`` of every row of ``q``: (idx1, d1, d2) arrays."""
     k = 2 if len(t) >= 2 else 1
-    res = m.knnMatch(q, t, k=k)
+    if matcher == "bf":
+        import cv2
+
+        res = cv2.BFMatcher(cv2.NORM_L2).knnMatch(q, t, k=k)
+    else:
+        res = _flann_knn(q, t, k, seed)
     idx = np.full(len(q), -1, np.int64)
     d1 = np.full(len(q), np.inf)
     d2 = np.full(len(q), np.inf)
@@ -94,25 +134,12 @@ def _knn2(matcher: str, q: np.ndarray, t: np.ndarray, seed: int):
     return idx, d1, d2
 
 
-def pairwise_candidates(descriptors, image_ids, matcher: str = "bf", *, seed: int = 0,
-                        progress: ProgressArg = None) -> PairwiseCandidates:
-    """Two-nearest-neighbour search for every image pair (i < j, queries from image i).
-
-    ``matcher``: ``"bf"`` (exact, OpenCV brute force) or ``"flann"`` (OpenCV
-    FLANN kd-trees, approximate; FLANN draws its trees from OpenCV's global RNG,
-    so this seeds it with ``cv2.setRNGSeed(seed)`` before each index: results
-    repeat, and the caller's OpenCV RNG state changes).
-    """
-    check_choice(matcher, "matcher", MATCHERS)
-    X = check_descriptors(descriptors).astype(np.float32)
-    ids = check_image_ids(image_ids, len(X))
-    t0 = time.perf_counter()
-    images = np.unique(ids)
-    members = [np.flatnonzero(ids == i) for i in images]
-    pairs = [(x, y) for x in range(len(images)) for y in range(x + 1, len(images))]
-    bar = resolve_progress(progress, f"{matcher} matching")
-    Q, T, D, R = [], [], [], []
+def _match_pairs(matcher, X, members, pairs, seed, bar, out, stop=None) -> None:
+    """Two-nearest-neighbour search of every image pair, appended to ``out`` = (Q, T, D, R) lists."""
+    Q, T, D, R = out
     for k, (x, y) in enumerate(pairs):
+        if stop is not None and stop.is_set():
+            return
         qa, ta = members[x], members[y]
         if len(qa) and len(ta):
             idx, d1, d2 = _knn2(matcher, X[qa], X[ta], seed)
@@ -126,6 +153,30 @@ def pairwise_candidates(descriptors, image_ids, matcher: str = "bf", *, seed: in
             R.append(ratio[ok])
         if bar is not None:
             bar(k + 1, len(pairs))
+
+
+def pairwise_candidates(descriptors, image_ids, matcher: str = "bf", *, seed: int = 0,
+                        progress: ProgressArg = None) -> PairwiseCandidates:
+    """Two-nearest-neighbour search for every image pair (i < j, queries from image i).
+
+    ``matcher``: ``"bf"`` (exact, OpenCV brute force) or ``"flann"`` (OpenCV
+    FLANN kd-trees, approximate; the searches of one call run in a new thread with
+    OpenCV's RNG seeded from ``seed`` before each index, so the result depends only
+    on the input and the seed, not on what ran before in the process).
+    """
+    check_choice(matcher, "matcher", MATCHERS)
+    X = check_descriptors(descriptors).astype(np.float32)
+    ids = check_image_ids(image_ids, len(X))
+    t0 = time.perf_counter()
+    images = np.unique(ids)
+    members = [np.flatnonzero(ids == i) for i in images]
+    pairs = [(x, y) for x in range(len(images)) for y in range(x + 1, len(images))]
+    bar = resolve_progress(progress, f"{matcher} matching")
+    Q, T, D, R = [], [], [], []
+    if matcher == "flann":
+        _in_new_thread(_match_pairs, matcher, X, members, pairs, seed, bar, (Q, T, D, R))
+    else:
+        _match_pairs(matcher, X, members, pairs, seed, bar, (Q, T, D, R))
     cat = (lambda v, dt: np.concatenate(v).astype(dt)) if Q else (lambda v, dt: np.zeros(0, dt))
     return PairwiseCandidates(
         query=cat(Q, np.int64), train=cat(T, np.int64), distance=cat(D, np.float64),
