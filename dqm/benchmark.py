@@ -24,7 +24,7 @@ Datasets (:func:`load_benchmark`): ``graf``, ``wall``, ``boat``, ``bikes``
 (Oxford homography sequences, SIFT detected in every image, a pair correct
 within ``tol`` pixels), ``hotel`` (CMU hotel, SIFT described at the 30
 labelled landmarks of every frame), ``scene[:SEED]`` (a generated scene, see
-:mod:`dqm.scenes`), or any folder in one of those layouts.
+:mod:`dqm.vision.scenes`), or any folder in one of those layouts.
 """
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ from typing import Callable, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from . import baselines, datasets, evaluation, features
+from . import evaluation
+from .vision import baselines, datasets, features
 from .core import DEFAULT_RHO, quickmatch
 from .core.tree import merge_clusters
 from .validation import InputError
@@ -145,7 +146,7 @@ def load_benchmark(spec: Union[str, Path], data_root=None, *, preset: str = "ope
         raise InputError(f"tol must be positive (pixels), got {tol}")
     m = re.fullmatch(r"scene(?::(\d+))?", spec)
     if m:
-        from .scenes import generate_scene
+        from .vision.scenes import generate_scene
 
         seed = int(m.group(1) or 0)
         sc = generate_scene(seed=seed)

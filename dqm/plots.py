@@ -20,7 +20,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 
 from .evaluation import PRCurve
-from .features import as_gray
+from .vision.features import as_gray
 from .validation import InputError
 
 

@@ -35,7 +35,7 @@ def datasets(sizes, graf):
         ds = synthetic.sized(n)
         yield f"synthetic {len(ds)}", ds.descriptors, ds.image_ids
     if graf:
-        from dqm import datasets as D, features
+        from dqm.vision import datasets as D, features
 
         p = ROOT.parent / "shared" / "data" / "oxford" / "graf"
         if p.exists():

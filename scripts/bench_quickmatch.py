@@ -61,7 +61,7 @@ def load(name):
         if cache.exists():
             z = np.load(cache)
             return z["D"], z["ids"]
-        from dqm import datasets, features
+        from dqm.vision import datasets, features
 
         seq = datasets.load_homography_sequence(ROOT.parent / "shared" / "data" / "oxford" / name)
         D, ids, _ = features.extract_many(seq.image_paths)

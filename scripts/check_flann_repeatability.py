@@ -46,7 +46,7 @@ def _features(spec):
 def _child(target, history, others, ratio):
     import cv2
 
-    from dqm.baselines import pairwise_candidates
+    from dqm.vision.baselines import pairwise_candidates
 
     if history == "after-flann-on-others":
         for o in others:

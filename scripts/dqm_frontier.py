@@ -63,7 +63,7 @@ MODES = {
 def load(name: str, shared: Path):
     """(descriptors, image_ids) of a named data set, or None when its files are absent."""
     if name in ("graf", "wall"):
-        from dqm import datasets, features
+        from dqm.vision import datasets, features
 
         path = shared / "data" / "oxford" / name
         if not path.exists():

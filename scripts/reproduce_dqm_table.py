@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
-from dqm import datasets, evaluation, features  # noqa: E402
+from dqm import evaluation  # noqa: E402
+from dqm.vision import datasets, features  # noqa: E402
 from dqm.distributed import DQMConfig, simulate  # noqa: E402
 
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 import dqm
-from dqm import datasets, evaluation, features, synthetic
+from dqm import evaluation, synthetic
+from dqm.vision import datasets, features
 
 ROOT = Path(__file__).resolve().parents[1]
 

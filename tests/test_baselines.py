@@ -1,4 +1,4 @@
-"""Pairwise BF / FLANN matching and union-find tracks (dqm.baselines)."""
+"""Pairwise BF / FLANN matching and union-find tracks (dqm.vision.baselines)."""
 import hashlib
 import subprocess
 import sys
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dqm import InputError
-from dqm import baselines as B
+from dqm.vision import baselines as B
 from dqm.synthetic import sift_like
 from conftest import assert_consistent
 

@@ -11,7 +11,7 @@ import pytest
 
 import dqm
 from dqm import benchmark as BM
-from dqm.baselines import MATCHERS, TRACK_POLICIES
+from dqm.vision.baselines import MATCHERS, TRACK_POLICIES
 from conftest import assert_consistent, require_data
 
 TRACKS = [f"{m}-{p}" for m in MATCHERS for p in TRACK_POLICIES]
@@ -120,7 +120,7 @@ def test_full_evaluation_of_a_scene():
 
 def test_tracks_from_evaluate_are_consistent():
     b = bench("scene:1")
-    from dqm import baselines
+    from dqm.vision import baselines
 
     cand = baselines.pairwise_candidates(b.descriptors, b.image_ids, "bf")
     for policy in TRACK_POLICIES:

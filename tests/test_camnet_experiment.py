@@ -12,7 +12,7 @@ from dqm.camnet.geometry import Camera
 from dqm.camnet.pipeline import (PipelineConfig, detect, pairwise_pair_candidates, quickmatch_matches)
 from dqm.camnet.simulator import BoxObject, SimConfig, build_world
 from dqm.cli import main
-from dqm.features import extract
+from dqm.vision.features import extract
 
 #: the small experiment: the default 30 s loop of seed 0 sampled every 3 s (10 steps x 5 cameras)
 SMALL = dict(seed=0, duration=30.0, rate=1.0 / 3.0)

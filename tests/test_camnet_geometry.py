@@ -141,8 +141,8 @@ def test_known_homography_is_recovered_from_images():
     import cv2
 
     from dqm.camnet.pipeline import pairwise_pair_candidates
-    from dqm.features import extract
-    from dqm.scenes import texture
+    from dqm.vision.features import extract
+    from dqm.vision.scenes import texture
 
     ref = texture(320, 400, seed=5, density=1.6)
     H = np.array([[0.55, 0.08, 150.0], [-0.04, 0.6, 110.0], [3e-4, 1e-4, 1.0]])

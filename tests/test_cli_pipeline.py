@@ -7,7 +7,8 @@ import numpy as np
 import dqm
 import pytest
 
-from dqm import io, plots, scenes
+from dqm import io, plots
+from dqm.vision import scenes
 from dqm.cli import main
 from dqm.evaluation import PRCurve
 from conftest import assert_consistent

@@ -1,8 +1,9 @@
-"""SIFT extraction from folders / globs / lists (dqm.features) and its errors on bad input."""
+"""SIFT extraction from folders / globs / lists (dqm.vision.features) and its errors on bad input."""
 import numpy as np
 import pytest
 
-from dqm import InputError, features, scenes
+from dqm import InputError
+from dqm.vision import features, scenes
 
 
 @pytest.fixture(scope="module")

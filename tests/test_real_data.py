@@ -1,6 +1,7 @@
 """QuickMatch on real data with ground truth (skipped when ../shared is absent)."""
 import dqm
-from dqm import datasets, evaluation, features
+from dqm import evaluation
+from dqm.vision import datasets, features
 from conftest import assert_consistent, require_data
 
 

@@ -1,9 +1,10 @@
-"""Generated multi-view scenes (dqm.scenes): exact ground truth, determinism, Oxford layout."""
+"""Generated multi-view scenes (dqm.vision.scenes): exact ground truth, determinism, Oxford layout."""
 import numpy as np
 import pytest
 
-from dqm import InputError, datasets, evaluation, features, scenes
-from dqm import baselines as B
+from dqm import InputError, evaluation
+from dqm.vision import datasets, features, scenes
+from dqm.vision import baselines as B
 
 
 @pytest.fixture(scope="module")

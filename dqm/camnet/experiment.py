@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..evaluation import PRCurve, pr_auc
-from ..features import ImageFeatures, extract
+from ..vision.features import ImageFeatures, extract
 from ..progress import ProgressArg, resolve_progress
 from ..validation import InputError, check_choice
 from .geometry import Camera, bounding_box, calibrate_range, estimate_homography, projected_quad

@@ -3,7 +3,7 @@
 The seed paper's pipeline, per method:
 
 1. SIFT features of every reference image (one per side of the target) and
-   of every camera's image (``preset="paper"``, :data:`dqm.features.PRESETS`).
+   of every camera's image (``preset="paper"``, :data:`dqm.vision.features.PRESETS`).
 2. Matches between each camera and each reference image:
 
    * ``quickmatch``: one QuickMatch run over all reference images **and** all
@@ -12,7 +12,7 @@ The seed paper's pipeline, per method:
      supported by other cameras' views of the same point);
    * ``bf`` / ``flann``: pairwise, each reference against each camera
      (queries from the reference, OpenCV brute force or FLANN, Lowe's ratio
-     test, 0.75), see :mod:`dqm.baselines`.
+     test, 0.75), see :mod:`dqm.vision.baselines`.
 
 3. Detection: the camera's **score** is its largest number of matches with one
    reference image; it sees the target when the score is >= ``min_matches``
@@ -30,9 +30,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..baselines import DEFAULT_RATIO, PairwiseCandidates, pairwise_candidates
+from ..vision.baselines import DEFAULT_RATIO, PairwiseCandidates, pairwise_candidates
 from ..core import quickmatch
-from ..features import PRESETS, ImageFeatures, create_sift
+from ..vision.features import PRESETS, ImageFeatures, create_sift
 from ..validation import InputError, check_choice
 from .geometry import Camera, bounding_box, estimate_homography, localize_from_box, projected_quad
 

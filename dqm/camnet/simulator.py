@@ -43,7 +43,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..scenes import texture
+from ..vision.scenes import texture
 from ..validation import InputError
 from .geometry import Camera, Intrinsics, clip_near, look_at_yaw, plane_homography
 

@@ -29,9 +29,10 @@ from typing import Dict, List
 
 import numpy as np
 
-from .. import __version__, baselines, benchmark, evaluation, outputs
+from .. import __version__, benchmark, evaluation, outputs
+from ..vision import baselines
 from ..core import DEFAULT_RHO
-from ..features import PRESETS
+from ..vision.features import PRESETS
 from ..validation import InputError
 
 NAME = "evaluate"

@@ -18,10 +18,10 @@ import sys
 import time
 from typing import List
 
-from ..baselines import DEFAULT_RATIO
+from ..vision.baselines import DEFAULT_RATIO
 from ..camnet.experiment import DEFAULT_RATIOS, DEFAULT_RHOS
 from ..camnet.pipeline import DETECTION_RHO
-from ..features import PRESETS
+from ..vision.features import PRESETS
 from ..progress import ProgressBar
 from ..validation import InputError
 

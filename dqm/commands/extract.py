@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 
 from .. import io, outputs
-from ..features import PRESETS
+from ..vision.features import PRESETS
 from ..progress import ProgressBar
 
 NAME = "extract"
@@ -38,7 +38,7 @@ def add_arguments(p) -> None:
 
 def extract(args, min_images: int) -> io.FeatureSet:
     """SIFT of the images named by ``args.inputs``, with the shared options; reports skipped files."""
-    from ..features import extract_images
+    from ..vision.features import extract_images
 
     bar = ProgressBar("sift", force=False if args.quiet else None, unit="images")
     skipped = []

@@ -96,12 +96,12 @@ def _pair(args) -> int:
     pb = np.where(ids[a[sel]] == i, b[sel], a[sel])
     correct = None
     if args.truth:
-        from ..datasets import load_homography_sequence
+        from ..vision.datasets import load_homography_sequence
 
         seq = load_homography_sequence(args.truth)
         if len(seq.image_paths) != len(images):
             raise InputError(f"--truth has {len(seq.image_paths)} images, the clusters {len(images)}")
-        from ..features import read_gray
+        from ..vision.features import read_gray
 
         for k in (i, j):  # the homographies are only meaningful for images of the same size
             truth_shape, shape = read_gray(seq.image_paths[k]).shape, read_gray(images[k]).shape

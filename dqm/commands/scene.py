@@ -10,7 +10,7 @@ every dqm command that reads images or homography sequences reads it:
 """
 from __future__ import annotations
 
-from ..scenes import generate_scene
+from ..vision.scenes import generate_scene
 from ..validation import InputError
 
 NAME = "scene"

@@ -15,7 +15,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from .validation import InputError
+from ..validation import InputError
 
 IMAGE_SUFFIXES = (".png", ".ppm", ".pgm", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 

@@ -30,8 +30,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from .progress import ProgressArg, resolve_progress
-from .validation import InputError, check_choice, check_descriptors, check_image_ids
+from ..progress import ProgressArg, resolve_progress
+from ..validation import InputError, check_choice, check_descriptors, check_image_ids
 
 MATCHERS = ("bf", "flann")
 TRACK_POLICIES = ("drop-track", "drop-later")

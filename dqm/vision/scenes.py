@@ -6,7 +6,7 @@ View k is the texture warped by a known homography; the viewpoint change grows
 along the sequence as in the Oxford sequences (view 0 is the reference), and
 every view gets its own photometric change (gain, bias, gamma), blur and
 sensor noise. ``homographies[k]`` maps view-0 pixels to view-k pixels, exactly:
-the same ground truth as :class:`dqm.datasets.HomographySequence`, and
+the same ground truth as :class:`dqm.vision.datasets.HomographySequence`, and
 :meth:`Scene.write` saves a scene in that layout (``img1.png``.., ``H1to2p``..)
 so every tool that reads Oxford folders reads it too.
 
@@ -20,7 +20,7 @@ from typing import List, Tuple
 
 import numpy as np
 
-from .validation import InputError
+from ..validation import InputError
 
 #: the canvas is this much larger than a view, so warped views never leave it
 _CANVAS_MARGIN = 0.35

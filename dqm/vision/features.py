@@ -17,7 +17,7 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .validation import InputError
+from ..validation import InputError
 
 #: SIFT settings; "paper" is the seed paper's experiment preset
 PRESETS: Dict[str, Dict[str, float]] = {
@@ -239,7 +239,7 @@ def extract_images(inputs, preset: str = "opencv", max_features: int = 0, progre
     Raises InputError when fewer than ``min_images`` images are found or fewer
     than ``min_images`` of them have any feature (nothing to match).
     """
-    from .io import FeatureSet
+    from ..io import FeatureSet
 
     paths = collect_images(inputs)
     bad = unreadable_images(paths)
