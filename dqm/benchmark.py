@@ -53,6 +53,7 @@ DEFAULT_RATIOS = (0.4, 0.5, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 
 METHODS: Dict[str, str] = {
     "quickmatch": "QuickMatch",
+    "quickmatch-verify": "QuickMatch, geometrically verified",
     "bf": "BF pairs",
     "flann": "FLANN pairs",
     "bf-drop-track": "BF tracks, drop track (OpenMVG)",
@@ -138,7 +139,7 @@ def default_data_root() -> Path:
     return here if here.exists() else Path.cwd().parent / "shared" / "data"
 
 
-def load_benchmark(spec: Union[str, Path], data_root=None, *, preset: str = "opencv", max_features: int = 0,
+def load_benchmark(spec: Union[str, Path], data_root=None, *, preset: str = features.DEFAULT_PRESET, max_features: int = 0,
                    tol: float = 5.0, patch: float = 24.0, progress=None) -> Benchmark:
     """A dataset by name (graf, wall, boat, bikes, hotel, scene[:SEED]) or folder path."""
     spec = str(spec)
@@ -244,6 +245,18 @@ def evaluate(bench: Benchmark, methods: Optional[Sequence[str]] = None, *, rho: 
         else:
             curve = evaluation.pr_curve("quickmatch", "rho", [rho], [s])
         out.append(MethodResult("quickmatch", "rho", rho, s, v, t_qm, curve))
+    if "quickmatch-verify" in methods:
+        say(f"{bench.name}: QuickMatch at rho={rho:g}, geometrically verified")
+        from .vision.verify import verify_clusters
+
+        t0 = time.perf_counter()
+        r = quickmatch(bench.descriptors, ids, rho=rho)
+        labels, _ = verify_clusters(r.labels, ids, bench.keypoints, seed=seed)
+        t_v = time.perf_counter() - t0
+        a, b = evaluation.cluster_pairs(labels, ids)
+        s, v = bench.score(a, b), evaluation.consistency_violations(a, b, ids)
+        out.append(MethodResult("quickmatch-verify", "rho", rho, s, v, t_v,
+                                evaluation.pr_curve("quickmatch-verify", "rho", [rho], [s])))
     for matcher in baselines.MATCHERS:
         wanted = [m for m in methods if m == matcher or m.startswith(matcher + "-")]
         if not wanted:

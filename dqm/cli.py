@@ -24,6 +24,8 @@ from .validation import InputError
 COMMANDS = [
     "dqm.commands.extract",
     "dqm.commands.match",
+    "dqm.commands.export",
+    "dqm.commands.importer",
     "dqm.commands.demo",
     "dqm.commands.evaluate",
     "dqm.commands.plot",

@@ -178,6 +178,7 @@ def cluster_sizes_figure(labels, image_ids=None, *, title: str = "Cluster sizes"
 
 _STYLE = {
     "quickmatch": dict(color="#d73027", lw=2.2, marker="o"),
+    "quickmatch-verify": dict(color="#f46d43", lw=1.6, marker="D", ms=5),
     "bf": dict(color="#4575b4", lw=1.2, ls=":", marker="."),
     "flann": dict(color="#74add1", lw=1.2, ls=":", marker="."),
     "bf-drop-track": dict(color="#1a9850", lw=1.4, ls="--", marker="s", ms=3),

@@ -32,7 +32,7 @@ import numpy as np
 from .. import __version__, benchmark, evaluation, outputs
 from ..vision import baselines
 from ..core import DEFAULT_RHO
-from ..vision.features import PRESETS
+from ..vision.features import DEFAULT_PRESET, PRESETS
 from ..validation import InputError
 
 NAME = "evaluate"
@@ -55,7 +55,7 @@ def add_arguments(p) -> None:
     p.add_argument("--ratios", default=",".join(f"{r:g}" for r in benchmark.DEFAULT_RATIOS),
                    help="BF / FLANN PR-curve thresholds (comma-separated)")
     p.add_argument("--tol", type=float, default=5.0, help="pixel tolerance of a correct match (homographies)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="opencv", help="SIFT settings")
+    p.add_argument("--preset", choices=sorted(PRESETS), default=DEFAULT_PRESET, help="SIFT settings")
     p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
     p.add_argument("--seed", type=int, default=0, help="seed of FLANN's randomised trees")
     p.add_argument("--figures", action="store_true", help="also draw matches, clusters and size histograms")

@@ -15,6 +15,7 @@ image paths, so the tracks can be used directly (see dqm/io.py for the fields).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
@@ -55,6 +56,10 @@ def add_arguments(p) -> None:
                         "our measurements (docs/quickmatch.md)")
     p.add_argument("--neighbors", type=int, default=DEFAULT_NEIGHBORS, metavar="K",
                    help=f"neighbours per feature with --approximate (default {DEFAULT_NEIGHBORS})")
+    p.add_argument("--verify", action="store_true",
+                   help="geometric verification: per image pair, RANSAC (OpenCV USAC) on the matches the clusters "
+                        "imply, homography or fundamental matrix chosen as COLMAP does; members that the verified "
+                        "pairs reject are split off (C1 and C2 still hold; needs keypoints)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -84,12 +89,24 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
+    if args.verify and fs.keypoints is None:
+        raise InputError("--verify needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
     bar = ProgressBar("quickmatch", force=False if args.quiet else None, unit="features")
     result = quickmatch(fs.descriptors, fs.image_ids, rho=args.rho, ratio_density=args.ratio_density,
                         kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar,
                         max_memory=args.max_memory, approximate=args.approximate, n_neighbors=args.neighbors)
-    io.save_clusters(args.out, fs, result)
+    extra = None
+    if args.verify:
+        from ..vision.verify import verify_clusters
+
+        labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints)
+        result = dataclasses.replace(result, labels=labels)
+        extra = {"verify": True}
+    io.save_clusters(args.out, fs, result, extra)
     print(result.summary())
+    if args.verify:
+        print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} by homography): "
+              f"{vs.n_inliers} of {vs.n_matches} implied matches are inliers; {vs.n_split} features split off")
     if args.tracks_csv:
         n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         print(f"wrote {n} tracks to {args.tracks_csv}")

@@ -1,0 +1,361 @@
+"""hloc's local-feature files (HDF5) as dqm FEATURES sets, and back.
+
+hloc (https://github.com/cvg/Hierarchical-Localization) stores the local
+features of an image folder in one HDF5 file (``feats-superpoint-n4096-r1024.h5``,
+``feats-disk.h5``, ...). What this module relies on, checked against hloc's
+sources (snapshot of 2025-12, commit c13273b):
+
+* ``hloc/extract_features.py``, function ``main``: one HDF5 group per image,
+  created with the image's name relative to the image folder
+  (``ImageDataset`` builds the names with ``Path.relative_to(root).as_posix()``,
+  so ``seq1/img0.jpg`` is a nested group ``seq1`` / ``img0.jpg`` in h5py).
+  Each group holds one dataset per extractor output plus ``image_size``,
+  the original image's ``(width, height)``. With ``as_half`` (the default)
+  every float32 output, keypoints included, is stored as float16.
+* The extractors (``hloc/extractors/superpoint.py`` through SuperGlue's
+  SuperPoint, ``hloc/extractors/dog.py``, ...) return ``keypoints`` (N, 2: x, y),
+  ``scores`` (N,) and ``descriptors`` transposed, (D, N): ``dog.py`` returns
+  ``descriptors.T``. The DoG (SIFT) extractor also writes ``scales`` (N,) and
+  ``oris`` (N,, degrees: ``np.rad2deg`` of COLMAP's orientation).
+* Keypoint convention: hloc keeps pixel centres at integer coordinates
+  (0-based, OpenCV's convention). ``extract_features.main`` rescales with
+  ``(kp + 0.5) * scale - 0.5``, and the consumers that hand keypoints to
+  COLMAP add the half pixel themselves: ``hloc/triangulation.py``
+  ``import_features`` (``+= 0.5``, "COLMAP origin") and
+  ``hloc/localize_sfm.py`` (``+= 0.5``, "COLMAP coordinates").
+* ``hloc/utils/io.py``: ``list_h5_names`` lists an image for every group that
+  directly holds a dataset (parent of each dataset, leading '/' stripped);
+  ``get_keypoints`` reads ``file[name]["keypoints"]`` by full name and an
+  optional ``uncertainty`` attribute. ``hloc/match_features.py``
+  (``FeaturePairsDataset``) loads every dataset of the two groups and needs
+  ``image_size``.
+
+dqm's FEATURES keypoints are (n, 4) float32: x, y, size, angle in OpenCV's
+conventions (see :mod:`dqm.io`). hloc's x, y are already in that convention and
+are copied unchanged (no half-pixel shift). ``size`` and ``angle`` come from
+hloc's ``scales`` and ``oris`` where a file has them (DoG / SIFT files; taken
+as stored, like :mod:`dqm.vision.colmap` keeps COLMAP's scale and orientation);
+otherwise they are :data:`DEFAULT_SIZE` = 0 and :data:`DEFAULT_ANGLE` = -1,
+the values of a default-constructed ``cv2.KeyPoint`` ("not set"). Note that
+hloc's float16 keypoints are only exact to 1/8 px up to x = 1024 and to 2 px
+beyond 2048: dqm reads what is stored.
+
+h5py is optional: ``pip install 'dqm[colmap]'``.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Union
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..io import FeatureSet
+from ..validation import InputError
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: keypoint size when the file has no ``scales`` (cv2.KeyPoint's default: not set)
+DEFAULT_SIZE = 0.0
+#: keypoint angle when the file has no ``oris`` (cv2.KeyPoint's default: not set)
+DEFAULT_ANGLE = -1.0
+
+_INSTALL_HINT = "pip install 'dqm[colmap]'"
+
+
+def require_h5py():
+    """The h5py module, or InputError saying how to install it."""
+    try:
+        import h5py
+    except ImportError:
+        raise InputError(f"hloc feature files (HDF5) need h5py: {_INSTALL_HINT}") from None
+    return h5py
+
+
+def list_image_names(path: PathLike) -> List[str]:
+    """The image names in an hloc HDF5 file, sorted: every group that directly holds a dataset."""
+    h5py = require_h5py()
+    path = _check_h5_file(h5py, Path(path))
+    with h5py.File(str(path), "r") as fd:
+        return _image_names(h5py, fd)
+
+
+def _check_h5_file(h5py, path: Path) -> Path:
+    if not path.exists():
+        raise InputError(f"hloc features file not found: {path}")
+    if not path.is_file() or not h5py.is_hdf5(str(path)):
+        raise InputError(f"{path}: not an HDF5 file (hloc writes its local features as .h5)")
+    return path
+
+
+def _image_names(h5py, fd) -> List[str]:
+    names = set()
+
+    def visit(_, obj):
+        if isinstance(obj, h5py.Dataset):
+            names.add(obj.parent.name.lstrip("/"))
+
+    fd.visititems(visit)
+    names.discard("")  # a dataset at the root belongs to no image
+    return sorted(names)
+
+
+def _kind_hint(keys: Sequence[str]) -> str:
+    if "global_descriptor" in keys:
+        return " (a global-descriptor file for retrieval? dqm needs hloc's local features)"
+    if "matches0" in keys:
+        return " (an hloc matches file? dqm needs the features file)"
+    return ""
+
+
+def read_h5_features(path: PathLike, image_dir: Optional[PathLike] = None,
+                     names: Optional[Sequence[str]] = None) -> FeatureSet:
+    """Read an hloc local-features file as a FEATURES set.
+
+    Images come in sorted name order (Python string order), or in the order of
+    ``names`` when given (those images only); they get image ids 0..m-1 in that
+    order. Descriptors are transposed from hloc's (D, N) to (N, D) float32;
+    keypoints are (N, 4) float32 x, y, size, angle (see the module doc for the
+    conventions). ``image_names`` are ``image_dir / name`` when ``image_dir``
+    is given, else hloc's names. An image with no keypoints is kept (its id
+    simply has no features). Raises InputError naming the problem.
+    """
+    h5py = require_h5py()
+    path = _check_h5_file(h5py, Path(path))
+    try:
+        fd = h5py.File(str(path), "r")
+    except OSError as exc:
+        raise InputError(f"{path}: not a readable HDF5 file ({exc})") from None
+    with fd:
+        present = _image_names(h5py, fd)
+        if not present:
+            raise InputError(f"{path}: no image groups (no group holds a keypoints / descriptors dataset)")
+        if names is None:
+            order = present
+        else:
+            order = [str(n) for n in names]
+            if not order:
+                raise InputError("names is empty: give at least one image name, or None for all")
+            if len(set(order)) != len(order):
+                raise InputError("names lists an image twice")
+            known = set(present)
+            missing = [n for n in order if n not in known]
+            if missing:
+                raise InputError(f"{path}: no image named {missing[0]!r} ({len(missing)} of the names missing; "
+                                 f"the file has e.g. {present[:3]})")
+        D: List[np.ndarray] = []
+        K: List[np.ndarray] = []
+        ids: List[np.ndarray] = []
+        dim: Optional[int] = None
+        dim_from = ""
+        for k, name in enumerate(order):
+            desc, kp = _read_group(fd[name], name, path)
+            if dim is None:
+                dim, dim_from = desc.shape[1], name
+            elif desc.shape[1] != dim:
+                raise InputError(f"{path}: descriptor dimension differs between images: {dim} in {dim_from!r}, "
+                                 f"{desc.shape[1]} in {name!r}")
+            D.append(desc)
+            K.append(kp)
+            ids.append(np.full(len(kp), k, np.int64))
+    image_names = [str(Path(image_dir) / n) for n in order] if image_dir is not None else list(order)
+    fs = FeatureSet(descriptors=np.concatenate(D), image_ids=np.concatenate(ids), keypoints=np.concatenate(K),
+                    image_names=np.array(image_names, dtype=str))
+    return fs.validate(str(path))
+
+
+def _read_group(grp, name: str, path: Path):
+    """(descriptors (n, d) float32, keypoints (n, 4) float32) of one image group."""
+    keys = list(grp.keys())
+    for key in ("keypoints", "descriptors"):
+        if key not in keys:
+            raise InputError(f"{path}: image {name!r} has no {key!r} dataset (has {sorted(keys)})"
+                             + _kind_hint(keys))
+    kp = np.asarray(grp["keypoints"][()])
+    desc = np.asarray(grp["descriptors"][()])
+    for arr, key in ((kp, "keypoints"), (desc, "descriptors")):
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) \
+                or arr.dtype == np.bool_:
+            raise InputError(f"{path}: image {name!r}: {key} must be numbers, got dtype {arr.dtype}")
+    if kp.ndim != 2 or kp.shape[1] < 2:
+        raise InputError(f"{path}: image {name!r}: keypoints must be (N, 2) x, y, got shape {kp.shape}")
+    n = kp.shape[0]
+    if desc.ndim != 2:
+        raise InputError(f"{path}: image {name!r}: descriptors must be 2-D (D x N), got shape {desc.shape}")
+    if desc.shape[1] != n:
+        hint = " (stored N x D? hloc's layout is D x N)" if desc.shape[0] == n else ""
+        raise InputError(f"{path}: image {name!r}: {n} keypoints but descriptors of shape {desc.shape}, "
+                         f"expected (D, {n}){hint}")
+    if desc.shape[0] == 0:
+        raise InputError(f"{path}: image {name!r}: descriptors have zero dimensions (shape {desc.shape})")
+    desc = np.ascontiguousarray(desc.T, dtype=np.float32)
+    if desc.size and not np.isfinite(desc).all():
+        bad = np.flatnonzero(~np.isfinite(desc).all(axis=1))
+        kind = "NaN" if np.isnan(desc[bad[0]]).any() else "inf"
+        raise InputError(f"{path}: image {name!r}: descriptors contain {kind} in {len(bad)} feature(s), "
+                         f"first at keypoint {bad[0]}")
+    out = np.empty((n, 4), np.float32)
+    out[:, :2] = kp[:, :2]
+    if n and not np.isfinite(out[:, :2]).all():
+        raise InputError(f"{path}: image {name!r}: keypoints contain NaN or inf")
+    out[:, 2] = _optional_column(grp, "scales", n, DEFAULT_SIZE, name, path)
+    out[:, 3] = _optional_column(grp, "oris", n, DEFAULT_ANGLE, name, path)
+    return desc, out
+
+
+def _optional_column(grp, key: str, n: int, default: float, name: str, path: Path) -> np.ndarray:
+    if key not in grp:
+        return np.full(n, default, np.float32)
+    v = np.asarray(grp[key][()])
+    if v.shape != (n,):
+        raise InputError(f"{path}: image {name!r}: {key} must have one value per keypoint ({n}), got shape {v.shape}")
+    return v.astype(np.float32)
+
+
+def _check_name(name: str) -> str:
+    parts = name.split("/")
+    if not name or name.startswith("/") or any(p in ("", ".", "..") for p in parts):
+        raise InputError(f"image name {name!r} cannot be an hloc group name: it must be a relative path "
+                         "like 'seq1/img0.jpg' (pass image_dir= or names=)")
+    return name
+
+
+def _names_for_writing(fs: FeatureSet, names: Optional[Sequence[str]], image_dir: Optional[PathLike],
+                       n_ids: int) -> List[str]:
+    """hloc's name of every image id: at least ``n_ids`` names, all valid group names, no repeats."""
+    if names is not None:
+        out = [str(n) for n in names]
+    elif fs.image_names is not None:
+        out = [str(n) for n in np.asarray(fs.image_names).tolist()]
+        if image_dir is not None:
+            root = Path(image_dir)
+            rel = []
+            for n in out:
+                try:
+                    rel.append(Path(n).relative_to(root).as_posix())
+                except ValueError:
+                    raise InputError(f"image {n} is not inside the image folder {root}") from None
+            out = rel
+        else:
+            out = [Path(n).as_posix() for n in out]
+    else:
+        raise InputError("the features have no image_names: pass names= (hloc's names, relative to the image folder)")
+    if len(out) < n_ids:
+        raise InputError(f"{len(out)} image name(s) but the image ids go up to {n_ids - 1} (one name per id needed)")
+    if not out:
+        raise InputError("no images to write")
+    for n in out:
+        _check_name(n)
+    if len(set(out)) != len(out):
+        raise InputError("two images have the same name; hloc needs one group per image")
+    return out
+
+
+def _image_size_of(path: str) -> Optional[np.ndarray]:
+    """(width, height) of an image file as hloc reads it (EXIF orientation ignored), or None."""
+    if not Path(path).is_file():
+        return None
+    import cv2
+
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
+        return None
+    return np.array([img.shape[1], img.shape[0]], np.int64)
+
+
+def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Optional[Sequence[str]] = None, *,
+                      image_dir: Optional[PathLike] = None, image_sizes: Optional[ArrayLike] = None,
+                      scores: Optional[ArrayLike] = None,
+                      overwrite: bool = False) -> Path:
+    """Write a FEATURES set as an hloc local-features file; returns the path.
+
+    One group per image (names with '/' become nested groups), holding
+    ``keypoints`` (N, 2) float32 x, y (unchanged: both use pixel centres at
+    integer coordinates), ``descriptors`` (D, N) float32, ``scores`` (N,)
+    float32 (``scores``, one per feature, default 1.0) and ``image_size``
+    (width, height). Keypoint sizes and angles are written as hloc's ``scales``
+    and ``oris`` when any is set (size != 0 or angle != -1), as hloc's DoG
+    extractor does. Every image id 0..m-1 gets a group, even without features.
+
+    Names: ``names`` (one per image id) if given, else the set's
+    ``image_names`` made relative to ``image_dir`` (as hloc names images),
+    else ``image_names`` as they are (they must then be relative paths).
+
+    ``image_sizes``: (m, 2) width, height per image id; by default each size is
+    read from the image file (``image_names``) when it exists, and otherwise
+    left out. hloc's matchers (``match_features``) need ``image_size``.
+
+    An existing ``path`` is refused unless ``overwrite``; the file is written
+    to a temporary name and renamed, so a failed write leaves no partial file.
+    """
+    h5py = require_h5py()
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(f"{path} exists; pass overwrite=True to replace it")
+    if path.is_dir():
+        raise InputError(f"{path} is a directory")
+    fs = feature_set.validate("feature_set")
+    if fs.keypoints is None:
+        raise InputError("the features have no keypoints; an hloc features file needs them")
+    desc = np.asarray(fs.descriptors)
+    ids = np.asarray(fs.image_ids, np.int64)
+    if len(ids) and ids.min() < 0:
+        raise InputError(f"image ids must be >= 0, got {ids.min()}")
+    n_ids = int(ids.max()) + 1 if len(ids) else 0
+    image_names = _names_for_writing(fs, names, image_dir, n_ids)
+    m = len(image_names)
+    kp = np.asarray(fs.keypoints, np.float32)
+    sizes = kp[:, 2] if kp.shape[1] > 2 else np.full(len(kp), DEFAULT_SIZE, np.float32)
+    angles = kp[:, 3] if kp.shape[1] > 3 else np.full(len(kp), DEFAULT_ANGLE, np.float32)
+    write_scales = bool((sizes != DEFAULT_SIZE).any())
+    write_oris = bool((angles != DEFAULT_ANGLE).any())
+    if scores is None:
+        sc = np.ones(len(desc), np.float32)
+    else:
+        sc = np.asarray(scores, np.float32)
+        if sc.shape != (len(desc),):
+            raise InputError(f"scores must have one value per feature ({len(desc)}), got shape {sc.shape}")
+    wh: Dict[int, np.ndarray] = {}
+    if image_sizes is not None:
+        arr = np.asarray(image_sizes)
+        if arr.shape != (m, 2) or not np.issubdtype(arr.dtype, np.number):
+            raise InputError(f"image_sizes must be (m, 2) width, height for the {m} image(s), got shape {arr.shape}")
+        wh = {k: arr[k].astype(np.int64) for k in range(m)}
+    elif fs.image_names is not None and len(fs.image_names) >= m:
+        for k in range(m):
+            size = _image_size_of(str(fs.image_names[k]))
+            if size is not None:
+                wh[k] = size
+    order = np.argsort(ids, kind="stable")
+    bounds = np.searchsorted(ids[order], np.arange(m + 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd_, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.h5", dir=path.parent)
+    os.close(fd_)
+    try:
+        with h5py.File(tmp, "w") as fd:
+            for k, name in enumerate(image_names):
+                rows = order[bounds[k]:bounds[k + 1]]
+                try:
+                    grp = fd.create_group(name)
+                except ValueError as exc:
+                    raise InputError(f"image name {name!r} clashes with another image's group ({exc})") from None
+                grp.create_dataset("keypoints", data=np.ascontiguousarray(kp[rows, :2]))
+                grp.create_dataset("descriptors", data=np.ascontiguousarray(desc[rows].T, dtype=np.float32))
+                grp.create_dataset("scores", data=sc[rows])
+                if write_scales:
+                    grp.create_dataset("scales", data=sizes[rows])
+                if write_oris:
+                    grp.create_dataset("oris", data=angles[rows])
+                if k in wh:
+                    grp.create_dataset("image_size", data=wh[k])
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; follow the umask like any other output
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

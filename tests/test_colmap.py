@@ -1,0 +1,187 @@
+"""COLMAP export / import and geometric verification of clusters (dqm.vision.colmap, dqm.vision.verify)."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import dqm
+from dqm import InputError, io
+from dqm.vision import colmap, features
+from dqm.vision.scenes import generate_scene
+from dqm.vision.verify import verify_clusters
+from conftest import assert_consistent
+
+pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A generated scene written as images, its SIFT features and QuickMatch clusters."""
+    folder = tmp_path_factory.mktemp("scene")
+    generate_scene(4, (360, 480), seed=2).write(folder)
+    paths = sorted(folder.glob("img*.png"))
+    D, ids, kp = features.extract_many(paths)
+    r = dqm.quickmatch(D, ids)
+    return {"folder": folder, "paths": paths, "D": D, "ids": ids, "kp": kp, "labels": r.labels}
+
+
+def expected_pairs(labels, ids):
+    """Reference: every two members of every cluster, by image pair, as sets of (feature, feature)."""
+    out = {}
+    for lab in np.unique(labels):
+        m = np.flatnonzero(labels == lab)
+        for x in range(len(m)):
+            for y in range(x + 1, len(m)):
+                f, g = sorted((m[x], m[y]), key=lambda k: ids[k])
+                out.setdefault((ids[f], ids[g]), set()).add((f, g))
+    return out
+
+
+def test_cluster_pairs_are_every_two_members():
+    labels = np.array([0, 0, 0, 1, 1, 2, 3, 3])
+    ids = np.array([2, 0, 1, 1, 0, 0, 2, 1])
+    got = {k: set(map(tuple, v.tolist())) for k, v in colmap.cluster_pairs(labels, ids).items()}
+    assert got == expected_pairs(labels, ids)
+    assert got[(0, 1)] == {(1, 2), (4, 3)}
+
+
+def test_exported_database_holds_keypoints_matches_and_geometries(scene, tmp_path):
+    db = tmp_path / "db.db"
+    s = colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"],
+                               descriptors=scene["D"])
+    want = expected_pairs(scene["labels"], scene["ids"])
+    d = pycolmap.Database.open(str(db))
+    try:
+        images = sorted(d.read_all_images(), key=lambda im: im.image_id)
+        assert [im.name for im in images] == [p.name for p in scene["paths"]]
+        assert d.num_cameras() == 4 and d.num_frames() == 4 and d.num_rigs() == 4
+        cam = d.read_camera(images[0].camera_id)
+        assert (cam.width, cam.height) == (480, 360) and cam.focal_length == pytest.approx(1.2 * 480)
+        for k, im in enumerate(images):
+            rows = np.flatnonzero(scene["ids"] == k)
+            np.testing.assert_allclose(d.read_keypoints(im.image_id)[:, :2], scene["kp"][rows, :2] + 0.5, atol=1e-4)
+            np.testing.assert_array_equal(d.read_descriptors(im.image_id).data, scene["D"][rows])
+        start = [int(np.flatnonzero(scene["ids"] == k)[0]) for k in range(4)]
+        total = 0
+        for (a, b), pairs in want.items():
+            m = d.read_matches(images[a].image_id, images[b].image_id)
+            got = {(int(x) + start[a], int(y) + start[b]) for x, y in m}
+            assert got == pairs, (a, b)
+            total += len(pairs)
+        assert d.num_matches() == total == s.n_matches
+        assert d.num_verified_image_pairs() == s.n_verified_pairs == len(want)
+        geo = d.read_two_view_geometry(images[0].image_id, images[1].image_id)
+        assert len(geo.inlier_matches) > 0.5 * len(want[(0, 1)])  # a homography scene: most matches hold
+    finally:
+        d.close()
+    with pytest.raises(InputError, match="exists"):
+        colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"])
+
+
+def test_import_round_trip_database_features_clusters_database(scene, tmp_path):
+    db = tmp_path / "a.db"
+    colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"], descriptors=scene["D"],
+                           verify=False)
+    fs = colmap.import_database(db, image_dir=scene["folder"])
+    np.testing.assert_array_equal(fs.descriptors, scene["D"])
+    np.testing.assert_array_equal(fs.image_ids, scene["ids"])
+    np.testing.assert_allclose(fs.keypoints[:, :2], scene["kp"][:, :2], atol=1e-4)
+    assert [str(n) for n in fs.image_names] == [str(p) for p in scene["paths"]]
+    r = dqm.quickmatch(fs.descriptors, fs.image_ids)
+    np.testing.assert_array_equal(r.labels, scene["labels"])
+    db2 = tmp_path / "b.db"
+    colmap.export_database(db2, fs.keypoints, fs.image_ids, fs.image_names, r.labels, verify=False)
+    d1, d2 = pycolmap.Database.open(str(db)), pycolmap.Database.open(str(db2))
+    try:
+        for i in range(1, 5):
+            for j in range(i + 1, 5):
+                np.testing.assert_array_equal(d1.read_matches(i, j), d2.read_matches(i, j))
+    finally:
+        d1.close()
+        d2.close()
+
+
+def test_import_refuses_what_is_not_a_database(tmp_path):
+    bad = tmp_path / "x.db"
+    bad.write_text("not sqlite")
+    with pytest.raises(InputError):
+        colmap.import_database(bad)
+    with pytest.raises(InputError, match="not found"):
+        colmap.import_database(tmp_path / "missing.db")
+
+
+def test_verify_keeps_c1_c2_and_splits_injected_wrong_members(scene):
+    labels, ids, kp = scene["labels"], scene["ids"], scene["kp"]
+    out, st = verify_clusters(labels, ids, kp)
+    assert_consistent(out, ids)
+    assert st.n_verified == st.n_pairs == 6 and st.n_inliers > 5 * st.n_outliers
+    # only splits: every verified cluster lies inside one original cluster
+    for lab in np.unique(out):
+        assert len(np.unique(labels[out == lab])) == 1
+    # plant wrong members: move random singletons of image 3 into multi-image clusters lacking image 3
+    rng = np.random.default_rng(0)
+    sizes = np.bincount(labels)
+    hosts = [c for c in np.flatnonzero(sizes >= 3) if 3 not in ids[labels == c]]
+    singles = rng.permutation(np.flatnonzero((sizes[labels] == 1) & (ids == 3)))
+    bad = labels.copy()
+    planted = []
+    for c, f in zip(hosts[:40], singles):
+        bad[f] = c
+        planted.append(f)
+    bad = np.unique(bad, return_inverse=True)[1]
+    assert len(planted) >= 20
+    out, st = verify_clusters(bad, ids, kp)
+    assert_consistent(out, ids)
+    split = np.array([np.sum(out == out[f]) == 1 for f in planted])
+    assert split.mean() >= 0.9, split.mean()
+    again, _ = verify_clusters(bad, ids, kp)
+    np.testing.assert_array_equal(out, again)  # deterministic
+
+
+def test_verify_refuses_bad_input():
+    with pytest.raises(InputError, match="keypoints"):
+        verify_clusters(np.zeros(3, int), np.arange(3), np.zeros((2, 2)))
+    with pytest.raises(InputError, match="NaN"):
+        verify_clusters(np.zeros(2, int), np.arange(2), np.array([[0, 0], [np.nan, 1]]))
+
+
+def test_cli_match_verify_export_and_import(scene, tmp_path):
+    run = lambda *a: subprocess.run([sys.executable, "-m", "dqm", *map(str, a)],  # noqa: E731
+                                    capture_output=True, text=True, timeout=300)
+    c = tmp_path / "c.npz"
+    p = run("match", scene["folder"], "--out", c, "--verify", "--quiet")
+    assert p.returncode == 0, p.stderr
+    assert "verified 6 of 6 image pairs" in p.stdout
+    assert io.load_clusters(c)["params"]["verify"] is True
+    db = tmp_path / "m" / "db.db"
+    p = run("export", "colmap", c, "--database", db, "--tracks", tmp_path / "t.csv")
+    assert p.returncode == 0, p.stderr
+    assert "Traceback" not in p.stderr and "I20" not in p.stderr  # COLMAP's info log kept quiet
+    assert "verified pairs" in p.stdout and (tmp_path / "t.csv").exists()
+    p = run("export", "colmap", c, "--database", db)
+    assert p.returncode == 2 and "exists" in p.stderr and "Traceback" not in p.stderr
+    p = run("import", "colmap", db, "--out", tmp_path / "f.npz", "--image-dir", scene["folder"])
+    assert p.returncode == 0, p.stderr
+    fs = io.load_features(tmp_path / "f.npz")
+    assert len(fs) == len(scene["ids"]) and fs.image_names is not None
+    p = run("match", tmp_path / "f.npz", "--out", tmp_path / "c2.npz", "--verify", "--quiet")
+    assert p.returncode == 0, p.stderr
+
+
+def test_reconstruction_from_dqm_tracks_registers_every_image(tmp_path):
+    """A generated 3-D scene (planes at several depths, known cameras): dqm clusters -> database -> mapper."""
+    from dqm.vision.scenes3d import generate_scene3d
+
+    sc = generate_scene3d(seed=0, n_images=6)
+    sc.save(tmp_path / "img")
+    paths = sorted((tmp_path / "img").glob("*.png"))
+    D, ids, kp = features.extract_many(paths)
+    r = dqm.quickmatch(D, ids)
+    colmap.export_database(tmp_path / "db.db", kp, ids, paths, r.labels, descriptors=D)
+    (tmp_path / "sparse").mkdir()
+    recs = pycolmap.incremental_mapping(str(tmp_path / "db.db"), str(tmp_path / "img"), str(tmp_path / "sparse"))
+    assert recs, "no reconstruction"
+    best = max(recs.values(), key=lambda rec: rec.num_reg_images())
+    assert best.num_reg_images() == len(paths)
+    assert best.compute_mean_reprojection_error() < 1.0
