@@ -7,13 +7,14 @@ mapper from:
   (b) the same with geometric verification (dqm match --verify);
   (c) COLMAP's pipeline on the same images: its SIFT, exhaustive matching and verification;
   (d) BF ratio-test tracks (OpenCV BF, ratio 0.75, union-find, drop-track) on dqm's SIFT;
+  (e) dqm QuickMatch on COLMAP's SIFT of (c), read with dqm import colmap;
 
 and print a markdown table: registered images, 3-D points, mean track length, mean
 reprojection error and matching time, plus a figure of (a)'s sparse model.
 
     python scripts/bench_sfm.py [--images DIR] [--out-dir DIR] [--preset rootsift] [--quick]
 
---quick: the first 5 images only (a small CI check). Nothing is written into the repository
+--quick: the last 5 images only (a small CI check). Nothing is written into the repository
 unless --out-dir points there.
 """
 from __future__ import annotations
@@ -52,7 +53,7 @@ def row(name, rec, t_match, n_images):
 
 
 def model_figure(rec, path: Path, title: str):
-    """Top view of a sparse model: 3-D points and camera centres (the two largest spread axes)."""
+    """A sparse model from the front (the points' two main axes) and from above (main and depth axes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -62,19 +63,22 @@ def model_figure(rec, path: Path, title: str):
     C = np.array([im.projection_center() for im in rec.images.values() if im.has_pose])
     centre = np.median(P, axis=0)
     _, _, vt = np.linalg.svd(P - centre, full_matrices=False)
-    proj = lambda X: (X - centre) @ vt[:2].T  # noqa: E731 - the model's two main axes
-    p2, c2 = proj(P), proj(C)
-    lim = np.percentile(np.abs(p2), 98, axis=0) * 1.3
-    fig, ax = plt.subplots(figsize=(7, 6), dpi=110)
-    ax.scatter(p2[:, 0], p2[:, 1], s=1.5, c="#4575b4", alpha=0.6, label=f"{len(P):,} 3-D points")
-    ax.scatter(c2[:, 0], c2[:, 1], s=40, c="#d73027", marker="^", label=f"{len(C)} cameras")
-    ax.set_xlim(-max(lim[0], np.abs(c2[:, 0]).max() * 1.1), max(lim[0], np.abs(c2[:, 0]).max() * 1.1))
-    ax.set_ylim(-max(lim[1], np.abs(c2[:, 1]).max() * 1.1), max(lim[1], np.abs(c2[:, 1]).max() * 1.1))
-    ax.set_aspect("equal")
-    ax.legend(loc="upper right")
-    ax.set_title(title)
-    ax.set_xlabel("main axis 1 (model units)")
-    ax.set_ylabel("main axis 2")
+    p3, c3 = (P - centre) @ vt.T, (C - centre) @ vt.T
+    lim = np.percentile(np.abs(p3), 98, axis=0) * 1.2
+    fig, (front, top) = plt.subplots(1, 2, figsize=(11, 5), dpi=110)
+    front.scatter(p3[:, 0], p3[:, 1], s=2, c="#4575b4", alpha=0.7)
+    front.set_xlim(-lim[0], lim[0])
+    front.set_ylim(-lim[1], lim[1])
+    front.set_title(f"front: {len(P):,} 3-D points")
+    top.scatter(p3[:, 0], p3[:, 2], s=2, c="#4575b4", alpha=0.7, label="3-D points")
+    top.scatter(c3[:, 0], c3[:, 2], s=45, c="#d73027", marker="^", label=f"{len(C)} cameras")
+    top.set_title("from above, with the cameras")
+    top.legend(loc="best")
+    for ax, yl in ((front, "main axis 2"), (top, "depth axis")):
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel("main axis 1 (model units)")
+        ax.set_ylabel(yl)
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -85,7 +89,7 @@ def main() -> int:
     ap.add_argument("--images", type=Path, default=DEFAULT_IMAGES, help="image folder (default: sacre_coeur)")
     ap.add_argument("--out-dir", type=Path, default=None, help="where the table and figure go (default: a temp dir)")
     ap.add_argument("--preset", default="rootsift", help="dqm SIFT preset for (a), (b), (d)")
-    ap.add_argument("--quick", action="store_true", help="first 5 images only")
+    ap.add_argument("--quick", action="store_true", help="last 5 images only")
     args = ap.parse_args()
     try:
         import pycolmap
@@ -103,7 +107,7 @@ def main() -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = features.collect_images([str(args.images)])
     if args.quick:
-        paths = paths[:5]
+        paths = paths[-5:]
     image_dir = work / "images"
     image_dir.mkdir()
     for p in paths:  # the mapper reads one folder; link the chosen images there
@@ -151,6 +155,17 @@ def main() -> int:
     rec, _ = reconstruct(pycolmap, db, image_dir, work / "sparse_c")
     line, results["(c)"] = row("(c) COLMAP (its SIFT, exhaustive matching, verification)", rec, t_cm, n)
     lines.insert(4, line)
+    print(line, flush=True)
+    # (e) QuickMatch on COLMAP's own SIFT, brought in with dqm import colmap
+    fs = colmap.import_database(db)
+    t0 = time.perf_counter()
+    r_e = dqm.quickmatch(fs.descriptors, fs.image_ids)
+    t_e = time.perf_counter() - t0
+    names = [image_dir / str(nm) for nm in fs.image_names]
+    colmap.export_database(work / "e.db", fs.keypoints, fs.image_ids, names, r_e.labels, image_dir=image_dir)
+    rec, _ = reconstruct(pycolmap, work / "e.db", image_dir, work / "sparse_e")
+    line, results["(e)"] = row("(e) dqm QuickMatch on COLMAP's SIFT (dqm import colmap)", rec, t_e, n)
+    lines.append(line)
     print(line, flush=True)
     summary = (f"\nExtraction: dqm SIFT {t_extract:.1f} s, COLMAP SIFT {t_cx:.1f} s. Verification (b): "
                f"{vs.n_verified}/{vs.n_pairs} pairs verified, {vs.n_split} features split off.")

@@ -185,3 +185,20 @@ def test_reconstruction_from_dqm_tracks_registers_every_image(tmp_path):
     best = max(recs.values(), key=lambda rec: rec.num_reg_images())
     assert best.num_reg_images() == len(paths)
     assert best.compute_mean_reprojection_error() < 1.0
+
+
+def test_bench_sfm_registers_every_image(tmp_path):
+    """scripts/bench_sfm.py on the 10 sacre_coeur photos (about 40 s): dqm's tracks register every image."""
+    from conftest import require_data
+
+    images = require_data("sacre_coeur")
+    p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(images), "--out-dir",
+                        str(tmp_path)], capture_output=True, text=True, timeout=600,
+                       cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = [ln for ln in (tmp_path / "sfm.md").read_text().splitlines() if ln.startswith("| (")]
+    assert len(rows) == 5
+    for ln in rows:
+        if ln.startswith(("| (a)", "| (c)")):
+            assert "| 10 / 10 |" in ln, ln
+    assert (tmp_path / "sfm_model.png").stat().st_size > 10_000

@@ -101,7 +101,8 @@ def _image_folder(paths: Sequence[Path], image_dir: Optional[Path]) -> Tuple[Pat
     names = []
     for p in paths:
         try:
-            names.append(p.resolve().relative_to(image_dir.resolve()).as_posix())
+            # absolute, not resolved: a folder of links to the images is a valid COLMAP image folder
+            names.append(Path(os.path.abspath(p)).relative_to(os.path.abspath(image_dir)).as_posix())
         except ValueError:
             raise InputError(f"image {p} is not inside the image folder {image_dir}") from None
     return image_dir, names
