@@ -21,6 +21,7 @@ from typing import Tuple
 import numpy as np
 
 from ..validation import InputError
+from .baselines import canonical
 from .colmap import cluster_pairs
 
 #: COLMAP's defaults (TwoViewGeometryOptions): min_num_inliers, max_H_inlier_ratio
@@ -113,10 +114,6 @@ def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, con
             next_label += 1
             alive[f] = False
         n_split += len(worst)
-    # renumber by each cluster's lowest feature index, as quickmatch does
-    _, first_idx, inv = np.unique(new, return_index=True, return_inverse=True)
-    rank = np.empty(len(first_idx), np.int64)
-    rank[np.argsort(first_idx, kind="stable")] = np.arange(len(first_idx))
-    out = rank[inv.ravel()]
+    out = canonical(new)  # numbered by each cluster's lowest feature index, as quickmatch does
     stats = VerifyStats(len(pairs), n_ver, n_planar, n_matches, len(e_in), len(e_out), n_split)
     return out, stats
