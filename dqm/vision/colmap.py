@@ -144,12 +144,13 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     if n and (ids.min() < 0 or ids.max() >= len(paths)):
         raise InputError(f"image ids must index the {len(paths)} images (0..{len(paths) - 1})")
     folder, names = _image_folder(paths, None if image_dir is None else Path(image_dir))
-    write_desc = descriptors is not None and np.asarray(descriptors).dtype == np.uint8 \
-        and np.asarray(descriptors).shape[1:] == (128,)
+    desc = None if descriptors is None else np.asarray(descriptors)
+    if desc is not None and (desc.dtype != np.uint8 or desc.shape[1:] != (128,)):
+        desc = None  # COLMAP's descriptor type is 128-D uint8; the mapper does not need others
     pairs = cluster_pairs(labels, ids)
+    rows_of = [np.flatnonzero(ids == k) for k in range(len(paths))]
     local = np.zeros(n, np.int64)  # index of each feature within its image
-    for k in range(len(paths)):
-        rows = np.flatnonzero(ids == k)
+    for rows in rows_of:
         local[rows] = np.arange(len(rows))
     database.parent.mkdir(parents=True, exist_ok=True)
     colmap_id = {}
@@ -174,11 +175,11 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
             frame.add_data_id(pycolmap.data_t(sensor_id=cam.sensor_id, id=image_id))
             db.write_frame(frame)
             colmap_id[k] = image_id
-            rows = np.flatnonzero(ids == k)
+            rows = rows_of[k]
             db.write_keypoints(image_id, (kp[rows, :2] + 0.5).astype(np.float32))
-            if write_desc:
+            if desc is not None:
                 db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
-                    pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(np.asarray(descriptors)[rows])))
+                    pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(desc[rows])))
         n_matches = 0
         for (a, b), m in pairs.items():
             db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))

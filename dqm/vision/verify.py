@@ -109,10 +109,9 @@ def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, con
         o = cand[np.lexsort((cand, -score[cand], new[cand]))]
         first = np.r_[True, new[o][1:] != new[o][:-1]]
         worst = o[first]
-        for f in worst.tolist():
-            new[f] = next_label
-            next_label += 1
-            alive[f] = False
+        new[worst] = next_label + np.arange(len(worst))  # each into a cluster of its own
+        next_label += len(worst)
+        alive[worst] = False
         n_split += len(worst)
     out = canonical(new)  # numbered by each cluster's lowest feature index, as quickmatch does
     stats = VerifyStats(len(pairs), n_ver, n_planar, n_matches, len(e_in), len(e_out), n_split)
