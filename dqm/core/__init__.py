@@ -12,9 +12,11 @@ from .clustering import (
     QuickMatchResult,
     quickmatch,
 )
+from .events import ChangeSet, ClusterEvent
 from .memory import MemoryBudgetError
+from .online import OnlineQuickMatch
 
 __all__ = [
     "DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES",
-    "MemoryBudgetError", "QuickMatch", "QuickMatchResult", "quickmatch",
+    "ChangeSet", "ClusterEvent", "MemoryBudgetError", "OnlineQuickMatch", "QuickMatch", "QuickMatchResult", "quickmatch",
 ]
