@@ -34,6 +34,7 @@ COMMANDS = [
     "dqm.commands.router",
     "dqm.commands.agent",
     "dqm.commands.coordinator",
+    "dqm.commands.stream",
     "dqm.commands.experiment",
     "dqm.commands.doctor",
 ]

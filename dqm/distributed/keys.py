@@ -9,6 +9,13 @@ router never see each other's traffic:
 * ``dqm/<job>/coordinator``      messages to the coordinator
 * ``dqm/<job>/alive/agent/<i>``  liveliness token of agent i
 * ``dqm/<job>/alive/coordinator`` liveliness token of the coordinator
+
+Streaming (``dqm stream``, :mod:`dqm.runtime.stream`):
+
+* ``dqm/<job>/stream/images``   camera nodes put ``image`` messages here (one image each)
+* ``dqm/<job>/stream/changes``  the stream publishes one ``changes`` message per add or remove
+* ``dqm/<job>/alive/stream``    liveliness token of the stream: declared once it subscribes, so
+  a camera node waits for it before its first put (a put before is lost)
 """
 import re
 
@@ -41,3 +48,15 @@ def alive_coordinator(job: str) -> str:
 
 def alive_all(job: str) -> str:
     return f"dqm/{job}/alive/**"
+
+
+def stream_images(job: str) -> str:
+    return f"dqm/{job}/stream/images"
+
+
+def stream_changes(job: str) -> str:
+    return f"dqm/{job}/stream/changes"
+
+
+def alive_stream(job: str) -> str:
+    return f"dqm/{job}/alive/stream"

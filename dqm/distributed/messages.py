@@ -17,6 +17,11 @@ count and drop it and go on.
 
 The in-process simulator meters traffic with :func:`encode` too, so its byte
 counts are those the runtime sends.
+
+Streaming (``dqm stream``, :mod:`dqm.runtime.stream`) has two kinds of its own:
+``image`` (a camera node -> the stream: one image's features; :func:`image_message`)
+and ``changes`` (the stream -> subscribers: what one add or remove changed, as
+flat arrays; :func:`changes_message`, :func:`changes_events`).
 """
 from __future__ import annotations
 
@@ -131,7 +136,24 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "abort": {"reason": "str"},
     # coordinator -> agents: all results are in, exit
     "finish": {"clusters": "int"},
+    # streaming (dqm stream). camera node -> stream: one image's features (src: the camera, >= 0; seq: its
+    # frame number); keypoints: (n, 2..4) x, y[, size, angle] or empty (0 rows); time: the sender's clock
+    # (seconds since the epoch) at the put, echoed in the change sets so that a listener can measure latency
+    "image": {"image_id": "int", "time": "float", "descriptors": "array:|u1,<f4:2", "keypoints": "array:<f4:2"},
+    # stream -> subscribers: what one add or remove (dqm.core.events.ChangeSet) changed. op: "add" or "remove";
+    # image_id and time: the image added or removed (time: of the image message that caused the change);
+    # one row per event: event_kind (index into dqm.core.events.EVENT_KINDS), cluster, source (-1: none),
+    # new (0/1), size (its feature count); keys and images: every event's features (key, image id)
+    # concatenated in event order (size of them per event); added / removed: feature keys that arrived /
+    # left; the counts after the change and the stream's rejected messages so far; stats: of the update
+    "changes": {"op": "str", "image_id": "int", "time": "float", "event_kind": "array:|u1:1",
+                "cluster": "array:<i8:1", "source": "array:<i8:1", "new": "array:|u1:1", "size": "array:<i8:1",
+                "keys": "array:<i8:1", "images": "array:<i8:1", "added": "array:<i8:1", "removed": "array:<i8:1",
+                "n_images": "int", "n_features": "int", "n_clusters": "int", "rejected": "int", "stats": "dict"},
 }
+
+#: ``changes.op`` values
+CHANGE_OPS = ("add", "remove")
 
 #: fields of one row per feature (split across parts; equal lengths within a message)
 ROW_FIELDS: Dict[str, tuple] = {
@@ -146,6 +168,7 @@ ROW_FIELDS: Dict[str, tuple] = {
     "fragments": ("child_key", "child_agent", "parent_key"),
     "assign": ("key", "target"),
     "component": ("ids", "image_ids", "sigma", "parent", "distance"),
+    "changes": ("event_kind", "cluster", "source", "new", "size"),
 }
 #: row fields that may also be empty (sums.high: only when a partial sum is too large for one int64)
 OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",)}
@@ -185,8 +208,8 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
     if body.get("v") != VERSION:
         raise MessageError(f"schema version {body.get('v')!r} is not {VERSION}")
     kind = body.get("kind")
-    if kind not in SCHEMAS:
-        raise MessageError(f"unknown message kind {kind!r}")
+    if not isinstance(kind, str) or kind not in SCHEMAS:
+        raise MessageError(f"unknown message kind {str(kind)[:40]!r}")
     if not isinstance(body.get("job"), str):
         raise MessageError("missing job id")
     if job is not None and body["job"] != job:
@@ -249,8 +272,10 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         for f in rows[1:]:
             if len(out[f]) != n:
                 raise MessageError(f"{kind}.{f} has {len(out[f])} rows, {rows[0]} has {n}")
-    if "descriptors" in out and kind in ("features", "ghost", "sample"):
+    if "descriptors" in out and kind in ("features", "ghost", "sample", "image"):
         d = out["descriptors"]
+        if kind == "image" and d.shape[1] == 0:
+            raise MessageError(f"{kind}.descriptors have no dimensions (shape {tuple(d.shape)})")
         if dim is not None and len(d) and d.shape[1] != dim:
             raise MessageError(f"descriptor dimension {d.shape[1]} is not the job's {dim}")
         if d.dtype == np.float32 and len(d) and not np.isfinite(d).all():
@@ -304,6 +329,8 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         raise MessageError("negative progress counts")
     if kind == "result" and len(out["ids"]) != len(out["labels"]):
         raise MessageError("result ids and labels differ in length")
+    if kind in ("image", "changes"):
+        _check_stream(kind, out)
     if n_agents is None:
         return
     if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= n_agents)).any():
@@ -329,3 +356,86 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
             raise MessageError(f"seeds or sketch basis do not have the job's dimension {dim}")
     if kind == "weights" and not np.isfinite(out["weights"]).all():
         raise MessageError("non-finite weights")
+
+
+def _check_stream(kind: str, out: Dict[str, Any]) -> None:
+    """Content of the streaming kinds (types and row counts are checked already)."""
+    if out["image_id"] < 0:
+        raise MessageError(f"negative image id {out['image_id']}")
+    if out["time"] < 0:
+        raise MessageError(f"{kind}.time is negative")
+    if kind == "image":
+        n = len(out["descriptors"])
+        kp = out["keypoints"]
+        if len(kp):
+            if len(kp) != n:
+                raise MessageError(f"image.keypoints has {len(kp)} rows, descriptors has {n}")
+            if not 2 <= kp.shape[1] <= 4:
+                raise MessageError(f"image.keypoints must have 2 to 4 columns (x, y, size, angle), got {kp.shape[1]}")
+            if not np.isfinite(kp).all():
+                raise MessageError("non-finite keypoint values")
+        return
+    from ..core.events import EVENT_KINDS
+
+    if out["op"] not in CHANGE_OPS:
+        raise MessageError(f"changes.op {out['op'][:20]!r} is not one of {', '.join(CHANGE_OPS)}")
+    for f in ("n_images", "n_features", "n_clusters", "rejected"):
+        if out[f] < 0:
+            raise MessageError(f"negative changes.{f}")
+    if len(out["event_kind"]) and out["event_kind"].max() >= len(EVENT_KINDS):
+        raise MessageError(f"changes.event_kind names an unknown kind {int(out['event_kind'].max())}")
+    if len(out["new"]) and out["new"].max() > 1:
+        raise MessageError("changes.new must be 0 or 1")
+    for f, low in (("cluster", 0), ("source", -1), ("size", 0), ("keys", 0), ("images", 0), ("added", 0),
+                   ("removed", 0)):
+        if len(out[f]) and out[f].min() < low:
+            raise MessageError(f"changes.{f} below {low}")
+    total = int(out["size"].sum()) if len(out["size"]) else 0
+    for f in ("keys", "images"):
+        if len(out[f]) != total:
+            raise MessageError(f"changes.{f} has {len(out[f])} rows, the events' sizes add up to {total}")
+
+
+def image_message(job: str, camera: int, image_id: int, descriptors, keypoints=None, *, seq: int = 0,
+                  sent: Optional[float] = None) -> bytes:
+    """An ``image`` message: one image's descriptors (uint8 stays uint8, others become float32) and
+    keypoints (optional), from camera node ``camera``; ``sent``: the sender's clock (default now)."""
+    import time as _time
+
+    d = np.asarray(descriptors)
+    d = d if d.dtype == np.uint8 else np.ascontiguousarray(d, dtype=np.float32)
+    kp = np.zeros((0, 4), np.float32) if keypoints is None else np.ascontiguousarray(keypoints, dtype=np.float32)
+    return encode("image", job, camera, seq=seq, image_id=int(image_id),
+                  time=float(_time.time() if sent is None else sent), descriptors=d, keypoints=kp)
+
+
+def changes_message(job: str, changeset, op: str, image_id: int, *, sent: float, n_images: int,
+                    n_features: int, n_clusters: int, rejected: int, seq: int = 0, src: int = 0) -> bytes:
+    """A ``changes`` message from a :class:`dqm.core.events.ChangeSet` (see :data:`SCHEMAS`)."""
+    from ..core.events import EVENT_KINDS
+
+    ev = list(changeset.events)
+
+    def cat(parts: list) -> np.ndarray:
+        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+    return encode(
+        "changes", job, src, seq=seq, op=op, image_id=int(image_id), time=float(sent),
+        event_kind=np.array([EVENT_KINDS.index(e.kind) for e in ev], np.uint8),
+        cluster=np.array([e.cluster for e in ev], np.int64), source=np.array([e.source for e in ev], np.int64),
+        new=np.array([bool(e.new) for e in ev], np.uint8), size=np.array([len(e.features) for e in ev], np.int64),
+        keys=cat([np.asarray(e.features) for e in ev]), images=cat([np.asarray(e.images) for e in ev]),
+        added=np.asarray(changeset.added, np.int64), removed=np.asarray(changeset.removed, np.int64),
+        n_images=int(n_images), n_features=int(n_features), n_clusters=int(n_clusters), rejected=int(rejected),
+        stats={str(k): float(v) for k, v in dict(changeset.stats).items()})
+
+
+def changes_events(msg: Dict[str, Any]) -> list:
+    """The :class:`dqm.core.events.ClusterEvent` list of a decoded ``changes`` message, in order."""
+    from ..core.events import EVENT_KINDS, ClusterEvent
+
+    bounds = np.concatenate([[0], np.cumsum(msg["size"])]).astype(np.int64)
+    return [ClusterEvent(EVENT_KINDS[int(k)], int(c), msg["keys"][a:b].astype(np.int64),
+                         msg["images"][a:b].astype(np.int64), int(s), bool(n))
+            for k, c, s, n, a, b in zip(msg["event_kind"], msg["cluster"], msg["source"], msg["new"],
+                                        bounds[:-1], bounds[1:])]
