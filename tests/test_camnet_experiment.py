@@ -9,7 +9,9 @@ from dqm import InputError
 from dqm.camnet.experiment import (calibrate, common_errors, detection_curve, localization_errors,
                                    operating_point, run_experiment)
 from dqm.camnet.geometry import Camera
-from dqm.camnet.pipeline import (PipelineConfig, detect, pairwise_pair_candidates, quickmatch_matches)
+from dqm.camnet.pipeline import (METHODS, PipelineConfig, detect, match_all, pairwise_pair_candidates,
+                                 quickmatch_matches)
+from dqm.core import quickmatch
 from dqm.camnet.simulator import BoxObject, SimConfig, build_world
 from dqm.cli import main
 from dqm.vision.features import extract
@@ -137,6 +139,49 @@ def test_quickmatch_matches_are_co_clustered_pairs(world):
         quickmatch_matches(refs, cams, 0.75, labels=labels[:-1])
 
 
+def _same_matches(a, b):
+    assert len(a) == len(b)
+    for (ra, ca), (rb, cb) in zip(a, b):
+        assert np.array_equal(ra, rb) and np.array_equal(ca, cb)
+
+
+def test_online_matcher_equals_batch_quadratic(world):
+    """Online clusters = batch quadratic QuickMatch over the same features in arrival order (mid-step, step end)."""
+    from dqm.camnet.online import OnlineMatcher
+
+    refs = [extract(r, "paper") for r in world.references]
+    frames = {(t, c): extract(world.render(c, t)[0], "paper") for t in (0, 1) for c in range(3)}
+    on = OnlineMatcher(refs, 3, 0.75)
+    for c in range(3):
+        on.update(0, c, frames[(0, c)])
+    row = on.update(1, 0, frames[(1, 0)])  # camera 0 replaced its frame; cameras 1, 2 still hold step 0
+    cams = [frames[(0, 1)], frames[(0, 2)], frames[(1, 0)]]  # arrival order
+    batch, labels = quickmatch_matches(refs, cams, 0.75, kernel="quadratic")
+    assert np.array_equal(on.om.labels, labels)
+    _same_matches(row, batch[2])
+    assert sum(len(m[0]) for m in row) > 0
+    for c in (1, 2):
+        on.update(1, c, frames[(1, c)])
+    # every camera now holds its step-1 frame: the batch input of step 1, in the batch order
+    cams = [frames[(1, c)] for c in range(3)]
+    batch, labels = quickmatch_matches(refs, cams, 0.75, kernel="quadratic")
+    D = np.vstack([f.descriptors for f in refs + cams])
+    assert np.array_equal(on.om.descriptors, D)
+    assert np.array_equal(labels, quickmatch(D, np.concatenate([np.full(len(f), k) for k, f in
+                                                                enumerate(refs + cams)]),
+                                             rho=0.75, kernel="quadratic").labels)
+    assert np.array_equal(on.om.labels, labels)
+    for c in range(3):
+        _same_matches(on.matches(c), batch[c])
+    assert on.om.n_features == len(D) and on.current_images() == [4 + 3 + c for c in range(3)]
+    st = on.stats()
+    assert st["frames"] == 6 and st["update_mean_s"] > 0 and st["features_max"] == max(on.set_sizes)
+    with pytest.raises(InputError, match="time order"):
+        on.update(1, 0, frames[(1, 0)])
+    with pytest.raises(InputError, match="one frame at a time"):
+        match_all("quickmatch-online", refs, cams, PipelineConfig())
+
+
 # --- the whole experiment ------------------------------------------------------------------------
 def test_small_experiment_quickmatch_detects_best(small_run):
     res = small_run
@@ -157,6 +202,21 @@ def test_small_experiment_quickmatch_detects_best(small_run):
     assert len({e.n_detections for e in common.values()}) == 1
 
 
+def test_small_experiment_online_variant(small_run):
+    """The online variant is run frame by frame; the last camera of each step sees the batch set."""
+    res = small_run
+    assert res.methods == METHODS
+    on, ba = res.arrays("quickmatch-online"), res.arrays("quickmatch-quadratic")
+    assert np.array_equal(on["step"], ba["step"]) and np.array_equal(on["camera"], ba["camera"])
+    last = on["camera"] == 4
+    assert np.array_equal(on["score"][last], ba["score"][last])
+    assert np.array_equal(on["estimate"][last], ba["estimate"][last], equal_nan=True)
+    assert detection_curve(res, "quickmatch-online").auc() > 0.5
+    assert res.online["frames"] == 50 and res.online["update_mean_s"] > 0
+    assert res.online["features_mean"] > res.n_features["per_reference_mean"] * 4
+    assert "quickmatch-online" not in res.sweeps
+
+
 def test_small_experiment_report(small_run, tmp_path):
     from dqm.camnet.report import seed_row, write_report
 
@@ -164,10 +224,20 @@ def test_small_experiment_report(small_run, tmp_path):
     for name in ("pr", "trajectories", "errors", "views", "discovery", "clusters", "json", "markdown"):
         assert written[name].exists() and written[name].stat().st_size > 0, name
     data = json.loads(written["json"].read_text())
-    assert set(data["methods"]) == {"quickmatch", "bf", "flann"}
+    assert set(data["methods"]) == set(METHODS)
     assert data["methods"]["quickmatch"]["paper"]["auc"] == 0.64
+    assert data["methods"]["quickmatch-online"]["paper"] is None
+    assert data["methods"]["quickmatch-online"]["kernel"] == "quadratic"
+    vs = data["online"]["vs_batch_quadratic"]
+    assert vs["same_score_last_camera"] == vs["last_camera_frames"] == 10
+    assert data["online"]["update_mean_s"] > 0 and set(data["online"]["batch_per_step_s"]) == {
+        "quickmatch", "quickmatch-quadratic"}
     md = written["markdown"].read_text()
     assert "Comparison with the paper" in md and "0.64" in md and "img/camnet_pr.png" in md
+    assert "## Online QuickMatch" in md and "ms per frame" in md
+    auc = data["methods"]["quickmatch-online"]["pr_auc"]
+    assert f"| QuickMatch online, quadratic (rho 0.75) | **{auc:.3f}** |" in md
+    assert "| QuickMatch quadratic kernel (rho 0.75) |" in md
 
 
 def test_experiment_rejects_bad_input():
@@ -193,14 +263,22 @@ def test_cli_experiment(tmp_path, capsys):
     assert rc == 0
     assert (out / "img" / "camnet_pr.png").exists() and (out / "img" / "camnet_pr_parameter.png").exists()
     md = (out / "camnet.md").read_text()
-    for section in ("## Results", "## The matching parameter", "## Comparison with the paper", "## Other seeds",
-                    "QuickMatch per camera"):
+    for section in ("## Results", "## Online QuickMatch", "## The matching parameter", "## Comparison with the paper",
+                    "## Other seeds", "QuickMatch per camera", "QuickMatch online PR AUC"):
         assert section in md, section
     data = json.loads((out / "camnet.json").read_text())
     assert [r["seed"] for r in data["seeds"]] == [3, 4]
     assert [r["ratio"] for r in data["methods"]["bf"]["sweep"]["table"]] == [0.7, 0.75]
+    # a subset of the methods, online without batch QuickMatch
+    rc = main(["experiment", "localization", "--cameras", "2", "--duration", "6", "--rate", "0.34", "--no-sweep",
+               "--methods", "bf,quickmatch-online", "--out-dir", str(out / "sub"), "--quiet"])
+    assert rc == 0
+    data = json.loads((out / "sub" / "camnet.json").read_text())
+    assert list(data["methods"]) == ["bf", "quickmatch-online"] and "vs_batch_quadratic" not in data["online"]
+    assert "## Online QuickMatch" in (out / "sub" / "camnet.md").read_text()
     for argv, msg in ((["--seeds", "a,b"], "--seeds"), (["--cameras", "0"], "n_cameras"),
-                      (["--rho", "-1"], "rho"), (["--seeds", "1,1"], "repeat")):
+                      (["--rho", "-1"], "rho"), (["--seeds", "1,1"], "repeat"), (["--methods", "sift"], "sift"),
+                      (["--methods", "bf,bf"], "at most once")):
         rc = main(["experiment", "localization", "--quick", "--out-dir", str(out), "--quiet"] + argv)
         assert rc == 2
         assert msg in capsys.readouterr().err

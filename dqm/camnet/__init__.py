@@ -3,12 +3,14 @@
 Five cameras at known poses watch a textured box-shaped target drive a loop;
 each camera detects the target by matching SIFT features against the target's
 reference images (QuickMatch over all images of a time step, or BF / FLANN
-pairwise with Lowe's ratio test) and localizes it from the bounding box of a
-RANSAC homography. Modules:
+pairwise with Lowe's ratio test; QuickMatch also with the quadratic kernel,
+and online: one clustering updated frame by frame) and localizes it from the
+bounding box of a RANSAC homography. Modules:
 
 * :mod:`~dqm.camnet.geometry` - cameras, projection, box -> distance / bearing -> position;
 * :mod:`~dqm.camnet.simulator` - the seeded world and its renderer with exact ground truth;
 * :mod:`~dqm.camnet.pipeline` - matching, detection and localization per time step;
+* :mod:`~dqm.camnet.online` - online QuickMatch fed one camera frame at a time;
 * :mod:`~dqm.camnet.experiment` - the whole run and its scores (PR curves, errors);
 * :mod:`~dqm.camnet.report` - figures, JSON and the markdown summary.
 

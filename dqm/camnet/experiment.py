@@ -36,8 +36,8 @@ from ..vision.features import ImageFeatures, extract
 from ..progress import ProgressArg, resolve_progress
 from ..validation import InputError, check_choice
 from .geometry import Camera, bounding_box, calibrate_range, estimate_homography, projected_quad
-from .pipeline import (METHODS, Detection, PipelineConfig, detect, match_all, pairwise_pair_candidates,
-                       quickmatch_matches)
+from .pipeline import (METHODS, PAPER_METHODS, Detection, PipelineConfig, detect, match_all,
+                       pairwise_pair_candidates, quickmatch_matches)
 from .simulator import FrameTruth, SimConfig, World, build_world
 
 DEFAULT_RHOS = (0.5, 0.6, 0.75, 0.9, 1.0, 1.1, 1.2, 1.4, 1.6)
@@ -111,6 +111,8 @@ class ExperimentResult:
     snapshot: Optional[Snapshot] = None
     timings: Dict[str, float] = field(default_factory=dict)
     n_features: Dict[str, float] = field(default_factory=dict)
+    #: ``quickmatch-online`` only: :meth:`dqm.camnet.online.OnlineMatcher.stats` (update time per frame, ...)
+    online: Dict[str, float] = field(default_factory=dict)
 
     @property
     def n_frames(self) -> int:
@@ -219,14 +221,17 @@ def localization_errors(result: ExperimentResult, method: str, min_matches: Opti
     return ErrorStats(err[has], err[has & a["visible"]], int(det.sum()), int((det & ~has).sum()))
 
 
-def common_errors(result: ExperimentResult, min_matches: Optional[int] = None) -> Dict[str, ErrorStats]:
+def common_errors(result: ExperimentResult, min_matches: Optional[int] = None,
+                  methods: Optional[Sequence[str]] = None) -> Dict[str, ErrorStats]:
     """Localization errors of every method over the frames that **all** methods detected and localized.
 
     Removes the selection effect of comparing methods on different frames (a
-    stricter method localizes only the easy ones).
+    stricter method localizes only the easy ones). ``methods``: the methods
+    compared (default: all of the run's).
     """
     m = result.pipeline.min_matches if min_matches is None else int(min_matches)
-    arrs = {meth: result.arrays(meth) for meth in result.methods}
+    methods = result.methods if methods is None else tuple(methods)
+    arrs = {meth: result.arrays(meth) for meth in methods}
     ok = np.ones(result.n_frames, bool)
     for a in arrs.values():
         ok &= (a["score"] >= m) & np.isfinite(a["estimate"]).all(axis=1)
@@ -286,6 +291,12 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     re-run per rho) and ``ratios`` (BF, FLANN): :class:`Sweep`; plus the
     ablation ``sweeps["quickmatch-per-camera"]``: QuickMatch over the references
     and one camera at a time (no help from the other cameras), at ``rho``.
+    The QuickMatch variants (``quickmatch-quadratic``, ``quickmatch-online``)
+    are not swept.
+
+    ``quickmatch-online`` feeds one :class:`dqm.camnet.online.OnlineMatcher`
+    the frames camera by camera within each step (the order they arrive in);
+    its update times go to ``result.online``.
     """
     sim = sim if sim is not None else SimConfig()
     pipeline = pipeline if pipeline is not None else PipelineConfig()
@@ -322,6 +333,13 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     n_feat: List[int] = []
     best_vis, snap = -1, None
     want_snap = snapshot_step is not None and "quickmatch" in methods
+    online = None
+    if "quickmatch-online" in methods:
+        from .online import OnlineMatcher
+
+        t = time.perf_counter()
+        online = OnlineMatcher(refs, len(world.cameras), pipeline.rho)
+        timings["match_quickmatch-online"] = time.perf_counter() - t
     bar = resolve_progress(progress, "camnet")
     for step in range(world.n_steps):
         t = time.perf_counter()
@@ -335,6 +353,17 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
             truths[(step, c)] = tr
             sweep_visible.append(tr.visible)
         for method in methods:
+            if method == "quickmatch-online":  # frames arrive one camera at a time; each scored on arrival
+                for c, cam in enumerate(world.cameras):
+                    t = time.perf_counter()
+                    row = online.update(step, c, cams[c])
+                    timings[f"match_{method}"] += time.perf_counter() - t
+                    t = time.perf_counter()
+                    dets[method].append(detect(method, step, c, row, refs, ref_sizes, cams[c], cam,
+                                               calib.range_constant, behind, pipeline))
+                    timings[f"localize_{method}"] = (timings.get(f"localize_{method}", 0.0)
+                                                     + time.perf_counter() - t)
+                continue
             t = time.perf_counter()
             matches, extra = match_all(method, refs, cams, pipeline)
             timings[f"match_{method}"] = timings.get(f"match_{method}", 0.0) + time.perf_counter() - t
@@ -343,7 +372,7 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
                 dets[method].append(detect(method, step, c, matches[c], refs, ref_sizes, cams[c], cam,
                                            calib.range_constant, behind, pipeline))
             timings[f"localize_{method}"] = timings.get(f"localize_{method}", 0.0) + time.perf_counter() - t
-            if sweep:
+            if sweep and method in PAPER_METHODS:
                 t = time.perf_counter()
                 params = rhos if method == "quickmatch" else ratios
                 for q in params:
@@ -370,7 +399,7 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     timings["total"] = time.perf_counter() - t_start
     sweeps = {m: Sweep(m, "rho" if m == "quickmatch" else "ratio",
                        {q: np.array(v, np.int64) for q, v in sweep_scores[m].items()}, np.array(sweep_visible, bool))
-              for m in methods} if sweep else {}
+              for m in methods if m in PAPER_METHODS} if sweep else {}
     if per_cam:
         sweeps["quickmatch-per-camera"] = Sweep("quickmatch-per-camera", "rho",
                                                 {float(pipeline.rho): np.array(per_cam, np.int64)},
@@ -378,4 +407,5 @@ def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineC
     nf = np.array(n_feat, float)
     return ExperimentResult(sim, pipeline, methods, world, calib, truths, dets, sweeps, snap, timings,
                             {"per_camera_image_mean": float(nf.mean()) if len(nf) else 0.0,
-                             "per_reference_mean": float(np.mean([len(r) for r in refs]))})
+                             "per_reference_mean": float(np.mean([len(r) for r in refs]))},
+                            online.stats() if online is not None else {})

@@ -10,6 +10,12 @@ The seed paper's pipeline, per method:
      cameras of the time step at once; a camera feature and a reference
      feature match when they fall in the same cluster (so a match may be
      supported by other cameras' views of the same point);
+   * ``quickmatch-quadratic``: the same with the quadratic (finite) kernel
+     instead of the Gaussian one (the kernel online QuickMatch supports);
+   * ``quickmatch-online``: one online QuickMatch (quadratic kernel) over the
+     whole run, fed frame by frame: the references stay, each camera keeps
+     only its latest frame, and a camera is scored on the clusters as they
+     are right after its frame arrived (:mod:`dqm.camnet.online`);
    * ``bf`` / ``flann``: pairwise, each reference against each camera
      (queries from the reference, OpenCV brute force or FLANN, Lowe's ratio
      test, 0.75), see :mod:`dqm.vision.baselines`.
@@ -36,8 +42,13 @@ from ..vision.features import PRESETS, ImageFeatures, create_sift
 from ..validation import InputError, check_choice
 from .geometry import Camera, bounding_box, estimate_homography, localize_from_box, projected_quad
 
-METHODS = ("quickmatch", "bf", "flann")
-LABELS = {"quickmatch": "QuickMatch", "bf": "BF", "flann": "FLANN"}
+METHODS = ("quickmatch", "bf", "flann", "quickmatch-quadratic", "quickmatch-online")
+#: the methods of the seed paper's comparison (the others are dqm's variants of QuickMatch)
+PAPER_METHODS = ("quickmatch", "bf", "flann")
+LABELS = {"quickmatch": "QuickMatch", "bf": "BF", "flann": "FLANN", "quickmatch-quadratic": "QuickMatch quadratic",
+          "quickmatch-online": "QuickMatch online"}
+#: QuickMatch's kernel per method (online QuickMatch supports only the quadratic, finite kernel)
+KERNEL = {"quickmatch": "gaussian", "quickmatch-quadratic": "quadratic", "quickmatch-online": "quadratic"}
 #: the seed paper's camera-network settings (its rho is not ours: see docs/camnet.md)
 PAPER_RHO = 1.1
 #: QuickMatch's rho for target detection. Detection by ">= 10 matches" rewards
@@ -92,7 +103,8 @@ def _stack(refs: Sequence[ImageFeatures], cams: Sequence[ImageFeatures]):
 
 
 def quickmatch_matches(refs: Sequence[ImageFeatures], cams: Sequence[ImageFeatures], rho: float,
-                       labels: Optional[np.ndarray] = None) -> Tuple[List[List[Matches]], np.ndarray]:
+                       labels: Optional[np.ndarray] = None, kernel: str = "gaussian"
+                       ) -> Tuple[List[List[Matches]], np.ndarray]:
     """QuickMatch over all references and cameras: ``matches[c][r]`` and the cluster labels.
 
     ``labels`` (one per stacked feature, references first) skips the clustering.
@@ -100,7 +112,7 @@ def quickmatch_matches(refs: Sequence[ImageFeatures], cams: Sequence[ImageFeatur
     D, ids, offsets = _stack(refs, cams)
     R, C = len(refs), len(cams)
     if labels is None:
-        labels = quickmatch(D, ids, rho=rho).labels if len(D) else np.zeros(0, np.int64)
+        labels = quickmatch(D, ids, rho=rho, kernel=kernel).labels if len(D) else np.zeros(0, np.int64)
     labels = np.asarray(labels)
     if labels.shape != (len(D),):
         raise InputError(f"labels must have one entry per feature ({len(D)}), got shape {labels.shape}")
@@ -202,10 +214,12 @@ def detect(method: str, step: int, camera_index: int, matches_row: Sequence[Matc
 
 def match_all(method: str, refs: Sequence[ImageFeatures], cams: Sequence[ImageFeatures],
               config: PipelineConfig) -> Tuple[List[List[Matches]], Dict[str, object]]:
-    """Matches ``[camera][reference]`` by one method, with by-products (labels or candidates)."""
+    """Matches ``[camera][reference]`` by one batch method, with by-products (labels or candidates)."""
     check_choice(method, "method", METHODS)
-    if method == "quickmatch":
-        m, labels = quickmatch_matches(refs, cams, config.rho)
+    if method == "quickmatch-online":
+        raise InputError("quickmatch-online matches one frame at a time: use dqm.camnet.online.OnlineMatcher")
+    if method in KERNEL:
+        m, labels = quickmatch_matches(refs, cams, config.rho, kernel=KERNEL[method])
         return m, {"labels": labels}
     m, cands = pairwise_matches_all(refs, cams, method, config.ratio, config.seed)
     return m, {"candidates": cands}

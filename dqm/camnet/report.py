@@ -3,7 +3,8 @@
 :func:`write_report` writes, for an :class:`~dqm.camnet.experiment.ExperimentResult`:
 
 * ``camnet_pr.png`` - detection PR curves over the minimum match count, with
-  each method's point at the paper's 10-match rule starred;
+  each method's point at the paper's 10-match rule starred (the QuickMatch
+  variants, quadratic kernel in batch and online, beside the paper's methods);
 * ``camnet_pr_parameter.png`` - (with a sweep) PR curves over QuickMatch's rho
   and the baselines' ratio at the 10-match rule;
 * ``camnet_trajectories.png`` - per method: true trajectory, cameras with
@@ -32,7 +33,7 @@ import numpy as np
 from ..plots import _figure, clusters_figure, pr_figure, save
 from .experiment import ExperimentResult, common_errors, detection_curve, localization_errors, operating_point
 from .geometry import fov_wedge
-from .pipeline import LABELS, PAPER_RHO
+from .pipeline import KERNEL, LABELS, PAPER_METHODS, PAPER_RHO
 
 #: the seed paper's results (camera-network experiment)
 PAPER = {
@@ -40,13 +41,24 @@ PAPER = {
     "bf": {"auc": 0.49, "mean": 0.23, "std": 0.40},
     "flann": {"auc": 0.45, "mean": 0.62, "std": 1.17},
 }
-_COLORS = {"quickmatch": "#d73027", "bf": "#4575b4", "flann": "#74add1"}
+_COLORS = {"quickmatch": "#d73027", "bf": "#4575b4", "flann": "#74add1", "quickmatch-quadratic": "#fdae61",
+           "quickmatch-online": "#762a83"}
+#: PR-curve styles of the QuickMatch variants (the paper's methods use dqm.plots' styles)
+_VARIANT_STYLE = {"quickmatch-quadratic": dict(color=_COLORS["quickmatch-quadratic"], lw=1.6, ls="--", marker="s",
+                                               ms=4),
+                  "quickmatch-online": dict(color=_COLORS["quickmatch-online"], lw=1.6, ls="-.", marker="^", ms=4)}
+#: the QuickMatch variants compared in the online section, in table order
+QM_VARIANTS = ("quickmatch", "quickmatch-quadratic", "quickmatch-online")
 _CAM_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
 
 
 def _label(result: ExperimentResult, method: str) -> str:
     if method == "quickmatch":
         return f"QuickMatch (rho {result.pipeline.rho:g})"
+    if method == "quickmatch-quadratic":
+        return f"QuickMatch quadratic kernel (rho {result.pipeline.rho:g})"
+    if method == "quickmatch-online":
+        return f"QuickMatch online, quadratic (rho {result.pipeline.rho:g})"
     return f"{LABELS[method]} (ratio {result.pipeline.ratio:g})"
 
 
@@ -66,17 +78,50 @@ def summary(result: ExperimentResult) -> Dict[str, object]:
         curve = detection_curve(result, m)
         d = {"label": _label(result, m), "pr_auc": curve.auc(), "curve": curve.as_dict(),
              "at_rule": operating_point(result, m), "errors": localization_errors(result, m).as_dict(),
-             "paper": PAPER[m]}
+             "paper": PAPER.get(m)}
+        if m in KERNEL:
+            d["kernel"] = KERNEL[m]
         if m in result.sweeps:
             sw = result.sweeps[m]
             d["sweep"] = {"parameter": sw.parameter, "table": sw.table(result.pipeline.min_matches),
                           "curve": sw.curve(result.pipeline.min_matches).as_dict()}
         out["methods"][m] = d
-    common = common_errors(result)
-    out["common_detections"] = {m: e.as_dict() for m, e in common.items()}
+    paper = [m for m in result.methods if m in PAPER_METHODS]
+    if paper:
+        common = common_errors(result, methods=paper)
+        out["common_detections"] = {m: e.as_dict() for m, e in common.items()}
+    qm = [m for m in QM_VARIANTS if m in result.methods]
+    if len(qm) > 1:
+        out["common_detections_quickmatch"] = {m: e.as_dict() for m, e in
+                                               common_errors(result, methods=qm).items()}
+    if "quickmatch-online" in result.methods:
+        out["online"] = online_summary(result)
     abl = result.sweeps.get("quickmatch-per-camera")
     if abl is not None:
         out["quickmatch_per_camera"] = abl.table(result.pipeline.min_matches)[0]
+    return out
+
+
+def online_summary(result: ExperimentResult) -> Dict[str, object]:
+    """Online QuickMatch against batch: update and clustering times, frames where the scores differ."""
+    steps, C = result.world.n_steps, len(result.world.cameras)
+    out: Dict[str, object] = dict(result.online)
+    out["batch_per_step_s"] = {m: result.timings[f"match_{m}"] / steps for m in ("quickmatch", "quickmatch-quadratic")
+                               if f"match_{m}" in result.timings and steps}
+    if "update_mean_s" in out:
+        out["online_per_step_s"] = out["update_mean_s"] * C
+    if "quickmatch-quadratic" in result.methods:
+        on, ba = result.arrays("quickmatch-online"), result.arrays("quickmatch-quadratic")
+        diff = on["score"] - ba["score"]
+        k = result.pipeline.min_matches
+        last = on["camera"] == C - 1
+        out["vs_batch_quadratic"] = {
+            "frames": int(len(diff)), "same_score": int((diff == 0).sum()),
+            "same_score_last_camera": int((diff[last] == 0).sum()), "last_camera_frames": int(last.sum()),
+            "mean_abs_score_difference": float(np.abs(diff).mean()) if len(diff) else 0.0,
+            "max_abs_score_difference": int(np.abs(diff).max()) if len(diff) else 0,
+            "online_higher": int((diff > 0).sum()), "online_lower": int((diff < 0).sum()),
+            "detection_differs": int(((on["score"] >= k) != (ba["score"] >= k)).sum())}
     return out
 
 
@@ -90,7 +135,24 @@ def pr_detection_figure(result: ExperimentResult):
     fig = pr_figure(curves, pts, labels={m: _label(result, m) for m in result.methods},
                     title=f"Target detection over the minimum match count "
                           f"({result.n_frames} frames, {result.n_positive} with the target visible)")
+    _restyle_variants(fig, result)
     return fig
+
+
+def _restyle_variants(fig, result: ExperimentResult) -> None:
+    """Give the QuickMatch variants' curves (unknown to dqm.plots) their own colour, line and marker."""
+    ax = fig.axes[0]
+    labels = {_label(result, m): m for m in _VARIANT_STYLE if m in result.methods}
+    lines = list(ax.get_lines())
+    for k, line in enumerate(lines):
+        name = str(line.get_label()).rsplit(" (AUC", 1)[0]
+        if name not in labels:
+            continue
+        style = _VARIANT_STYLE[labels[name]]
+        line.set(**style)
+        if k + 1 < len(lines) and lines[k + 1].get_marker() == "*":  # its starred operating point
+            lines[k + 1].set_color(style["color"])
+    ax.legend(fontsize=7, loc="lower left")
 
 
 def pr_parameter_figure(result: ExperimentResult):
@@ -141,10 +203,12 @@ def _arena(ax, result: ExperimentResult) -> None:
 
 def trajectories_figure(result: ExperimentResult):
     n = len(result.methods)
+    cols = min(n, 3)
+    rows = int(math.ceil(n / cols))
     ax_, ay_ = result.sim.arena
-    fig = _figure(4.6 * n, 4.6 * ay_ / ax_ + 1.0)
+    fig = _figure(4.6 * cols, (4.6 * ay_ / ax_ + 0.6) * rows + 0.4)
     for k, m in enumerate(result.methods):
-        ax = fig.add_subplot(1, n, k + 1)
+        ax = fig.add_subplot(rows, cols, k + 1)
         _arena(ax, result)
         a = result.arrays(m)
         det = a["score"] >= result.pipeline.min_matches
@@ -163,7 +227,7 @@ def trajectories_figure(result: ExperimentResult):
         ax.set_aspect("equal")
         ax.grid(alpha=0.25)
         ax.set_xlabel("x (m)")
-        if k == 0:
+        if k % cols == 0:
             ax.set_ylabel("y (m)")
         ax.set_title(f"{_label(result, m)}\n{int(has.sum())} estimates, error {err.mean:.2f} +- {err.std:.2f} m"
                      + (f", {int(outside.sum())} off the plot" if outside.any() else ""), fontsize=9)
@@ -216,12 +280,16 @@ def views_figure(result: ExperimentResult):
                 x0, y0, x1, y1 = d.box
                 ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec=_COLORS[m], lw=1.3))
             lines.append(f"{LABELS[m]} {d.score}{' det' if ok else ''}")
-        ax.set_title(" | ".join(lines[:1]) + "\n" + ", ".join(lines[1:]), fontsize=7)
+        rest = [", ".join(lines[1 + j:4 + j]) for j in range(0, len(lines) - 1, 3)]
+        ax.set_title("\n".join(lines[:1] + rest), fontsize=7)
         ax.set_xlim(0, img.shape[1])
         ax.set_ylim(img.shape[0], 0)
         ax.set_axis_off()
+    colours = {"#d73027": "red", "#4575b4": "blue", "#74add1": "light blue", "#fdae61": "orange",
+               "#762a83": "purple"}
     fig.suptitle(f"Time step {snap.step} (t = {result.world.times[snap.step]:.1f} s): green dashed = true target "
-                 "box; red / blue / light blue = QuickMatch / BF / FLANN box at >= "
+                 "box; " + " / ".join(colours.get(_COLORS[m], _COLORS[m]) for m in result.methods) + " = "
+                 + " / ".join(LABELS[m] for m in result.methods) + " box at >= "
                  f"{result.pipeline.min_matches} matches", fontsize=9)
     return fig
 
@@ -407,8 +475,9 @@ def paper_notes(result: ExperimentResult, data: Dict[str, object],
             p = t[PAPER_RHO]
             best_base = max(auc[m] for m in have if m != "quickmatch") if len(have) > 1 else float("nan")
             L.append(f"- **rho.** The paper ran QuickMatch with rho = {PAPER_RHO:g}; here rho = "
-                     f"{result.pipeline.rho:g}, the detection setting (dqm's general default, tuned for multi-image F1 on "
-                     "Oxford and hotel, is 0.9; detection by >= 10 matches rewards precision, see the table above). "
+                     f"{result.pipeline.rho:g}, the detection setting (dqm's general default, tuned for "
+                     "multi-image F1 on Oxford and hotel, is 0.9; detection by >= 10 matches rewards precision, "
+                     "see the table above). "
                      "dqm follows the reference code's merge rule "
                      "(merge when the edge is shorter than rho x the smaller cluster scale, the scale being the "
                      "distance to the nearest feature of the same image). With rho > 1 a feature may join a "
@@ -511,6 +580,85 @@ def paper_notes(result: ExperimentResult, data: Dict[str, object],
 
 
 # --- markdown --------------------------------------------------------------------------------
+def online_markdown(result: ExperimentResult, data: Dict[str, object]) -> List[str]:
+    """The online section: batch vs online QuickMatch, the kernel's and the online update's effects."""
+    ms, on = data["methods"], data["online"]
+    pl = result.pipeline
+    R, C = len(result.world.references), len(result.world.cameras)
+    qm = [m for m in QM_VARIANTS if m in result.methods]
+    L = ["## Online QuickMatch", ""]
+    L.append(f"*QuickMatch online* runs one online clustering (`dqm.core.online.OnlineQuickMatch`, quadratic "
+             f"kernel, rho {pl.rho:g}) for the whole run instead of one batch clustering per time step. The {R} "
+             "references are added once and stay; frames then arrive one camera at a time in time order; a "
+             "camera's new frame replaces its previous one (remove, then add) and the camera is scored on the "
+             "clusters right then. The set is always the references and one frame per camera "
+             f"({on.get('features_mean', 0):.0f} features on average), but when camera c is scored the cameras "
+             "after it still hold the previous step's frame. Right after the last camera of a step the set is "
+             "exactly that step's batch input, so its clusters are batch QuickMatch's with the quadratic kernel "
+             "(checked by the tests). Online QuickMatch supports only the quadratic (finite) kernel: *QuickMatch "
+             "quadratic* (batch, one run per step, quadratic kernel) separates the kernel's effect (Gaussian vs "
+             "quadratic, both batch) from the online one (batch vs online, both quadratic).")
+    L.append("")
+    L.append("| method | kernel | clustering | detection PR AUC | precision / recall at >= "
+             f"{pl.min_matches} | localization error (m), all detections | median | clustering time |")
+    L.append("|---|---|---|---|---|---|---|---|")
+    per_step = on.get("batch_per_step_s", {})
+    for m in qm:
+        d = ms[m]
+        e, op = d["errors"], d["at_rule"]
+        if m == "quickmatch-online":
+            how = "online, per frame"
+            tm = (f"{1e3 * on['update_mean_s']:.1f} ms per frame (median {1e3 * on['update_median_s']:.1f}, "
+                  f"max {1e3 * on['update_max_s']:.1f}) = {1e3 * on['online_per_step_s']:.0f} ms per step"
+                  if "update_mean_s" in on else "-")
+        else:
+            how = "batch, per step"
+            tm = f"{1e3 * per_step[m]:.0f} ms per step" if m in per_step else "-"
+        L.append(f"| {d['label']} | {d['kernel'].capitalize()} | {how} | **{d['pr_auc']:.3f}** | "
+                 f"{op['precision']:.2f} / {op['recall']:.2f} "
+                 f"({op['detections']} det., {op['false_positives']} false) | "
+                 f"**{_fmt(e['mean'])} +- {_fmt(e['std'])}** (n={e['n']}) | {_fmt(e['median'])} | {tm} |")
+    L.append("")
+    L.append("Clustering time: batch, the QuickMatch run over the references and the step's "
+             f"{C} frames (plus reading matches off its clusters); online, a frame's remove + add "
+             f"({C} per step); the references' one-time add took {1e3 * on.get('references_s', 0):.0f} ms. "
+             "Same machine and run as the rest of this page.")
+    L.append("")
+    if "quickmatch" in ms and "quickmatch-quadratic" in ms:
+        g, q = ms["quickmatch"], ms["quickmatch-quadratic"]
+        L.append(f"- **Kernel** (batch): PR AUC {g['pr_auc']:.3f} with the Gaussian kernel, {q['pr_auc']:.3f} "
+                 f"with the quadratic one; localization error {_fmt(g['errors']['mean'])} vs "
+                 f"{_fmt(q['errors']['mean'])} m.")
+    vs = on.get("vs_batch_quadratic")
+    if vs:
+        o, q = ms["quickmatch-online"], ms["quickmatch-quadratic"]
+        L.append(f"- **Online vs batch** (quadratic kernel): PR AUC {o['pr_auc']:.3f} online, {q['pr_auc']:.3f} "
+                 f"batch; localization error {_fmt(o['errors']['mean'])} vs {_fmt(q['errors']['mean'])} m. "
+                 f"A frame's score (matches with its best reference) is the same in {vs['same_score']} of "
+                 f"{vs['frames']} frames ({vs['same_score_last_camera']} of the {vs['last_camera_frames']} "
+                 "frames of the last camera, whose set is the batch one); "
+                 f"online is higher in {vs['online_higher']}, lower in {vs['online_lower']} "
+                 f"(mean |difference| {vs['mean_abs_score_difference']:.2f}, at most "
+                 f"{vs['max_abs_score_difference']}); the detection at >= {pl.min_matches} differs in "
+                 f"{vs['detection_differs']} frames. Only the set differs: when camera c is scored, the cameras "
+                 "after it hold their previous step's frame (none at step 0) instead of this step's.")
+    if "update_mean_s" in on and per_step.get("quickmatch-quadratic"):
+        b = per_step["quickmatch-quadratic"]
+        L.append(f"- **Time**: one online update (a frame's remove + add, {on['features_mean']:.0f} features present "
+                 f"on average) takes {1e3 * on['update_mean_s']:.1f} ms, {on['update_mean_s'] / b:.2f} of a batch "
+                 f"run over the whole step ({1e3 * b:.0f} ms, quadratic kernel); with {C} updates per step the "
+                 f"online clustering costs {on['online_per_step_s'] / b:.1f}x batch per step here, but a camera's "
+                 "detection waits for its own frame's update only, not for the whole step's frames.")
+    common = data.get("common_detections_quickmatch", {})
+    if common and next(iter(common.values()))["n"]:
+        n = next(iter(common.values()))["n"]
+        L.append(f"- On the {n} frames that all {len(common)} QuickMatch variants detected and localized the errors "
+                 "are " + ", ".join(f"{LABELS[m]} {_fmt(common[m]['mean'])} +- {_fmt(common[m]['std'])} m"
+                                    for m in qm if m in common) + ".")
+    L.append("")
+    return L
+
+
 def _fmt(x: float, nd: int = 2) -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{nd}f}"
 
@@ -547,10 +695,12 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
     for m in result.methods:
         d = ms[m]
         e, op, pp = d["errors"], d["at_rule"], d["paper"]
-        L.append(f"| {d['label']} | **{d['pr_auc']:.3f}** | {pp['auc']:.2f} | "
+        p_auc = f"{pp['auc']:.2f}" if pp else "-"
+        p_err = f"{pp['mean']:.2f} +- {pp['std']:.2f}" if pp else "-"
+        L.append(f"| {d['label']} | **{d['pr_auc']:.3f}** | {p_auc} | "
                  f"{op['precision']:.2f} / {op['recall']:.2f} "
                  f"({op['detections']} det., {op['false_positives']} false) | "
-                 f"**{_fmt(e['mean'])} +- {_fmt(e['std'])}** (n={e['n']}) | {pp['mean']:.2f} +- {pp['std']:.2f} | "
+                 f"**{_fmt(e['mean'])} +- {_fmt(e['std'])}** (n={e['n']}) | {p_err} | "
                  f"{_fmt(e['mean_tp'])} +- {_fmt(e['std_tp'])} (n={e['n_tp']}) | {_fmt(e['median'])} | "
                  f"{e['n_without_estimate']} |")
     L.append("")
@@ -561,6 +711,8 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
              f"the detections (>= {pl.min_matches} matches) whose homography gave a box; "
              "\"all detections\" includes false ones (a position is reported either way).")
     L.append("")
+    if "online" in data:
+        L += online_markdown(result, data)
     for name in ("pr", "pr_parameter", "trajectories", "errors", "views", "discovery", "clusters"):
         if name in images:
             L.append(f"![{name}]({images[name]})")
@@ -605,7 +757,12 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
     L.append(f"- SIFT preset `{pl.preset}`: {data['features']['per_reference_mean']:.0f} features per reference, "
              f"{data['features']['per_camera_image_mean']:.0f} per camera image on average.")
     L.append(f"- QuickMatch: one run per time step over the {len(result.world.references)} references and "
-             f"{sim.n_cameras} cameras, rho {pl.rho:g}; BF / FLANN: each reference against each camera, "
+             f"{sim.n_cameras} cameras, rho {pl.rho:g}, Gaussian kernel"
+             + ("" if "quickmatch-quadratic" not in result.methods else " (QuickMatch quadratic: the same, "
+                "quadratic kernel)")
+             + ("" if "quickmatch-online" not in result.methods else "; QuickMatch online: one online clustering "
+                "for the whole run, updated frame by frame (section above)")
+             + f"; BF / FLANN: each reference against each camera, "
              f"Lowe ratio {pl.ratio:g} (queries from the reference).")
     L.append(f"- Range calibration: target side 0 at {cal.distance:g} m, measured box height "
              f"{cal.box_height:.1f} px -> k = {cal.range_constant:.1f} px m (ideal fy x height = {cal.ideal:.1f}); "
@@ -620,6 +777,7 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
         L.append("")
     L.append("## Limits of this reproduction")
     L.append("")
+    online = " (in batch and online)" if "quickmatch-online" in result.methods else ""
     L += [
         "- Simulated, not the paper's robots and images; the paper's PR construction, positives and ground truth "
         "could not be retrieved, so absolute numbers are not comparable, only the ranking and the error patterns.",
@@ -627,7 +785,8 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
         "- Every frame is judged alone: no tracking over time and no fusion of the cameras' estimates.",
         "- Localization uses the reference with the most matches only; a target side seen very obliquely or "
         "mostly cut by the image border still yields a box for the whole side, through its homography.",
-        "- Only centralized QuickMatch is run; the distributed variant (NetMatch) is not part of this experiment.",
+        f"- Only centralized QuickMatch is run{online}; the distributed variant (NetMatch) is not "
+        "part of this experiment.",
     ]
     L.append("")
     if len(seed_rows) > 1:
