@@ -4,4 +4,5 @@ from .validation import InputError
 
 __version__ = "0.1.0"
 
-__all__ = ["DEFAULT_RHO", "InputError", "OnlineQuickMatch", "QuickMatch", "QuickMatchResult", "quickmatch", "__version__"]
+__all__ = ["DEFAULT_RHO", "InputError", "OnlineQuickMatch", "QuickMatch", "QuickMatchResult", "quickmatch",
+           "__version__"]

@@ -18,7 +18,7 @@ def batch_labels(om: dqm.OnlineQuickMatch) -> np.ndarray:
                               parent=om.parent_mode).labels
 
 
-def follow(om, X, I, order, rng=None, remove_rate=0.0, window=None):
+def follow(om, X, img_ids, order, rng=None, remove_rate=0.0, window=None):
     """Add the images in ``order`` one at a time (removing some, or keeping a window) and check,
     after every call, labels against batch and the replayed events against the new assignment."""
     assign = {}
@@ -41,10 +41,10 @@ def follow(om, X, I, order, rng=None, remove_rate=0.0, window=None):
             assert_consistent(om.labels, om.image_ids)
 
     for img in order:
-        m = I == img
+        m = img_ids == img
         if window is not None and len(om.images) >= window:
             check(om.remove(int(om.images[0])))
-        check(om.add(X[m], I[m]))
+        check(om.add(X[m], img_ids[m]))
         if rng is not None and rng.random() < remove_rate and len(om.images) > 1:
             check(om.remove(int(rng.choice(om.images))))
     return calls
@@ -55,7 +55,7 @@ def mixed_data(rng, integer: bool):
     sizes = rng.integers(1, 14, size=11)
     sizes[rng.integers(11, size=2)] = 1
     base = rng.normal(size=(18, 8))
-    X, I = [], []
+    X, img_ids = [], []
     for i, sz in enumerate(sizes):
         pts = base[rng.integers(18, size=sz)] + rng.normal(scale=0.3, size=(sz, 8))
         if integer:
@@ -63,8 +63,8 @@ def mixed_data(rng, integer: bool):
         if sz > 3 and rng.random() < 0.5:
             pts[1] = pts[0]
         X.append(pts)
-        I.append(np.full(sz, 7 * i + 3))
-    return np.vstack(X), np.concatenate(I)
+        img_ids.append(np.full(sz, 7 * i + 3))
+    return np.vstack(X), np.concatenate(img_ids)
 
 
 @pytest.mark.parametrize("rho", [0.7, 1.0, 1.5])
@@ -72,10 +72,10 @@ def mixed_data(rng, integer: bool):
 def test_random_data_with_removals_matches_batch_after_every_call(rho, parent):
     for trial in range(3):
         rng = np.random.default_rng(trial)
-        X, I = mixed_data(rng, integer=trial % 2 == 0)
+        X, img_ids = mixed_data(rng, integer=trial % 2 == 0)
         om = dqm.OnlineQuickMatch(rho=rho, parent=parent)
-        order = rng.permutation(np.unique(I))
-        assert follow(om, X, I, order, rng=rng, remove_rate=0.5) >= len(order)
+        order = rng.permutation(np.unique(img_ids))
+        assert follow(om, X, img_ids, order, rng=rng, remove_rate=0.5) >= len(order)
 
 
 def test_synthetic_sift_one_image_at_a_time_matches_batch():
@@ -87,14 +87,14 @@ def test_synthetic_sift_one_image_at_a_time_matches_batch():
 
 def test_synthetic_sift_sliding_window_and_several_images_per_add():
     s = synthetic.sift_like(n_images=12, n_points=120, clutter_per_image=30, seed=4)
-    X, I = s.descriptors, s.image_ids
+    X, img_ids = s.descriptors, s.image_ids
     om = dqm.OnlineQuickMatch(rho=0.9)
-    follow(om, X, I, np.unique(I), window=4)
+    follow(om, X, img_ids, np.unique(img_ids), window=4)
     assert len(om.images) == 4
     # several images in one call, then removals down to nothing
     om = dqm.OnlineQuickMatch(rho=0.9)
-    m = I < 5
-    cs = om.add(X[m], I[m])
+    m = img_ids < 5
+    cs = om.add(X[m], img_ids[m])
     assert np.array_equal(om.labels, batch_labels(om))
     assert {e.kind for e in cs.events} == {"created"}
     for img in list(om.images):
@@ -105,12 +105,12 @@ def test_synthetic_sift_sliding_window_and_several_images_per_add():
 
 def test_events_name_what_happened():
     s = synthetic.sift_like(n_images=6, n_points=120, clutter_per_image=20, seed=5)
-    X, I = s.descriptors, s.image_ids
+    X, img_ids = s.descriptors, s.image_ids
     om = dqm.OnlineQuickMatch(rho=0.9)
     for img in range(5):
-        om.add(X[I == img], I[I == img])
+        om.add(X[img_ids == img], img_ids[img_ids == img])
     before = om.assignment()
-    cs = om.add(X[I == 5], I[I == 5])
+    cs = om.add(X[img_ids == 5], img_ids[img_ids == 5])
     kinds = cs.counts()
     assert kinds["grown"] > 0 and kinds["created"] > 0
     for e in cs.events:
@@ -146,26 +146,42 @@ def test_hotel_sift_frames_sliding_window_matches_batch():
 
 def test_bad_input_is_refused_before_any_change():
     s = synthetic.sift_like(n_images=3, n_points=40, clutter_per_image=5, seed=6)
-    X, I = s.descriptors, s.image_ids
+    X, img_ids = s.descriptors, s.image_ids
     with pytest.raises(dqm.InputError, match="finite kernel"):
         dqm.OnlineQuickMatch(kernel="gaussian")
     with pytest.raises(dqm.InputError, match="rho"):
         dqm.OnlineQuickMatch(rho=-1)
     om = dqm.OnlineQuickMatch()
-    om.add(X[I == 0], I[I == 0])
+    om.add(X[img_ids == 0], img_ids[img_ids == 0])
     state = (om.assignment(), om.labels.copy())
-    bad = X[I == 1].astype(float)
+    bad = X[img_ids == 1].astype(float)
     bad[3, 5] = np.nan
     with pytest.raises(dqm.InputError, match="NaN"):
-        om.add(bad, I[I == 1])
+        om.add(bad, img_ids[img_ids == 1])
     with pytest.raises(dqm.InputError, match="already present"):
-        om.add(X[I == 0], I[I == 0])
+        om.add(X[img_ids == 0], img_ids[img_ids == 0])
     with pytest.raises(dqm.InputError, match="dimensions"):
-        om.add(X[I == 1][:, :64], I[I == 1])
+        om.add(X[img_ids == 1][:, :64], img_ids[img_ids == 1])
     with pytest.raises(dqm.InputError, match="not present"):
         om.remove(9)
     assert (om.assignment(), om.labels.tolist()) == (state[0], state[1].tolist())
     cs = om.add(np.zeros((0, 128)), np.zeros(0, int))  # a frame without features changes nothing
     assert cs.events == [] and om.assignment() == state[0]
-    om.add(X[I == 1], I[I == 1])
+    om.add(X[img_ids == 1], img_ids[img_ids == 1])
     assert np.array_equal(om.labels, batch_labels(om))
+
+
+def test_bench_online_quick_runs_and_checks_every_step(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_online.py"
+    p = subprocess.run([sys.executable, str(script), "--quick", "--out-dir", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "labels identical to batch at every checked step: True (20 of 20 steps)" in p.stdout
+    out = json.loads((tmp_path / "bench_online.json").read_text())["results"]["generated"]
+    assert out["identical_every_checked_step"] and out["steps_checked"] == 20
+    assert (tmp_path / "bench_online.png").stat().st_size > 0

@@ -18,5 +18,6 @@ from .online import OnlineQuickMatch
 
 __all__ = [
     "DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES",
-    "ChangeSet", "ClusterEvent", "MemoryBudgetError", "OnlineQuickMatch", "QuickMatch", "QuickMatchResult", "quickmatch",
+    "ChangeSet", "ClusterEvent", "MemoryBudgetError", "OnlineQuickMatch", "QuickMatch", "QuickMatchResult",
+    "quickmatch",
 ]
