@@ -23,7 +23,7 @@ import numpy as np
 
 from ..validation import InputError
 from ..vision.features import ImageFeatures
-from .pipeline import Matches
+from .pipeline import Matches, quickmatch_matches
 
 
 class OnlineMatcher:
@@ -45,8 +45,9 @@ class OnlineMatcher:
         self.n_refs = len(refs)
         self.n_cameras = int(n_cameras)
         self.om = OnlineQuickMatch(rho=rho, kernel="quadratic", parent=parent)
-        self._first_key: Dict[int, int] = {}  # image id -> key of its first feature
+        self.refs = list(refs)
         self._frame: Dict[int, int] = {}  # camera -> image id of its current frame
+        self._feats: Dict[int, ImageFeatures] = {}  # camera -> features of its current frame
         self._last_step: Dict[int, int] = {}
         self.update_times: List[float] = []
         self.set_sizes: List[int] = []
@@ -56,19 +57,9 @@ class OnlineMatcher:
         t = time.perf_counter()
         self.om.add(D, ids)
         self.reference_time = time.perf_counter() - t
-        self._note_keys(range(self.n_refs))
 
     def image_id(self, step: int, camera: int) -> int:
         return self.n_refs + int(step) * self.n_cameras + int(camera)
-
-    def _note_keys(self, images) -> None:
-        ids, keys = np.asarray(self.om.image_ids), np.asarray(self.om.keys)
-        for i in images:
-            sel = keys[ids == i]
-            if len(sel):
-                if not np.array_equal(sel, np.arange(sel[0], sel[0] + len(sel))):
-                    raise RuntimeError(f"image {i}'s features did not get consecutive keys")
-                self._first_key[i] = int(sel[0])
 
     def update(self, step: int, camera: int, feats: ImageFeatures) -> List[Matches]:
         """Camera ``camera``'s frame of ``step`` arrives: replace its previous one; its matches with each reference."""
@@ -83,39 +74,28 @@ class OnlineMatcher:
         old = self._frame.pop(camera, None)
         if old is not None:
             n_ev += len(self.om.remove(old).events)
-            self._first_key.pop(old, None)
+            self._feats.pop(camera)
         if len(feats):
             n_ev += len(self.om.add(feats.descriptors, np.full(len(feats), new, np.int64)).events)
             self._frame[camera] = new
+            self._feats[camera] = feats
         self.update_times.append(time.perf_counter() - t)
         self.n_events.append(n_ev)
         self._last_step[camera] = step
         self.set_sizes.append(int(self.om.n_features))
-        if len(feats):
-            self._note_keys([new])
         return self.matches(camera)
 
     def matches(self, camera: int) -> List[Matches]:
         """``[(reference feature indices, camera feature indices)]`` per reference, from the current clusters."""
         img = self._frame.get(camera)
-        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
         if img is None:
-            return [empty for _ in range(self.n_refs)]
-        labels = np.asarray(self.om.labels)
-        ids, keys = np.asarray(self.om.image_ids), np.asarray(self.om.keys)
-        K = int(labels.max()) + 1 if len(labels) else 0
-        cam_of = np.full(K, -1, np.int64)  # cluster -> the camera's feature in it (C2: at most one)
-        mine = ids == img
-        cam_of[labels[mine]] = keys[mine] - self._first_key[img]
-        out = []
-        for r in range(self.n_refs):
-            sel = ids == r
-            local_r = keys[sel] - self._first_key[r]
-            local_c = cam_of[labels[sel]]
-            both = local_c >= 0
-            order = np.argsort(labels[sel][both], kind="stable")  # cluster order, as quickmatch_matches
-            out.append((local_r[both][order], local_c[both][order]))
-        return out
+            return [(np.zeros(0, np.int64), np.zeros(0, np.int64)) for _ in range(self.n_refs)]
+        # the references, then this frame: each image's features in their own order (arrival order)
+        ids = np.asarray(self.om.image_ids)
+        mine = (ids < self.n_refs) | (ids == img)
+        matches, _ = quickmatch_matches(self.refs, [self._feats[camera]], self.om.rho,
+                                        labels=np.asarray(self.om.labels)[mine])
+        return matches[0]
 
     def current_images(self) -> List[Optional[int]]:
         """Image id of each camera's current frame (None: no frame yet)."""

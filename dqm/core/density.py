@@ -36,6 +36,18 @@ def quadratic_terms(d2: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.maximum(0.0, 1.0 - np.asarray(d2, np.float64) * np.asarray(w, np.float64))
 
 
+def term_parts(terms: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Terms (multiples of 2^-53 in [0, 1]) as exact float64 integer parts ``(hi, lo)``, ``K = hi 2^26 + lo``."""
+    K = np.asarray(terms, np.float64) * _UNIT
+    hi = np.floor(K / _SPLIT)
+    return hi, K - hi * _SPLIT
+
+
+def parts_value(hi: np.ndarray, lo: np.ndarray) -> np.ndarray:
+    """The correctly rounded float64 value of exact integer part sums (any sign, below 2^53 each)."""
+    return hi * (1.0 / (_UNIT / _SPLIT)) + lo * (1.0 / _UNIT)
+
+
 class ExactSums:
     """Exact per-target sums of quadratic kernel terms."""
 
@@ -50,9 +62,7 @@ class ExactSums:
         """Add ``terms[k]`` (multiples of 2^-53 in [0, 1]) to target ``targets[k]``."""
         if len(targets) == 0:
             return
-        K = np.asarray(terms, np.float64) * _UNIT
-        hi = np.floor(K / _SPLIT)
-        lo = K - hi * _SPLIT
+        hi, lo = term_parts(terms)
         n = len(self.hi)
         self.hi += np.bincount(targets, weights=hi, minlength=n)
         self.lo += np.bincount(targets, weights=lo, minlength=n)
@@ -74,7 +84,7 @@ class ExactSums:
 
     def values(self) -> np.ndarray:
         """The correctly rounded float64 sum of every target."""
-        return self.hi * (1.0 / (_UNIT / _SPLIT)) + self.lo * (1.0 / _UNIT)
+        return parts_value(self.hi, self.lo)
 
 
 def pack_parts(hi: np.ndarray, lo: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

@@ -59,14 +59,13 @@ from .events import ChangeSet, ClusterEvent
 
 #: margin on stored-pair radii, so rounding never leaves a needed pair out
 _MARGIN = 1.0 + 1e-6
-_SPLIT = 1 << 26
 
 
 class _Store:
     """Growable per-slot arrays (a slot is one feature's row; re-inserted features get a new slot)."""
 
-    FIELDS = {"key": np.int64, "image": np.int64, "sigma": np.float64, "alive": bool, "hi": np.int64,
-              "lo": np.int64, "dvalue": np.float64, "parent": np.int64, "pdist": np.float64,
+    FIELDS = {"key": np.int64, "image": np.int64, "sigma": np.float64, "alive": bool, "hi": np.float64,
+              "lo": np.float64, "dvalue": np.float64, "parent": np.int64, "pdist": np.float64,
               "comp": np.int64, "cid": np.int64, "dup": bool, "norm2": np.float64}
 
     def __init__(self, dim: int, exact_dtype):
@@ -168,12 +167,6 @@ class _EdgeStore:
         self.runs = [(a[order], b[order], d[order])] if len(a) else []
 
 
-def _units(terms: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Kernel terms (multiples of 2^-53 in [0, 1]) as exact integer parts ``(hi, lo)``, ``K = hi 2^26 + lo``."""
-    K = (terms * float(2 ** 53)).astype(np.int64)
-    return K >> 26, K & (_SPLIT - 1)
-
-
 class OnlineQuickMatch:
     """QuickMatch whose clusters follow a stream of images (quadratic kernel).
 
@@ -206,7 +199,6 @@ class OnlineQuickMatch:
         self._edges = _EdgeStore()
         self._groups: Dict[bytes, List[int]] = {}  # exact descriptor bytes -> present slots with them
         self._group_key: Dict[int, bytes] = {}
-        self._gone_images: Dict[int, int] = {}
         self._image_slots: Dict[int, np.ndarray] = {}
         self._next_key = 0
         self._next_cid = 0
@@ -347,17 +339,9 @@ class OnlineQuickMatch:
         s.cid[slots] = -1
         s.comp[slots] = -1
         s.X[slots] = X if s.X.dtype != np.uint8 else X.astype(np.uint8)
-        Xc = X - self._center
-        n2 = np.einsum("ij,ij->i", Xc, Xc)
+        s.left[slots], s.right[slots], n2 = pairs.augmented_rows(X - self._center)
         s.norm2[slots] = n2
         self._max_norm2 = max(self._max_norm2, float(n2.max()))
-        d = s.dim
-        s.left[slots, :d] = Xc
-        s.left[slots, d] = n2
-        s.left[slots, d + 1] = 1.0
-        s.right[slots, :d] = -2.0 * Xc
-        s.right[slots, d] = 1.0
-        s.right[slots, d + 1] = n2
         for img in np.unique(ids).tolist():
             mine = slots[ids == img]
             old = self._image_slots.get(img)
@@ -385,11 +369,11 @@ class OnlineQuickMatch:
             return
         terms = density.quadratic_terms(d2, self._weights(contrib))
         pos = terms > 0
-        hi, lo = _units(terms[pos])
+        hi, lo = density.term_parts(terms[pos])
         t = target[pos]
-        # per-slot sums of at most 2^26 terms of < 2^27: exact in float64
-        s.hi[:s.n] += sign * np.bincount(t, weights=hi.astype(np.float64), minlength=s.n).astype(np.int64)
-        s.lo[:s.n] += sign * np.bincount(t, weights=lo.astype(np.float64), minlength=s.n).astype(np.int64)
+        # integer part sums (density.ExactSums' representation), exact in float64 in any order
+        s.hi[:s.n] += sign * np.bincount(t, weights=hi, minlength=s.n)
+        s.lo[:s.n] += sign * np.bincount(t, weights=lo, minlength=s.n)
 
     def _pairs(self, rows: np.ndarray, cols: np.ndarray, *, triangle: bool, rows_only: bool
                ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -400,7 +384,7 @@ class OnlineQuickMatch:
         s = self._s
         n = s.n
         reach = max(1.0, self.rho) * s.sigma[:n] * _MARGIN
-        slack = 4.0 * np.sqrt(s.dim + 2) * pairs._EPS32 * (s.norm2[:n] + self._max_norm2) + 1e-30
+        slack = pairs.error_gamma(s.dim) * (s.norm2[:n] + self._max_norm2) + 1e-30  # as Augmented.d2_slack
         rad2 = (reach ** 2 + slack).astype(np.float32)
         rad2c = np.full(n, -np.inf, np.float32) if rows_only else rad2
         B = pairs.BLOCK
@@ -438,11 +422,11 @@ class OnlineQuickMatch:
         """Density value (1 + others) of slots, computed as batch computes it: duplicates take their
         group's first member's value, with zero-sigma duplicates added as integers after the exact sum."""
         s = self._s
-        out = 1.0 + (s.hi[slots] * (1.0 / float(2 ** 27)) + s.lo[slots] * (1.0 / float(2 ** 53)))
+        out = 1.0 + density.parts_value(s.hi[slots], s.lo[slots])
         for k in np.flatnonzero(s.dup[slots]).tolist():
             members = self._groups[self._group_key[int(slots[k])]]
             first = min(members, key=lambda m: s.key[m])
-            b = s.hi[first] * (1.0 / float(2 ** 27)) + s.lo[first] * (1.0 / float(2 ** 53))
+            b = density.parts_value(s.hi[first], s.lo[first])
             zc = sum(1 for m in members if s.sigma[m] == 0)
             out[k] = 1.0 + ((b + zc) - (1 if s.sigma[first] == 0 else 0))
         return out
@@ -452,7 +436,6 @@ class OnlineQuickMatch:
         s = self._s
         stats: Dict[str, float] = {}
         n_before = int(s.alive[:s.n].sum()) - len(new)
-        self._gone_images = dict(zip(s.key[gone].tolist(), s.image[gone].tolist()))
         # -- sigma of single-feature images: the median of all finite sigmas (re-insert when it moves)
         s.alive[gone] = False
         lonely_new = new[np.isnan(s.sigma[new])]
@@ -471,12 +454,10 @@ class OnlineQuickMatch:
                 img = s.image[lonely_old]
                 X = s.X[lonely_old].astype(np.float64)
                 keys = s.key[lonely_old].copy()
-                cids = s.cid[lonely_old].copy()
                 for i in img.tolist():
                     self._image_slots.pop(i)
                 s.alive[lonely_old] = False
                 fresh = self._insert(X, img, keys, np.full(len(keys), value))
-                s.cid[fresh] = cids
                 gone = np.concatenate([gone, lonely_old])
                 new = np.concatenate([new, fresh])
             self._lonely_sigma = value
@@ -484,7 +465,9 @@ class OnlineQuickMatch:
         # -- densities: subtract what left, add what arrived
         t = time.perf_counter()
         changed_groups = set()
-        alive_cols = np.flatnonzero(s.alive[:s.n] & ~np.isin(np.arange(s.n), new))
+        is_new = np.zeros(s.n, bool)
+        is_new[new] = True
+        alive_cols = np.flatnonzero(s.alive[:s.n] & ~is_new)
         touched_d = []
         if len(gone):
             ga, gb, gd = self._pairs(gone, alive_cols, triangle=False, rows_only=True)
@@ -521,12 +504,9 @@ class OnlineQuickMatch:
         if extra:
             cand = np.union1d(cand, np.array(extra, np.int64))
         cand = cand[s.alive[cand]]
-        old_value = s.dvalue[cand].copy()
         prev = s.dvalue[:s.n].copy()
         s.dvalue[cand] = self._group_value(cand)
-        is_new = np.zeros(s.n, bool)
-        is_new[new] = True
-        dchanged = cand[(s.dvalue[cand] != old_value) & ~is_new[cand]]
+        dchanged = cand[(s.dvalue[cand] != prev[cand]) & ~is_new[cand]]
         stats["density_changed"] = float(len(dchanged))
         # -- parents: recompute where a density order or a candidate may have changed
         was_gone = np.zeros(s.n, bool)
@@ -553,7 +533,6 @@ class OnlineQuickMatch:
         touched = touched[touched >= 0]
         comps = np.unique(s.comp[touched])
         comps = comps[comps >= 0]
-        alive_idx = np.flatnonzero(s.alive[:s.n])
         region = np.union1d(alive_idx[np.isin(s.comp[alive_idx], comps)], new)
         region = region[np.argsort(s.key[region], kind="stable")]
         old_members = np.union1d(region[~is_new[region]], gone)
@@ -561,7 +540,9 @@ class OnlineQuickMatch:
         gone_keys = set(int(k) for k in removed_keys)
         local_labels = self._replay(region)
         stats["replayed"] = float(len(region))
-        events = self._events(region, local_labels, old_cid, gone_keys, set(int(k) for k in added_keys))
+        gone_images = dict(zip(s.key[gone].tolist(), s.image[gone].tolist()))
+        events = self._events(region, local_labels, old_cid, gone_keys, gone_images,
+                              set(int(k) for k in added_keys))
         stats["time_merges"] = time.perf_counter() - t
         self._maybe_compact()
         stats["features_before"] = float(n_before)
@@ -595,10 +576,6 @@ class OnlineQuickMatch:
     def _select_parents(self, A: np.ndarray) -> None:
         """Parents of slots ``A`` from the stored neighbours (the batch rule, keys as indices)."""
         s = self._s
-        s.parent[A] = -1
-        s.pdist[A] = np.inf
-        if len(A) == 0:
-            return
         a, b, d2 = self._edges.query(A, s.alive)
         d = np.sqrt(d2)
         keep = d < self.rho * s.sigma[a]
@@ -607,14 +584,9 @@ class OnlineQuickMatch:
         a, b, d = a[keep], b[keep], d[keep]
         above = tree.rank_order(s.dvalue[b], s.dvalue[a], s.key[b], s.key[a])
         a, b, d = a[above], b[above], d[above]
-        if len(a) == 0:
-            return
-        order = np.lexsort((s.key[b], d, a))
-        a, b, d = a[order], b[order], d[order]
-        first = np.ones(len(a), bool)
-        first[1:] = a[1:] != a[:-1]
-        s.parent[a[first]] = b[first]
-        s.pdist[a[first]] = d[first]
+        parent, pdist, _ = tree.nearest_candidates(a, b, d, s.n, tie=s.key[b])
+        s.parent[A] = parent[A]
+        s.pdist[A] = pdist[A]
 
     def _eligible(self, child: np.ndarray, parent: np.ndarray, pdist: np.ndarray) -> np.ndarray:
         """Tree edges that can merge at all: ``d < rho * min(sigma_child, sigma_parent)``."""
@@ -646,7 +618,7 @@ class OnlineQuickMatch:
         return labels
 
     def _events(self, region: np.ndarray, local: np.ndarray, old_cid: Dict[int, int], gone_keys: set,
-                added_keys: set) -> List[ClusterEvent]:
+                gone_images: Dict[int, int], added_keys: set) -> List[ClusterEvent]:
         """Stable ids for the region's new clusters, and the events that lead from the old ids to them."""
         s = self._s
         events: List[ClusterEvent] = []
@@ -662,7 +634,6 @@ class OnlineQuickMatch:
         for k in sorted(gone_keys):
             if k in old_cid:
                 gone_by.setdefault(old_cid[k], []).append(k)
-        gone_images = self._gone_images
         for c in sorted(gone_by):
             ks = gone_by[c]
             kind = "removed" if len(ks) == len(by_cid[c]) else "shrunk"

@@ -71,6 +71,27 @@ def tile_pool(n_threads: Optional[int] = None):
         yield lambda fn, tasks: pool.map(wrap(fn), tasks)
 
 
+def augmented_rows(Xc: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GEMM operands of centred rows: ``left = [x, |x|^2, 1]``, ``right = [-2x, 1, |x|^2]`` (float32),
+    so ``left_i . right_j`` is the squared distance; and the float64 ``|x|^2``."""
+    n, dim = Xc.shape
+    norm2 = np.einsum("ij,ij->i", Xc, Xc)
+    left = np.empty((n, dim + 2), dtype=np.float32)
+    left[:, :dim] = Xc
+    left[:, dim] = norm2
+    left[:, dim + 1] = 1.0
+    right = np.empty((n, dim + 2), dtype=np.float32)
+    right[:, :dim] = -2.0 * Xc
+    right[:, dim] = 1.0
+    right[:, dim + 1] = norm2
+    return left, right, norm2
+
+
+def error_gamma(dim: int) -> float:
+    """``gamma``: a float32 GEMM squared distance is within ``gamma (|x|^2 + |y|^2)`` of the exact one."""
+    return 4.0 * np.sqrt(dim + 2) * _EPS32
+
+
 class Augmented:
     """Float32 augmented vectors of centred descriptors for GEMM squared distances."""
 
@@ -80,17 +101,9 @@ class Augmented:
         self.center = X.mean(axis=0) if self.n else np.zeros(self.dim)
         Xc = X - self.center
         self.Xc = Xc
-        self.norm2 = np.einsum("ij,ij->i", Xc, Xc)
-        self.left = np.empty((self.n, self.dim + 2), dtype=np.float32)
-        self.left[:, : self.dim] = Xc
-        self.left[:, self.dim] = self.norm2
-        self.left[:, self.dim + 1] = 1.0
-        self.right = np.empty((self.n, self.dim + 2), dtype=np.float32)
-        self.right[:, : self.dim] = -2.0 * Xc
-        self.right[:, self.dim] = 1.0
-        self.right[:, self.dim + 1] = self.norm2
+        self.left, self.right, self.norm2 = augmented_rows(Xc)
         # bound on |float32 d2 - exact d2| for a pair (i, j): gamma * (|x_i|^2 + |x_j|^2)
-        self.gamma = 4.0 * np.sqrt(self.dim + 2) * _EPS32
+        self.gamma = error_gamma(self.dim)
         self.max_norm2 = float(self.norm2.max()) if self.n else 0.0
         # compact copy for exact distances: integer descriptors (uint8 SIFT) as
         # small ints, so gathers move 8x fewer bytes and the arithmetic is exact

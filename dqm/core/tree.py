@@ -18,7 +18,7 @@ disjoint.
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -52,8 +52,9 @@ def select_parents(
 
 
 def nearest_candidates(child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
-                       n: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The nearest candidate of every child (ties: the lowest candidate index or id).
+                       n: int, tie: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest candidate of every child (ties: the lowest candidate index or id, or the lowest
+    ``tie[k]`` when given: e.g. arrival order where ``cand`` are storage slots).
 
     Returns ``(parent, distance, row)``, arrays of length n: -1, inf and -1
     where a child has no candidate; ``row`` is the chosen edge's position in
@@ -63,7 +64,7 @@ def nearest_candidates(child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
     pdist = np.full(n, np.inf)
     row = np.full(n, -1, dtype=np.int64)
     if len(child):
-        order = np.lexsort((cand, dist, child))  # by child, then distance, then candidate
+        order = np.lexsort((cand if tie is None else tie, dist, child))  # by child, distance, candidate
         c = child[order]
         first = np.ones(len(c), dtype=bool)
         first[1:] = c[1:] != c[:-1]

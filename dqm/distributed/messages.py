@@ -25,10 +25,13 @@ flat arrays; :func:`changes_message`, :func:`changes_events`).
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Dict, Optional
 
 import msgpack
 import numpy as np
+
+from ..core.events import EVENT_KINDS, ClusterEvent
 
 VERSION = 3
 #: default maximum encoded message size (bytes); larger messages are rejected
@@ -375,8 +378,6 @@ def _check_stream(kind: str, out: Dict[str, Any]) -> None:
             if not np.isfinite(kp).all():
                 raise MessageError("non-finite keypoint values")
         return
-    from ..core.events import EVENT_KINDS
-
     if out["op"] not in CHANGE_OPS:
         raise MessageError(f"changes.op {out['op'][:20]!r} is not one of {', '.join(CHANGE_OPS)}")
     for f in ("n_images", "n_features", "n_clusters", "rejected"):
@@ -400,20 +401,16 @@ def image_message(job: str, camera: int, image_id: int, descriptors, keypoints=N
                   sent: Optional[float] = None) -> bytes:
     """An ``image`` message: one image's descriptors (uint8 stays uint8, others become float32) and
     keypoints (optional), from camera node ``camera``; ``sent``: the sender's clock (default now)."""
-    import time as _time
-
     d = np.asarray(descriptors)
     d = d if d.dtype == np.uint8 else np.ascontiguousarray(d, dtype=np.float32)
     kp = np.zeros((0, 4), np.float32) if keypoints is None else np.ascontiguousarray(keypoints, dtype=np.float32)
     return encode("image", job, camera, seq=seq, image_id=int(image_id),
-                  time=float(_time.time() if sent is None else sent), descriptors=d, keypoints=kp)
+                  time=float(time.time() if sent is None else sent), descriptors=d, keypoints=kp)
 
 
 def changes_message(job: str, changeset, op: str, image_id: int, *, sent: float, n_images: int,
                     n_features: int, n_clusters: int, rejected: int, seq: int = 0, src: int = 0) -> bytes:
     """A ``changes`` message from a :class:`dqm.core.events.ChangeSet` (see :data:`SCHEMAS`)."""
-    from ..core.events import EVENT_KINDS
-
     ev = list(changeset.events)
 
     def cat(parts: list) -> np.ndarray:
@@ -432,8 +429,6 @@ def changes_message(job: str, changeset, op: str, image_id: int, *, sent: float,
 
 def changes_events(msg: Dict[str, Any]) -> list:
     """The :class:`dqm.core.events.ClusterEvent` list of a decoded ``changes`` message, in order."""
-    from ..core.events import EVENT_KINDS, ClusterEvent
-
     bounds = np.concatenate([[0], np.cumsum(msg["size"])]).astype(np.int64)
     return [ClusterEvent(EVENT_KINDS[int(k)], int(c), msg["keys"][a:b].astype(np.int64),
                          msg["images"][a:b].astype(np.int64), int(s), bool(n))
