@@ -35,6 +35,39 @@ def check_descriptors(descriptors, name: str = "descriptors") -> np.ndarray:
     return out
 
 
+#: descriptor magnitudes within 2^-MAGNITUDE_EXP .. 2^MAGNITUDE_EXP are used as they are: squared
+#: distances of such vectors neither overflow nor underflow float32, in which the all-pairs GEMM runs
+MAGNITUDE_EXP = 40
+
+
+def magnitude_exponent(X: np.ndarray) -> int:
+    """The power of two that brings the largest |value| of ``X`` into [1, 2), or 0 when ``X`` is already
+    within the safe range (2^-40 .. 2^40; all zeros count as safe).
+
+    QuickMatch does not depend on a common scale factor of all descriptors, and multiplying by a
+    power of two is exact in floating point, so ``np.ldexp(X, -e)`` gives the same clusters with
+    safe magnitudes (sigma and distances scale back exactly by ``2^e``).
+    """
+    if X.size == 0 or X.dtype in (np.uint8, np.int8, np.uint16, np.int16, np.uint32, np.int32):
+        return 0  # small integer types are always within the range
+    top = float(max(abs(float(X.max())), abs(float(X.min()))))
+    if top == 0.0 or 2.0 ** -MAGNITUDE_EXP <= top <= 2.0 ** MAGNITUDE_EXP:
+        return 0
+    return int(np.frexp(top)[1]) - 1
+
+
+def check_magnitude(X: np.ndarray, name: str = "descriptors") -> None:
+    """Refuse descriptors outside the safe magnitude range (where a caller cannot rescale them all at once:
+    online updates, agents that each hold part of the data), naming the largest value."""
+    e = magnitude_exponent(X)
+    if e:
+        top = float(max(abs(float(X.max())), abs(float(X.min()))))
+        raise InputError(
+            f"{name}: the largest magnitude {top:.3g} is outside the range {2.0 ** -MAGNITUDE_EXP:.2g} .. "
+            f"{2.0 ** MAGNITUDE_EXP:.2g} where squared distances are safe in float32; multiply every "
+            f"descriptor by the same factor, e.g. 2^{-e} (the clusters do not depend on a common scale)")
+
+
 def check_image_ids(image_ids, n: int, name: str = "image_ids") -> np.ndarray:
     """Return image ids as an int64 (n,) array, or raise InputError."""
     arr = np.asarray(image_ids)
@@ -67,6 +100,19 @@ def check_positive_int(value, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise InputError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def positive_int_arg(text: str) -> int:
+    """argparse ``type=`` for options that must be whole numbers >= 1 (``--threads``, ``--agents``)."""
+    import argparse
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
 
 
 def check_choice(value, name: str, choices: Tuple[str, ...]) -> str:

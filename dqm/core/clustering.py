@@ -35,6 +35,7 @@ never merge); features without one get ``-1`` and ``parent_distance = inf``.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -45,6 +46,7 @@ import numpy as np
 from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
 from . import approximate, memory, native, pairs, tree
+from .pairs import duplicate_groups
 
 KERNELS = ("gaussian", "quadratic")
 PARENT_MODES = ("any", "other-image")
@@ -127,23 +129,10 @@ def _empty_result(image_ids: np.ndarray, rho, ratio, kernel, parent_mode) -> Qui
     )
 
 
-def duplicate_groups(X: np.ndarray) -> np.ndarray:
-    """Group id of every row; rows with identical values share an id (ids are 0..g-1).
-
-    Pass the compact copy (:attr:`pairs.Augmented.exact`) where there is one:
-    uint8 rows sort 8x faster and in an eighth of the memory."""
-    if len(X) == 0:
-        return np.zeros(0, np.int64)
-    Z = np.ascontiguousarray(X if X.dtype.kind in "iu" else X + 0.0)  # -0.0 -> 0.0: equal values, equal bytes
-    rows = Z.view(np.dtype((np.void, Z.dtype.itemsize * Z.shape[1]))).ravel()
-    _, inverse = np.unique(rows, return_inverse=True)
-    return inverse.ravel().astype(np.int64)
-
-
 def distinctiveness(aug: pairs.Augmented, image_index: np.ndarray, n_images: int,
-                    n_threads: Optional[int] = None) -> np.ndarray:
+                    n_threads: Optional[int] = None, groups: Optional[np.ndarray] = None) -> np.ndarray:
     """sigma of every feature, with the documented fallback for single-feature images."""
-    sigma = pairs.nearest_same_image(aug, image_index, n_images, n_threads=n_threads)
+    sigma = pairs.nearest_same_image(aug, image_index, n_images, n_threads=n_threads, groups=groups)
     lonely = np.isnan(sigma)
     if lonely.any():
         sigma[lonely] = lonely_sigma(sigma[~lonely])
@@ -186,11 +175,12 @@ def kernel_weights(sigma: np.ndarray, kernel: str, ratio_density: float):
     return np.where(sigma > 0, w, 0.0), active
 
 
-def _sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, threads: int) -> np.ndarray:
+def _sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, threads: int,
+           groups: Optional[np.ndarray] = None) -> np.ndarray:
     """Computed distinctiveness, or the caller's after checking it."""
     n = aug.n
     if sigma is None:
-        return distinctiveness(aug, image_index, n_images, n_threads=threads)
+        return distinctiveness(aug, image_index, n_images, n_threads=threads, groups=groups)
     sig = np.asarray(sigma, dtype=np.float64)
     if sig.shape != (n,) or not np.isfinite(sig).all() or (sig < 0).any():
         raise V.InputError(f"sigma must be {n} finite non-negative values, one per descriptor")
@@ -273,6 +263,15 @@ def quickmatch(
     t0 = time.perf_counter()
     X = V.check_descriptors(descriptors)
     ids = V.check_image_ids(image_ids, len(X))
+    scale = V.magnitude_exponent(X)
+    if scale:  # absurd magnitudes: the same clusters on X / 2^scale (exact), distances scaled back
+        r = quickmatch(np.ldexp(X, -scale), ids, rho=rho, ratio_density=ratio_density, kernel=kernel, parent=parent,
+                       sigma=None if sigma is None else np.ldexp(np.asarray(sigma, np.float64), -scale),
+                       n_threads=n_threads, progress=progress, max_memory=max_memory, approximate=approximate,
+                       n_neighbors=n_neighbors)
+        r.stats["descriptor_scale_exponent"] = float(scale)
+        return dataclasses.replace(r, sigma=np.ldexp(r.sigma, scale),
+                                   parent_distance=np.ldexp(r.parent_distance, scale))
     rho = V.check_positive(rho, "rho")
     ratio_density = V.check_positive(ratio_density, "ratio_density")
     V.check_choice(kernel, "kernel", KERNELS)
@@ -300,7 +299,8 @@ def quickmatch(
 
     aug = pairs.Augmented(X)
     t = time.perf_counter()
-    sig = _sigma(aug, sigma, image_index, n_images, threads)
+    groups = duplicate_groups(aug.exact)
+    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
     stats["time_sigma"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -317,7 +317,6 @@ def quickmatch(
 
     t = time.perf_counter()
     # zero-sigma features contribute only to their exact duplicates (kernel limit)
-    groups = duplicate_groups(aug.exact)
     gsize = np.bincount(groups)
     zero = sig == 0
     zcount = zero_sigma_counts(groups, gsize, zero) if zero.any() else None
@@ -383,7 +382,8 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     stats: Dict[str, float] = {"n_neighbors": float(k), "memory_budget": float(budget)}
     aug = pairs.Augmented(X)
     t = time.perf_counter()
-    sig = _sigma(aug, sigma, image_index, n_images, threads)
+    groups = duplicate_groups(aug.exact)
+    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
     stats["time_sigma"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -399,7 +399,6 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
-    groups = duplicate_groups(compact)
     gsize = np.bincount(groups)
     zero = sig == 0
     if zero.any():

@@ -285,6 +285,7 @@ class OnlineQuickMatch:
         t0 = time.perf_counter()
         X = V.check_descriptors(descriptors)
         ids = V.check_image_ids(image_ids, len(X))
+        V.check_magnitude(X)  # every later add must share the scale: refused here, not rescaled
         if self._s is not None and len(X) and X.shape[1] != self._s.dim:
             raise V.InputError(f"descriptors have {X.shape[1]} dimensions, earlier ones {self._s.dim}")
         present = sorted(set(np.unique(ids).tolist()) & set(self._image_slots))

@@ -149,18 +149,42 @@ def exact_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 1 
     return np.sqrt(exact_sq_distances(X, a, b, chunk))
 
 
+def duplicate_groups(X: np.ndarray) -> np.ndarray:
+    """Group id of every row; rows with identical values share an id (ids are 0..g-1).
+
+    Pass the compact copy (:attr:`Augmented.exact`) where there is one:
+    uint8 rows sort 8x faster and in an eighth of the memory."""
+    if len(X) == 0:
+        return np.zeros(0, np.int64)
+    Z = np.ascontiguousarray(X if X.dtype.kind in "iu" else X + 0.0)  # -0.0 -> 0.0: equal values, equal bytes
+    rows = Z.view(np.dtype((np.void, Z.dtype.itemsize * Z.shape[1]))).ravel()
+    _, inverse = np.unique(rows, return_inverse=True)
+    return inverse.ravel().astype(np.int64)
+
+
 def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
-                       n_threads: Optional[int] = None, use_native: bool = True) -> np.ndarray:
+                       n_threads: Optional[int] = None, use_native: bool = True,
+                       groups: Optional[np.ndarray] = None) -> np.ndarray:
     """Distance from every feature to the nearest *other* feature of its image (exact).
 
+    A feature with an exact duplicate in its image has distance 0; of the
+    others, one representative per distinct vector and image takes part (the
+    same exact distances, but a set of many duplicates costs nothing extra).
     Each unordered block pair of an image is computed once; a tile keeps every
     entry within the float32 error bound of its row's (and column's) tile
     minimum, the global minimum of every row is then known, and the entries
     within the bound of it are recomputed exactly. Features alone in their
-    image get ``nan`` (the caller decides what that means).
+    image get ``nan`` (the caller decides what that means). ``groups``: the
+    caller's :func:`duplicate_groups` of ``aug.exact``, if it has them.
     """
     n = aug.n
-    order = np.argsort(image_index, kind="stable")
+    image_index = np.asarray(image_index, np.int64)
+    if groups is None:
+        groups = duplicate_groups(aug.exact)
+    _, first, inverse, count = np.unique(groups * np.int64(max(1, n_images)) + image_index, return_index=True,
+                                         return_inverse=True, return_counts=True)
+    duplicated = count[inverse.ravel()] > 1  # an identical vector in the same image
+    order = first[np.argsort(image_index[first], kind="stable")]  # one per (vector, image), by image
     bounds = np.searchsorted(image_index[order], np.arange(n_images + 1))
     slack = 2.0 * aug.d2_slack(np.arange(n))
     tasks = []
@@ -190,6 +214,7 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
             cols_l.append(c)
             g_l.append(g)
     sigma = np.full(n, np.nan)
+    sigma[duplicated] = 0.0
     if not rows_l:
         return sigma
     r = np.concatenate(rows_l)
@@ -204,14 +229,22 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     d = exact_distances(aug.exact, a, b)
     exact_min = np.full(n, np.inf)
     np.minimum.at(exact_min, a, d)
-    has = np.isfinite(exact_min)
+    # a representative's distance is its vector's: every unduplicated copy of it is the representative itself
+    has = np.isfinite(exact_min) & ~duplicated
     sigma[has] = exact_min[has]
     return sigma
 
 
 def search_rad2(aug: Augmented, radius: np.ndarray) -> np.ndarray:
-    """float32 squared search radii that cannot miss a pair within ``radius`` (error bound added)."""
-    return (np.asarray(radius, dtype=np.float64) ** 2 + aug.d2_slack(np.arange(aug.n))).astype(np.float32)
+    """float32 squared search radii that cannot miss a pair within ``radius`` (error bound added).
+
+    A zero radius finds nothing (-inf): an edge needs a distance strictly below the radius, so
+    such a child has no candidate, and exact duplicates (sigma 0) never flood the passes with
+    pairs that lie within the error bound of zero."""
+    r = np.asarray(radius, dtype=np.float64)
+    rad2 = (r ** 2 + aug.d2_slack(np.arange(aug.n))).astype(np.float32)
+    rad2[r <= 0] = -np.inf
+    return rad2
 
 
 def kernel_pass(
