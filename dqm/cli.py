@@ -18,12 +18,11 @@ from typing import List, Optional
 
 from . import __version__
 from .commands import HelpFormatter
-from .core.native import kernel_description
-from .validation import InputError
 
 COMMANDS = [
     "dqm.commands.extract",
     "dqm.commands.match",
+    "dqm.commands.split",
     "dqm.commands.export",
     "dqm.commands.importer",
     "dqm.commands.demo",
@@ -35,12 +34,16 @@ COMMANDS = [
     "dqm.commands.agent",
     "dqm.commands.coordinator",
     "dqm.commands.stream",
+    "dqm.commands.camera",
     "dqm.commands.experiment",
     "dqm.commands.doctor",
 ]
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``dqm`` parser with every sub-command (imports the command modules and what they need)."""
+    from .core.native import kernel_description
+
     parser = argparse.ArgumentParser(prog="dqm", description="Consistent multi-image feature matching with QuickMatch.")
     parser.add_argument("--version", action="version", version=f"dqm {__version__}, tile kernel: "
                         f"{kernel_description()}")
@@ -68,14 +71,20 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    parser = build_parser()
+    # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        parser = build_parser()
+        from .validation import InputError
+    except KeyboardInterrupt as exc:
+        print(f"dqm: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
     warnings.showwarning = _one_line_warning
-    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
-        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args._run(args) or 0)
     except InputError as exc:

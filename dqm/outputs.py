@@ -56,12 +56,12 @@ def check_file(path, option: str, suffixes: Optional[Iterable[str]] = None) -> P
     """
     p = Path(path)
     what = f"{option} {path}"
+    if p.is_dir():
+        raise InputError(f"{what} is a folder; give a file name")
     if suffixes is not None:
         allowed = tuple(s.lower() for s in suffixes)
         if p.suffix.lower() not in allowed:
             raise InputError(f"{what}: unknown format {p.suffix or '(no suffix)'}; use one of {', '.join(allowed)}")
-    if p.is_dir():
-        raise InputError(f"{what} is a folder; give a file name")
     if p.exists() and not os.access(p, os.W_OK):
         raise InputError(f"{what}: the file exists and is read-only")
     _probe(p.parent, what)

@@ -14,6 +14,7 @@ interrupted, 143 terminated (SIGTERM).
 import argparse
 
 from .runtime_options import add_algorithm, add_tls, config_from, tls_from
+from ..distributed.config import DEFAULT_SEED
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"
@@ -21,9 +22,16 @@ HELP = "run the coordinator of a distributed job"
 
 def add_arguments(p) -> None:
     p.add_argument("--agents", type=int, required=True, help="number of agents M")
-    p.add_argument("--seed", type=int, default=0, help="the partition seed integer (the only thing broadcast)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help="the partition seed integer (the only thing broadcast)")
     p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--out", help="report JSON (labels, traffic per link and kind); on failure OUT.failure.json")
+    p.add_argument("--clusters", metavar="CLUSTERS.npz",
+                   help="the job's CLUSTERS file: labels with the keypoints, image names and ground truth the "
+                        "agents' FEATURES carry, for dqm plot / export / evaluate (docs/formats.md; default: "
+                        "./dqm-out/coordinator/JOB.npz)")
+    p.add_argument("--no-clusters", action="store_true",
+                   help="write no CLUSTERS file (the agents then send no catalogs: fewer bytes)")
     p.add_argument("--tcp-port", type=int, help="router port: also record kernel TCP byte counters")
     p.add_argument("--ready-timeout", type=float, default=30.0,
                    help="seconds to wait for every agent process to appear (missing ones count as lost)")
@@ -38,26 +46,29 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from .. import outputs
+    from ..distributed import keys
     from ..distributed.partition import check_agents, check_seed
-    from ..runtime.bus import RouterUnreachable
+    from ..runtime.bus import JobIdInUse, RouterUnreachable, check_endpoint
     from ..runtime.coordinator import main_coordinator
     from ..validation import InputError
 
     check_agents(args.agents)
     check_seed(args.seed)
-    from ..runtime.bus import check_endpoint
-
     check_endpoint(args.connect)
+    keys.check_job(args.job)
     if args.out:
-        from .. import outputs
-
-        outputs.check_file(args.out, "--out")
+        outputs.check_file(args.out, "--out", (".json",))
+    if args.clusters and args.no_clusters:
+        raise InputError("--clusters and --no-clusters contradict each other; give one")
+    clusters = None if args.no_clusters else str(outputs.check_file(
+        args.clusters or outputs.default_dir("coordinator") / f"{args.job}.npz", "--clusters", (".npz",)))
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
     cfg = config_from(args, args.agents, args.seed).validated()
     try:
         return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port,
                                 args.ready_timeout, args.job_timeout, args.connect_timeout, args.max_lost,
-                                args.progress_fd, args.phase_timeout)
-    except RouterUnreachable as exc:
+                                args.progress_fd, args.phase_timeout, clusters)
+    except (RouterUnreachable, JobIdInUse) as exc:
         raise InputError(str(exc)) from None

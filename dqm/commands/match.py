@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -25,14 +26,15 @@ from .extract import add_image_options, extract
 from ..core import DEFAULT_NEIGHBORS, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
 from ..core.memory import parse_size
 from ..progress import ProgressBar
-from ..validation import InputError
+from ..validation import InputError, positive_int_arg
 
 NAME = "match"
 HELP = "cluster features (from a .npz or from images) with QuickMatch"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="FEATURES.npz, or an image folder / glob / files")
+    p.add_argument("inputs", nargs="*", metavar="INPUT",
+                   help="FEATURES.npz file(s), or image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="CLUSTERS.npz to write")
     p.add_argument("--rho", type=float, default=DEFAULT_RHO, help=f"merge ratio (default {DEFAULT_RHO})")
     p.add_argument("--ratio-density", type=float, default=DEFAULT_RATIO_DENSITY,
@@ -42,7 +44,7 @@ def add_arguments(p) -> None:
                         "uses (docs/quickmatch.md)")
     p.add_argument("--parent", choices=PARENT_MODES, default="any",
                    help="'other-image': a feature's tree parent must come from another image")
-    p.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
+    p.add_argument("--threads", type=positive_int_arg, default=None, help="worker threads (default: all cores)")
     add_image_options(p)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
@@ -72,17 +74,35 @@ def memory_size(text: str) -> int:
 
 
 def load_input(args) -> io.FeatureSet:
-    """A FEATURES .npz as is, or SIFT of the images named by the inputs (progress bar per image)."""
-    if len(args.inputs) == 1 and args.inputs[0].endswith(".npz"):
-        return io.load_features(args.inputs[0])
-    return extract(args, min_images=2)
+    """FEATURES .npz file(s), combined (each file numbers its own images: :func:`dqm.io.merge_features`),
+    or SIFT of the images named by the inputs (progress bar per image). A FEATURES file is known by
+    its content (a zip archive) or its .npz suffix, in any case."""
+    features = [p for p in args.inputs if io.is_npz(p) or Path(p).suffix.lower() == ".npz"]
+    if not features:
+        if not args.inputs and not getattr(args, "image_list", None):
+            raise InputError("no input: give FEATURES.npz file(s), images (folders, globs, files) or --image-list")
+        return extract(args, min_images=2)
+    if len(features) < len(args.inputs) or getattr(args, "image_list", None):
+        others = [p for p in args.inputs if p not in features] or ["--image-list"]
+        raise InputError(f"the inputs mix FEATURES files ({features[0]}) and images ({others[0]}); match either "
+                         "FEATURES files or images (dqm extract turns images into FEATURES)")
+    seen = {}
+    for p in features:
+        key = Path(p).resolve()
+        if key in seen:
+            raise InputError(f"{p} is given twice (as {seen[key]} and {p}); give each FEATURES file once")
+        seen[key] = p
+    fs, note = io.merge_features([io.load_features(p) for p in features], features)
+    if note:
+        print(f"note: {note}")
+    return fs
 
 
 def run(args) -> int:
     t0 = time.perf_counter()
-    outputs.check_file(args.out, "--out")
+    outputs.check_file(args.out, "--out", (".npz",))
     if args.tracks_csv:
-        outputs.check_file(args.tracks_csv, "--tracks-csv")
+        outputs.check_file(args.tracks_csv, "--tracks-csv", (".csv",))
     fs = load_input(args)
     n_images = len(np.unique(fs.image_ids))
     if len(fs) == 0:

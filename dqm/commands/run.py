@@ -5,6 +5,10 @@ coordinator; print the result and the traffic table.
     dqm run --agents 4                      # generated default data
     dqm run --agents 4 --features f.npz     # your FEATURES file (docs/formats.md)
 
+It writes the job's CLUSTERS file (default ./dqm-out/run/clusters.npz: the
+labels with the keypoints, image names and ground truth of the FEATURES), so
+that dqm plot, dqm export and dqm evaluate work on it as on dqm match output.
+
 On a terminal it shows each agent's phase, features and bytes as the job runs.
 If an agent process dies, its images and cell go to the next live agent and
 the job starts again (identical clusters); losing more than --max-lost agents
@@ -23,50 +27,63 @@ import time
 import numpy as np
 
 from .runtime_options import add_algorithm, config_from
+from ..distributed.config import DEFAULT_SEED
+from ..validation import positive_int_arg
 
 NAME = "run"
 HELP = "run a distributed job (router + agents + coordinator processes) on this host"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--agents", type=int, default=4, help="number of agent processes M")
-    p.add_argument("--seed", type=int, default=1, help="partition seed integer")
+    p.add_argument("--agents", type=positive_int_arg, default=4, help="number of agent processes M")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED, help="partition seed integer")
     p.add_argument("--features", help="FEATURES.npz (default: a generated SIFT-like scene with ground truth)")
-    p.add_argument("--report", help="write the JSON report here")
+    p.add_argument("--out", default=None, metavar="CLUSTERS.npz",
+                   help="the job's CLUSTERS file, with the keypoints and image names of the FEATURES, for dqm plot / "
+                        "export / evaluate (default: ./dqm-out/run/clusters.npz)")
+    p.add_argument("--report", help="also write the JSON report here (traffic per link and kind, timings, labels)")
     p.add_argument("--timeout", type=float, default=600.0, help="seconds the whole job may take")
+    p.add_argument("--ready-timeout", type=float, default=None,
+                   help="seconds the agent processes may take to start (default: 30, more when there are many "
+                        "agents per core)")
     p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
                                                 "(default: half of them, at least 1)")
     p.add_argument("--check", action="store_true", help="also run the in-process simulator and compare")
     add_algorithm(p)
 
 
-def run(args) -> int:
-    from .. import evaluation, io, synthetic
-    from ..distributed.protocol import traffic_table
-    from ..runtime.launcher import JobFailure, run_job
+#: links of the traffic table printed in full; beyond, the busiest links and the per-kind table
+TABLE_LINKS = 24
 
-    truth = None
-    if args.features:
-        fs = io.load_features(args.features)
-        X, ids = fs.descriptors, fs.image_ids
-        truth = fs.point_ids
-    else:
-        ds = synthetic.sift_like(n_images=8, n_points=500, noise=0.35, seed=0)
-        X, ids, truth = ds.descriptors, ds.image_ids, ds.point_ids
+
+def run(args) -> int:
+    from .. import evaluation, io, outputs, synthetic
+    from ..distributed.protocol import traffic_table
+    from ..runtime.launcher import JobFailure, check_scale, run_job
     from ..validation import InputError
 
-    if len(X) == 0 or len(np.unique(ids)) < 2:
-        raise InputError(f"a distributed job needs features of at least two images, got {len(np.unique(ids))}")
-    cfg = config_from(args, args.agents, args.seed).validated(len(X))
+    out = outputs.check_file(args.out or outputs.default_dir("run") / "clusters.npz", "--out", (".npz",))
+    if args.report:
+        outputs.check_file(args.report, "--report", (".json",))
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
-    if args.report:
-        from .. import outputs
-
-        outputs.check_file(args.report, "--report")
+    if args.ready_timeout is not None and not args.ready_timeout > 0:
+        raise InputError(f"--ready-timeout must be positive, got {args.ready_timeout}")
+    if args.features:
+        fs = io.load_features(args.features)
+    else:
+        ds = synthetic.sift_like(n_images=8, n_points=500, noise=0.35, seed=0)
+        fs = io.FeatureSet(ds.descriptors, ds.image_ids, point_ids=ds.point_ids)
+    X, ids, truth = fs.descriptors, fs.image_ids, fs.point_ids
+    n_images = len(np.unique(ids))
+    if len(X) == 0 or n_images < 2:
+        raise InputError(f"a distributed job needs features of at least two images, got {n_images}")
+    cfg = config_from(args, args.agents, args.seed).validated(len(X))
+    ready_timeout = check_scale(cfg.agents, n_images, args.ready_timeout)
     t0 = time.perf_counter()
     try:
-        rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True)
+        rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True, features=fs,
+                      clusters=str(out), ready_timeout_s=ready_timeout)
     except JobFailure as exc:
         print(f"dqm run: {exc}", file=sys.stderr)
         return 4 if exc.failure.get("refused") else 3
@@ -74,7 +91,7 @@ def run(args) -> int:
     labels = np.asarray(rep["labels"])
     sizes = np.bincount(labels)
     print(f"Distributed QuickMatch ({cfg.mode} mode, {cfg.agents} agent processes, partition {cfg.partition}, "
-          f"seed {cfg.seed}): {len(labels)} features from {len(np.unique(ids))} images -> {rep['clusters']} clusters, "
+          f"seed {cfg.seed}): {len(labels)} features from {n_images} images -> {rep['clusters']} clusters, "
           f"{int((sizes > 1).sum())} spanning 2+ images; {wall:.1f} s wall.")
     for lost in rep.get("lost", []):
         print(f"Agent process {lost['process']} was lost in phase {lost['phase']}; its agents were taken over "
@@ -94,11 +111,17 @@ def run(args) -> int:
     print(f"Traffic: {rep['total_bytes']} bytes metered ({rep['total_bytes'] / raw:.2f}x the raw descriptor bytes)"
           + (f", {rep['wire_bytes_received_by_router']} bytes received by the router (kernel TCP counters)"
              if rep.get("wire_bytes_received_by_router") else "") + ".")
-    print(traffic_table(rep))
+    print(traffic_table(rep, max_links=TABLE_LINKS))
+    if len(rep["links"]) > TABLE_LINKS:
+        print(f"({len(rep['links']) - TABLE_LINKS} smaller links left out" +
+              (f"; every link is in {args.report})" if args.report else "; --report writes every link)"))
     if args.report:  # before the check: a long check must not put the job's result at risk
         with open(args.report, "w") as fh:
             json.dump(rep, fh)
         print(f"wrote {args.report}")
+    if rep.get("images_note"):
+        print(f"Images: {rep['images_note']}.")
+    print(f"wrote {out} (CLUSTERS: dqm plot clusters {out} --out clusters.png; dqm export colmap {out} ...)")
     if args.check:
         from ..distributed.simulator import simulate
 

@@ -26,7 +26,8 @@ def add_algorithm(p) -> None:
     g.add_argument("--seed-norm", type=float, default=512.0, help="descriptor norm for seeded seeds (SIFT: 512)")
     g.add_argument("--cell-weights", dest="cell_weights", action="store_true", default=None,
                    help="balance the cells with power-diagram weights (default: on in balanced mode)")
-    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false", help="plain Voronoi cells")
+    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false", default=None,
+                   help="plain Voronoi cells")
     g.add_argument("--ghost-rule", choices=GHOST_RULES, default="one-way",
                    help="balanced: one-way (default) or two-way (the plain bisector halo, for comparison)")
     g.add_argument("--sketch-dims", type=int, default=DEFAULT_SKETCH_DIMS,
@@ -49,13 +50,38 @@ def add_tls(p) -> None:
     g.add_argument("--tls-key", help="this process's private key (PEM)")
 
 
-def tls_from(args, listen: bool) -> Optional[dict]:
+def tls_from(args, listen: bool, check_files: bool = True) -> Optional[dict]:
+    """zenoh's ``transport/link/tls`` settings from the ``--tls-*`` options (None without them);
+    ``check_files``: refuse a missing or non-PEM file at once (:func:`check_pem`)."""
     if not (args.tls_ca or args.tls_cert or args.tls_key):
         return None
     from ..validation import InputError
 
     if not (args.tls_ca and args.tls_cert and args.tls_key):
         raise InputError("mutual TLS needs all of --tls-ca, --tls-cert and --tls-key")
+    for option, path in (("--tls-ca", args.tls_ca), ("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key)):
+        if check_files:
+            check_pem(path, option)
     side = "listen" if listen else "connect"
     return {"root_ca_certificate": args.tls_ca, f"{side}_certificate": args.tls_cert,
             f"{side}_private_key": args.tls_key, "enable_mtls": True}
+
+
+def check_pem(path: str, option: str) -> None:
+    """A TLS file must exist, be readable and hold PEM text: said at once, naming the option (zenoh
+    would retry the connection and then blame the CA)."""
+    from pathlib import Path
+
+    from ..validation import InputError
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{option} {path}: no such file")
+    if p.is_dir():
+        raise InputError(f"{option} {path} is a folder, not a PEM file")
+    try:
+        head = p.read_bytes()[:1 << 16]
+    except OSError as exc:
+        raise InputError(f"{option} {path}: cannot read it ({exc.strerror or exc})") from None
+    if b"-----BEGIN " not in head:
+        raise InputError(f"{option} {path} is not a PEM file (no '-----BEGIN' line)")

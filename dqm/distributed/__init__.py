@@ -25,6 +25,7 @@ module             holds
 =================  ===============================================================
 """
 from .config import DEFAULT_MODE, MODES, DQMConfig
-from .simulator import DQMResult, Traffic, image_owners, simulate
+from .simulator import DQMResult, Traffic, simulate
+from .sources import image_owners
 
 __all__ = ["DEFAULT_MODE", "MODES", "DQMConfig", "DQMResult", "Traffic", "image_owners", "simulate"]

@@ -30,6 +30,8 @@ from . import partition
 MODES = ("balanced", "lean", "paper")
 DEFAULT_MODE = "balanced"
 GHOST_RULES = ("one-way", "two-way")
+#: the default partition seed integer (every command and DQMConfig)
+DEFAULT_SEED = 1
 #: the default dimension of the lower-bound sketches (docs/distributed.md, frontier table)
 DEFAULT_SKETCH_DIMS = 48
 #: the parameters every process of a job must share (they change the result or the protocol); the
@@ -63,7 +65,7 @@ class DQMConfig:
     """
 
     agents: int
-    seed: int = 0
+    seed: int = DEFAULT_SEED
     partition: str = "kmeans"
     mode: str = DEFAULT_MODE
     rho: float = DEFAULT_RHO

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..core.events import EVENT_KINDS, ClusterEvent
 
-VERSION = 3
+VERSION = 4
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 
@@ -79,7 +79,8 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     # coordinator -> every agent process: start (or restart, at a new epoch) the job: the seed integer,
     # the process hosting each agent's cell and images (owners), and the parameters that change the result
     # (params: "name=value;..." and its sha256, checked by every agent before it takes part)
-    "start": {"seed": "int", "agents": "int", "owners": "array:<i8:1", "params": "str", "params_hash": "str"},
+    "start": {"seed": "int", "agents": "int", "owners": "array:<i8:1", "params": "str", "params_hash": "str",
+              "catalog": "int"},
     # agent process -> coordinator: ready for this epoch (inboxes of its hosted agents declared)
     "ready": {"dim": "int", "dtype": "str", "hosted": "array:<i8:1", "features": "int"},
     # agent process -> coordinator: refuses the job (param: the differing parameter, or "")
@@ -131,6 +132,13 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
                   "parent": "array:<i8:1", "distance": "array:<f8:1"},
     # agent -> coordinator: final clusters of the features the agent decided
     "result": {"ids": "array:<i8:1", "labels": "array:<i8:1"},
+    # agent -> coordinator, when start asked for it (catalog = 1): what the CLUSTERS file needs of the
+    # agent's own features (dqm.distributed.sources): ids, image (index into the image table), keypoints
+    # (rows of x, y[, size, angle], or none) and point_ids (or none); the image table: file index and local
+    # image id per entry, names NUL-separated as UTF-8 (or none). Never descriptors
+    "catalog": {**ENVELOPE, "ids": "array:<i8:1", "image": "array:<i4:1", "keypoints": "array:<f4:2",
+                "point_ids": "array:<i8:1", "image_file": "array:<i8:1", "image_local": "array:<i8:1",
+                "names": "array:|u1:1"},
     # receiver -> sender: acknowledgement of the sequence number in the header
     "ack": {"dst": "int"},
     # agent -> coordinator: per-phase timings and local statistics (numbers only)
@@ -141,22 +149,34 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "finish": {"clusters": "int"},
     # streaming (dqm stream). camera node -> stream: one image's features (src: the camera, >= 0; seq: its
     # frame number); keypoints: (n, 2..4) x, y[, size, angle] or empty (0 rows); time: the sender's clock
-    # (seconds since the epoch) at the put, echoed in the change sets so that a listener can measure latency
-    "image": {"image_id": "int", "time": "float", "descriptors": "array:|u1,<f4:2", "keypoints": "array:<f4:2"},
+    # (seconds since the epoch) at the put, echoed in the change sets so that a listener can measure latency;
+    # name: the image's name (a path or file name; optional, see OPTIONAL_FIELDS: "" = none)
+    "image": {"image_id": "int", "time": "float", "descriptors": "array:|u1,<f4:2", "keypoints": "array:<f4:2",
+              "name": "str"},
     # stream -> subscribers: what one add or remove (dqm.core.events.ChangeSet) changed. op: "add" or "remove";
     # image_id and time: the image added or removed (time: of the image message that caused the change);
     # one row per event: event_kind (index into dqm.core.events.EVENT_KINDS), cluster, source (-1: none),
     # new (0/1), size (its feature count); keys and images: every event's features (key, image id)
     # concatenated in event order (size of them per event); added / removed: feature keys that arrived /
-    # left; the counts after the change and the stream's rejected messages so far; stats: of the update
-    "changes": {"op": "str", "image_id": "int", "time": "float", "event_kind": "array:|u1:1",
+    # left; the counts after the change and the stream's rejected messages so far; stats: of the update;
+    # name: the name the image added or removed came with (optional, see OPTIONAL_FIELDS: "" = none)
+    "changes": {"op": "str", "image_id": "int", "name": "str", "time": "float", "event_kind": "array:|u1:1",
                 "cluster": "array:<i8:1", "source": "array:<i8:1", "new": "array:|u1:1", "size": "array:<i8:1",
                 "keys": "array:<i8:1", "images": "array:<i8:1", "added": "array:<i8:1", "removed": "array:<i8:1",
                 "n_images": "int", "n_features": "int", "n_clusters": "int", "rejected": "int", "stats": "dict"},
 }
 
+#: the coordinator's kinds (sender -1); it also sends ``ack``
+CONTROL = ("start", "go", "abort", "finish")
 #: ``changes.op`` values
 CHANGE_OPS = ("add", "remove")
+#: fields a message of the kind may lack (sent by an older sender of the same schema version): their value
+#: when absent. An older receiver ignores them (decode keeps only the fields it knows), so adding one
+#: keeps the version
+OPTIONAL_FIELDS: Dict[str, Dict[str, Any]] = {"image": {"name": ""}, "changes": {"name": ""},
+                                              "start": {"catalog": 0}}
+#: longest ``image.name`` / ``changes.name`` (characters); control characters are refused
+MAX_NAME_CHARS = 4096
 
 #: fields of one row per feature (split across parts; equal lengths within a message)
 ROW_FIELDS: Dict[str, tuple] = {
@@ -172,9 +192,10 @@ ROW_FIELDS: Dict[str, tuple] = {
     "assign": ("key", "target"),
     "component": ("ids", "image_ids", "sigma", "parent", "distance"),
     "changes": ("event_kind", "cluster", "source", "new", "size"),
+    "catalog": ("ids", "image"),
 }
 #: row fields that may also be empty (sums.high: only when a partial sum is too large for one int64)
-OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",)}
+OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",), "catalog": ("keypoints", "point_ids")}
 
 
 def row_fields(kind: str, fields: Dict[str, Any]) -> tuple:
@@ -228,6 +249,9 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
                            "seq": body["seq"]}
     for field, spec in SCHEMAS[kind].items():
         if field not in body:
+            if field in OPTIONAL_FIELDS.get(kind, {}):
+                out[field] = OPTIONAL_FIELDS[kind][field]
+                continue
             raise MessageError(f"{kind} message lacks field {field!r}")
         val = body[field]
         if spec == "int":
@@ -267,7 +291,7 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
     if "parts" in out and not 0 <= out["part"] < out["parts"] <= 1 << 20:
         raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']}")
-    if (kind in ("start", "go", "abort", "finish")) != (out["src"] == -1):
+    if (kind in CONTROL) != (out["src"] == -1) and kind != "ack":  # the coordinator acknowledges catalogs
         raise MessageError(f"{kind} message from the wrong sender {out['src']}")
     rows = row_fields(kind, out)
     if rows:
@@ -330,6 +354,13 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         raise MessageError("ready has a bad dimension, feature count or dtype")
     if kind == "progress" and (out["features"] < 0 or out["bytes"] < 0):
         raise MessageError("negative progress counts")
+    if kind == "catalog":
+        if len(out["image_file"]) != len(out["image_local"]):
+            raise MessageError("catalog.image_file and image_local differ in length")
+        if len(out["image"]) and ((out["image"] < 0) | (out["image"] >= len(out["image_local"]))).any():
+            raise MessageError("catalog.image names an entry outside the image table")
+        if len(out["keypoints"]) and (not 2 <= out["keypoints"].shape[1] <= 4 or not np.isfinite(out["keypoints"]).all()):
+            raise MessageError("catalog.keypoints must be finite rows of 2..4 numbers")
     if kind == "result" and len(out["ids"]) != len(out["labels"]):
         raise MessageError("result ids and labels differ in length")
     if kind in ("image", "changes"):
@@ -367,6 +398,9 @@ def _check_stream(kind: str, out: Dict[str, Any]) -> None:
         raise MessageError(f"negative image id {out['image_id']}")
     if out["time"] < 0:
         raise MessageError(f"{kind}.time is negative")
+    name = out["name"]
+    if len(name) > MAX_NAME_CHARS or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
+        raise MessageError(f"{kind}.name must be at most {MAX_NAME_CHARS} characters without control characters")
     if kind == "image":
         n = len(out["descriptors"])
         kp = out["keypoints"]
@@ -398,26 +432,29 @@ def _check_stream(kind: str, out: Dict[str, Any]) -> None:
 
 
 def image_message(job: str, camera: int, image_id: int, descriptors, keypoints=None, *, seq: int = 0,
-                  sent: Optional[float] = None) -> bytes:
+                  sent: Optional[float] = None, name: str = "") -> bytes:
     """An ``image`` message: one image's descriptors (uint8 stays uint8, others become float32) and
-    keypoints (optional), from camera node ``camera``; ``sent``: the sender's clock (default now)."""
+    keypoints (optional), from camera node ``camera``; ``sent``: the sender's clock (default now);
+    ``name``: the image's name ("" = none)."""
     d = np.asarray(descriptors)
     d = d if d.dtype == np.uint8 else np.ascontiguousarray(d, dtype=np.float32)
     kp = np.zeros((0, 4), np.float32) if keypoints is None else np.ascontiguousarray(keypoints, dtype=np.float32)
     return encode("image", job, camera, seq=seq, image_id=int(image_id),
-                  time=float(time.time() if sent is None else sent), descriptors=d, keypoints=kp)
+                  time=float(time.time() if sent is None else sent), descriptors=d, keypoints=kp, name=str(name))
 
 
 def changes_message(job: str, changeset, op: str, image_id: int, *, sent: float, n_images: int,
-                    n_features: int, n_clusters: int, rejected: int, seq: int = 0, src: int = 0) -> bytes:
-    """A ``changes`` message from a :class:`dqm.core.events.ChangeSet` (see :data:`SCHEMAS`)."""
+                    n_features: int, n_clusters: int, rejected: int, seq: int = 0, src: int = 0,
+                    name: str = "") -> bytes:
+    """A ``changes`` message from a :class:`dqm.core.events.ChangeSet` (see :data:`SCHEMAS`); ``name``: the
+    image's name ("" = none)."""
     ev = list(changeset.events)
 
     def cat(parts: list) -> np.ndarray:
         return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
     return encode(
-        "changes", job, src, seq=seq, op=op, image_id=int(image_id), time=float(sent),
+        "changes", job, src, seq=seq, op=op, image_id=int(image_id), name=str(name), time=float(sent),
         event_kind=np.array([EVENT_KINDS.index(e.kind) for e in ev], np.uint8),
         cluster=np.array([e.cluster for e in ev], np.int64), source=np.array([e.source for e in ev], np.int64),
         new=np.array([bool(e.new) for e in ev], np.uint8), size=np.array([len(e.features) for e in ev], np.int64),

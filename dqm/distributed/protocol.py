@@ -43,7 +43,7 @@ survivor and start again at the next epoch.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -111,7 +111,7 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
 
 #: kinds that are acknowledged by the receiver and resent until they are (bulk payloads)
 ACKED = ("features", "sigmas", "bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density",
-         "proposal", "notify", "fragments", "assign", "component")
+         "proposal", "notify", "fragments", "assign", "component", "catalog")
 
 
 def ack(job: str, src: int, dst: int, seq: int, epoch: int = 0) -> bytes:
@@ -175,12 +175,20 @@ def merge_parts(kind: str, parts: Sequence[dict]) -> Dict[str, np.ndarray]:
     return {f: (np.concatenate([p[f] for p in parts]) if f in rows else parts[0][f]) for f in fields}
 
 
-def traffic_table(report: dict) -> str:
+def traffic_table(report: dict, max_links: Optional[int] = None) -> str:
     """Markdown tables of a traffic report (``links``: src, dst, bytes, messages; ``kinds``;
-    ``total_bytes``), the shape both the coordinator and the simulator produce."""
+    ``total_bytes``), the shape both the coordinator and the simulator produce. ``max_links``: show
+    only that many links, the busiest (M agents make M(M+1) links), and one row for the rest."""
+    links = report["links"]
+    shown = links if max_links is None or len(links) <= max_links else \
+        sorted(links, key=lambda e: -e["bytes"])[:max_links]
     lines = ["| link | bytes | messages |", "|---|---|---|"]
-    for e in report["links"]:
+    for e in shown:
         lines.append(f"| {e['src']} -> {e['dst']} | {e['bytes']} | {e['messages']} |")
+    if len(shown) < len(links):
+        rest = [e for e in links if e not in shown]
+        lines.append(f"| {len(rest)} other links | {sum(e['bytes'] for e in rest)} | "
+                     f"{sum(e['messages'] for e in rest)} |")
     lines.append(f"| total | {report['total_bytes']} | {sum(e['messages'] for e in report['links'])} |")
     lines += ["", "| kind | bytes | messages |", "|---|---|---|"]
     for k, v in report["kinds"].items():

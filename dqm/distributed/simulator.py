@@ -18,12 +18,13 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..core.tree import canonical_labels
-from ..validation import InputError, check_descriptors, check_image_ids
+from ..validation import InputError, check_descriptors, check_image_ids, check_magnitude
+from .. import io
 from . import cascade, keys, messages, protocol, seeding
 from .balanced import ROUNDS, BalancedCore
 from .config import DQMConfig, params_hash
 from .shard import Shard
+from .sources import agent_features, assemble_labels, image_owners, split_features
 
 COORDINATOR = -1
 
@@ -117,12 +118,6 @@ class DQMResult:
     @property
     def n_clusters(self) -> int:
         return int(self.labels.max() + 1) if len(self.labels) else 0
-
-
-def image_owners(image_ids: np.ndarray, m: int) -> np.ndarray:
-    """Source agent of every feature: image k (in sorted order of ids) belongs to agent k mod m."""
-    _, inv = np.unique(image_ids, return_inverse=True)
-    return (inv.ravel() % m).astype(np.int64)
 
 
 class _Wire:
@@ -224,14 +219,18 @@ def _setup(wire: _Wire, clock: _Clock, cfg: DQMConfig, sources: List[seeding.Sou
             sources[a].on_weights(w if a == seeding.LEADER else wire.single("weights", seeding.LEADER, a, **w))
 
 
-def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMResult:
+def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: bool = False) -> DQMResult:
     """Run Distributed QuickMatch for ``config.agents`` agents in this process.
 
-    ``progress``: a callable ``(done, total)`` called after each protocol step.
+    Agent a starts with the features of its images (:func:`dqm.distributed.sources.image_owners`),
+    named on the wire as the runtime names them (:func:`dqm.distributed.sources.agent_features`).
+    ``progress``: a callable ``(done, total)`` called after each protocol step. ``catalog``: also
+    meter the ``catalog`` messages that a runtime job writing a CLUSTERS file sends with its results.
     """
     t_all = time.perf_counter()
     X = check_descriptors(descriptors)
     ids = check_image_ids(image_ids, len(X))
+    check_magnitude(X)  # agents cannot agree on a rescaling: refused as each agent refuses its own
     n = len(X)
     if n == 0:
         raise InputError("no features to match (empty input)")
@@ -241,26 +240,23 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
     # features travel as uint8 (SIFT) or float32: every agent computes on what it receives
     store = protocol.wire_descriptors(np.asarray(descriptors) if np.asarray(descriptors).dtype == np.uint8 else X)
     owners = image_owners(ids, m)
+    held = [agent_features([part], a) for a, part in enumerate(split_features(io.FeatureSet(store, ids), m))]
     traffic = Traffic()
     wire = _Wire(traffic, cfg.job, m, dim)
     clock = _Clock(m)
-    gid = np.arange(n, dtype=np.int64)
 
     # the coordinator broadcasts the seed integer (and the parameters every agent checks); every agent
     # answers ready; the coordinator says go
     text = cfg.params_text()
     for a in range(m):
         wire.single("start", COORDINATOR, a, seed=cfg.seed, agents=m, owners=np.arange(m, dtype=np.int64),
-                    params=text, params_hash=params_hash(text))
+                    params=text, params_hash=params_hash(text), catalog=int(catalog))
     for a in range(m):
         wire.single("ready", a, COORDINATOR, dim=dim, dtype=store.dtype.str, hosted=np.array([a], np.int64),
                     features=int((owners == a).sum()))
     for a in range(m):
         wire.single("go", COORDINATOR, a)
-    sources = []
-    for a in range(m):
-        own = np.flatnonzero(owners == a)
-        sources.append(clock.run(a, seeding.SourceSide, a, cfg, gid[own], ids[own], store[own]))
+    sources = [clock.run(a, seeding.SourceSide, a, cfg, h.ids, h.image_ids, h.descriptors) for a, h in enumerate(held)]
     t = time.perf_counter()
     _setup(wire, clock, cfg, sources, dim)
     seeds, weights = sources[0].seeds, sources[0].weights
@@ -281,6 +277,9 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None) -> DQMRes
 
     run = _run_balanced if cfg.mode == "balanced" else _run_cascade
     res = run(cfg, wire, clock, sources, parts_for, seeds, weights, n, progress)
+    if catalog:  # what the CLUSTERS file needs of each agent's own features, with its result
+        for a, h in enumerate(held):
+            wire.parts("catalog", a, COORDINATOR, h.catalog)
     n_clusters = int(res["labels"].max()) + 1
     for a in range(m):  # the coordinator's end of job (the agents' own stats reports are not metered)
         wire.single("finish", COORDINATOR, a, clusters=n_clusters)
@@ -319,15 +318,13 @@ def _run_balanced(cfg, wire, clock, sources, parts_for, seeds, weights, n, progr
         if progress:
             progress(r + 1, len(ROUNDS) + 1)
     holder = np.full(n, -1, np.int64)
-    labels = np.full(n, -1, np.int64)
+    results = []
     density, parent, pdist = np.full(n, np.nan), np.full(n, -1, np.int64), np.full(n, np.inf)
-    offset = 0
     for a in range(m):
         ids, lab = cores[a].finish(inbox[a])
         wire.single("result", a, COORDINATOR, ids=ids, labels=lab)
         holder[ids] = a
-        labels[ids] = lab + offset
-        offset += int(lab.max()) + 1 if len(lab) else 0
+        results.append((ids, lab))
         own = cores[a].own.ids
         density[own], parent[own], pdist[own] = cores[a].density, cores[a].parent, cores[a].pdist
         clock.cpu[a] += cores[a].cpu
@@ -340,7 +337,7 @@ def _run_balanced(cfg, wire, clock, sources, parts_for, seeds, weights, n, progr
     copies = [np.stack([c.own.ids[idx], np.full(len(idx), b)], axis=1) for c in cores for b, idx in c.shipped.items()]
     copies = np.concatenate(copies) if copies else np.zeros((0, 2), np.int64)
     return {
-        "labels": canonical_labels(labels), "holder": holder, "per_agent": per_agent, "copies": copies,
+        "labels": assemble_labels(results)[1], "holder": holder, "per_agent": per_agent, "copies": copies,
         "density": density, "parent": parent, "parent_distance": pdist,
         "stats": {
             "ghosts_per_feature": ghosts / n,
@@ -379,8 +376,7 @@ def _run_cascade(cfg, wire, clock, sources, parts_for, seeds, weights, n, progre
     moves: Dict[int, np.ndarray] = {}
     holder = np.full(n, -1, np.int64)
     handed_to = np.full(n, -1, np.int64)
-    final_labels = np.full(n, -1, np.int64)
-    label_offset = 0
+    results = []
     failures = 0
     routed = wire.traffic.features_moved
     for a in range(m - 1, -1, -1):
@@ -400,21 +396,19 @@ def _run_cascade(cfg, wire, clock, sources, parts_for, seeds, weights, n, progre
                 wire.phase_end(a, b, "handdown", 0, 0, out.moved)
         moves[a] = out.moved
         cur, res = out.final, out.final_result
-        if len(cur):
-            holder[cur.ids] = a
-            final_labels[cur.ids] = res.labels + label_offset
-            label_offset += res.n_clusters
-            wire.single("result", a, COORDINATOR, ids=cur.ids, labels=res.labels.astype(np.int64))
-        else:
-            wire.single("result", a, COORDINATOR, ids=np.zeros(0, np.int64), labels=np.zeros(0, np.int64))
+        ids, lab = (cur.ids, res.labels.astype(np.int64)) if len(cur) else (np.zeros(0, np.int64),) * 2
+        holder[ids] = a
+        results.append((ids, lab))
+        wire.single("result", a, COORDINATOR, ids=ids, labels=lab)
         if progress:
             progress(2 * m - a, 2 * m)
-    assert (holder >= 0).all() and (final_labels >= 0).all()
+    ids, final_labels = assemble_labels(results)
+    assert (holder >= 0).all() and np.array_equal(ids, np.arange(n))
     per_agent = [{"features_routed": float(len(c.shard)), "features_final": float((holder == c.me).sum()),
                   "time_cluster": c.time_cluster, "time_boundary": c.time_boundary,
                   "pairs": float(c.pairs_computed), "max_held": float(c.max_held)} for c in cores]
     return {
-        "labels": canonical_labels(final_labels), "holder": holder, "per_agent": per_agent,
+        "labels": final_labels, "holder": holder, "per_agent": per_agent,
         "initial_labels": initial_labels, "contested": contested0, "handed_to": handed_to,
         "stats": {
             "handdown_moves": float(wire.traffic.features_moved - routed),

@@ -19,12 +19,12 @@ from typing import Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..distributed import cascade, messages, partition, protocol, seeding
+from ..distributed import cascade, messages, partition, protocol, seeding, sources
 from ..distributed.balanced import ROUNDS, BalancedCore
 from ..distributed.config import DQMConfig, differing_param, params_hash
 from ..distributed.shard import Shard
 from ..distributed import keys
-from .bus import Bus, open_client
+from .bus import Bus, check_job_free, open_client
 
 LEADER = seeding.LEADER
 
@@ -69,8 +69,9 @@ class AgentProcess:
 
     def __init__(self, me: int, cfg: DQMConfig, bus: Bus, ids: np.ndarray, image_ids: np.ndarray,
                  descriptors: np.ndarray, phase_timeout_s: float = 120.0, log=None, epoch: int = 0,
-                 home: Optional[int] = None):
+                 home: Optional[int] = None, catalog: Optional[Dict[str, np.ndarray]] = None):
         self.me = me
+        self.catalog = catalog  # sent to the coordinator with the result when the job asked for it
         self.epoch = epoch
         self.home = me if home is None else home
         self.cfg = cfg
@@ -301,6 +302,8 @@ class AgentProcess:
         self._enter(f"wait_{name}")
 
     def _result(self, ids: np.ndarray, labels: np.ndarray, stats: Dict[str, float]) -> None:
+        if self.catalog is not None:
+            self._send_parts("catalog", -1, self.catalog)
         self._send_single("result", -1, ids=ids, labels=labels.astype(np.int64))
         self.stats.update({k: float(v) for k, v in stats.items()})
         self._enter("wait_acks")
@@ -379,25 +382,12 @@ class AgentProcess:
                                f"{self.state!r}")
 
 
-def load_agent_features(paths, me: int):
-    """Own features from FEATURES files; global ids from ``feature_ids`` or (agent << 32) + row."""
+def load_agent_features(paths, me: int) -> sources.AgentFeatures:
+    """Own features from FEATURES files (each read once): global ids from ``feature_ids`` or
+    (agent << 32) + row, images named by their source (:func:`dqm.distributed.sources.agent_features`)."""
     from ..io import load_features
 
-    ids, imgs, descs = [], [], []
-    offset = 0
-    for p in paths:
-        fs = load_features(p)
-        with np.load(p, allow_pickle=False) as z:
-            fid = z["feature_ids"] if "feature_ids" in z.files else None
-        if fid is None:
-            fid = (np.int64(me) << np.int64(32)) + offset + np.arange(len(fs), dtype=np.int64)
-        offset += len(fs)
-        ids.append(np.asarray(fid, np.int64))
-        imgs.append(np.asarray(fs.image_ids, np.int64))
-        descs.append(protocol.wire_descriptors(fs.descriptors))
-    if not descs:
-        raise ValueError("no features files given")
-    return np.concatenate(ids), np.concatenate(imgs), np.concatenate(descs)
+    return sources.agent_features([load_features(p) for p in paths], me, [str(p) for p in paths])
 
 
 class Refused(RuntimeError):
@@ -417,17 +407,17 @@ class AgentHost:
     a lost agent re-read from that agent's files).
     """
 
-    def __init__(self, home: int, cfg: DQMConfig, bus: Bus, sources: Dict[int, List[str]],
-                 phase_timeout_s: float = 120.0, log=None, own=None):
+    def __init__(self, home: int, cfg: DQMConfig, bus: Bus, paths: Dict[int, List[str]],
+                 phase_timeout_s: float = 120.0, log=None, own: Optional[sources.AgentFeatures] = None):
         self.home = home
         self.cfg = cfg
         self.bus = bus
-        self.sources = sources
+        self.paths = paths
         self.phase_timeout_s = phase_timeout_s
         self.log = log or (lambda text: print(f"[agent {home}] {text}", file=sys.stderr, flush=True))
-        self.features: Dict[int, Tuple[np.ndarray, np.ndarray, np.ndarray]] = {
-            home: own if own is not None else load_agent_features(sources[home], home)}
-        bus.dim = self.features[home][2].shape[1]
+        self.features: Dict[int, sources.AgentFeatures] = {
+            home: own if own is not None else load_agent_features(paths[home], home)}
+        bus.dim = self.features[home].descriptors.shape[1]
         self.slots: Dict[int, AgentProcess] = {}
         self.epoch = -1
         self.seed: Optional[int] = None
@@ -442,11 +432,11 @@ class AgentHost:
 
     def _load(self, agent: int):
         if agent not in self.features:
-            if agent not in self.sources:
+            if agent not in self.paths:
                 raise Refused(f"cannot take over agent {agent}: this process has no path to its FEATURES files "
                               f"(start agents with --peer-features {agent}=FILE)")
             try:
-                self.features[agent] = load_agent_features(self.sources[agent], agent)
+                self.features[agent] = load_agent_features(self.paths[agent], agent)
             except (OSError, ValueError) as exc:
                 raise Refused(f"cannot take over agent {agent}: {exc}") from None
         return self.features[agent]
@@ -473,7 +463,7 @@ class AgentHost:
                 feats = {a: self._load(a) for a in hosted}
             except Refused as exc:
                 self._refuse(str(exc))
-            dims = {f[2].shape[1] for f in feats.values()}  # the home agent is among them
+            dims = {f.descriptors.shape[1] for f in feats.values()}  # the home agent is among them
             if len(dims) != 1:
                 self._refuse(f"the FEATURES files of agents {hosted} have different dimensions {sorted(dims)}",
                              "dimension")
@@ -481,14 +471,16 @@ class AgentHost:
             self.bus.host(hosted)
             self.epoch = msg["epoch"]
             self.seed = msg["seed"]
-            self.slots = {a: AgentProcess(a, self.cfg, self.bus, *feats[a], phase_timeout_s=self.phase_timeout_s,
-                                          log=self.log, epoch=self.epoch, home=self.home) for a in hosted}
+            self.slots = {a: AgentProcess(a, self.cfg, self.bus, f.ids, f.image_ids, f.descriptors,
+                                          phase_timeout_s=self.phase_timeout_s, log=self.log, epoch=self.epoch,
+                                          home=self.home, catalog=f.catalog if msg["catalog"] else None)
+                          for a, f in feats.items()}
             if self.epoch > 0:
                 self.log(f"epoch {self.epoch}: hosting agents {hosted}")
-            own = self.features[self.home][2]
+            own = self.features[self.home].descriptors
             self.bus.send_single(self.home, -1, "ready", dim=int(own.shape[1]), dtype=own.dtype.str,
                                  hosted=np.asarray(hosted, np.int64),
-                                 features=int(sum(len(f[0]) for f in feats.values())))
+                                 features=int(sum(len(f) for f in feats.values())))
         elif kind == "go" and msg["epoch"] == self.epoch:
             for slot in self.slots.values():
                 slot.begin(self.seed)
@@ -545,16 +537,17 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     signal.signal(signal.SIGTERM, _on_sigterm)
     watch_parent()
     keys.check_job(cfg.job)
-    sources = dict(peers or {})
-    sources[me] = list(paths)
+    files = dict(peers or {})
+    files[me] = list(paths)
     log = lambda text: print(f"[agent {me}] {text}", file=sys.stderr, flush=True)  # noqa: E731
     own = load_agent_features(paths, me)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    check_job_free(session, keys.alive_agent(cfg.job, me), f"agent {me}", cfg.job, endpoint)
     host = None
     bus = None
     try:
         bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=max_message_bytes)
-        host = AgentHost(me, cfg, bus, sources, phase_timeout_s=phase_timeout_s, log=log, own=own)
+        host = AgentHost(me, cfg, bus, files, phase_timeout_s=phase_timeout_s, log=log, own=own)
         host.run()
         return EXIT_OK
     except Refused as exc:

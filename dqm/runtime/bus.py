@@ -90,6 +90,26 @@ def check_endpoint(endpoint: str, option: str = "--connect") -> str:
     return endpoint
 
 
+def live_tokens(session, key: str, timeout_s: float = 2.0) -> List[str]:
+    """The liveliness tokens matching ``key`` that the router knows now (e.g. another process already
+    serving this job id as coordinator or as this agent)."""
+    replies = session.liveliness().get(key, timeout=timeout_s)
+    return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+
+
+class JobIdInUse(RuntimeError):
+    """Another process already serves this job id on the router (as coordinator, or as this agent)."""
+
+
+def check_job_free(session, key: str, what: str, job: str, endpoint: str) -> None:
+    """Refuse to join a job whose coordinator (or this agent) is already live on the router: two jobs under
+    one id would read each other's messages. Closes the session before raising :class:`JobIdInUse`."""
+    if live_tokens(session, key):
+        session.close()
+        raise JobIdInUse(f"{what} of job {job!r} is already running on the router at {endpoint}: another job "
+                         "uses this job id; give this one another --job (or wait for the other to finish)")
+
+
 def zenoh_message(exc: BaseException) -> str:
     """A zenoh error without the Rust source location it ends with (a path in zenoh's build tree)."""
     text = re.sub(r"\s*(at\s+)?(/|[A-Za-z]:\\)?[\w./\\-]+\.rs:\d+(:\d+)?\.?", "", str(exc)).strip()

@@ -32,11 +32,11 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..core.tree import canonical_labels
-from ..distributed import keys
+from .. import io
+from ..distributed import keys, protocol, sources
 from ..distributed.config import DQMConfig, params_hash
 from .agent import Terminated, _on_sigterm
-from .bus import Bus, open_client
+from .bus import Bus, check_job_free, open_client
 
 
 def tcp_bytes_received(port: int) -> Optional[int]:
@@ -92,7 +92,8 @@ class _Lost(Exception):
 
 class Coordinator:
     def __init__(self, bus: Bus, cfg: DQMConfig, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
-                 log=None, max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0):
+                 log=None, max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0,
+                 catalog: bool = False):
         self.bus = bus
         self.cfg = cfg
         self.job = cfg.job
@@ -105,6 +106,11 @@ class Coordinator:
         self.results: Dict[int, dict] = {}
         self.stats: Dict[int, dict] = {}
         self.stats_bytes: Dict[int, int] = {}
+        #: whether the agents send their catalogs (what a CLUSTERS file needs); the parts per agent
+        self.catalog = catalog
+        self.catalog_parts: Dict[int, Dict[int, dict]] = defaultdict(dict)
+        #: the CLUSTERS arrays once the job is done (with ``catalog``)
+        self.clusters: Optional[sources.AssembledClusters] = None
         self.log = log or (lambda text: print(f"[coordinator] {text}", file=sys.stderr, flush=True))
         self.view = view
         self.phase = "ready"
@@ -167,6 +173,8 @@ class Coordinator:
             self.ready[src] = msg
         elif kind == "result" and self.phase == "running":
             self.results[src] = msg
+        elif kind == "catalog" and self.phase == "running":
+            self.catalog_parts[src][msg["part"]] = msg
         elif kind == "stats" and self.phase == "running":
             self.stats[src] = msg["values"]
             # the stats message itself was sent after the agent's meter snapshot
@@ -175,9 +183,14 @@ class Coordinator:
     def _deaths(self) -> List[int]:
         return [p for p in range(self.m) if p not in self.dead and self.bus.agent_alive(p) is False]
 
+    def _catalog_done(self, a: int) -> bool:
+        got = self.catalog_parts.get(a)
+        return not self.catalog or bool(got) and len(got) == next(iter(got.values()))["parts"]
+
     def _owes(self, p: int) -> bool:
-        """Whether process p still owes a result or statistics for an agent it hosts."""
-        return any(int(self.owners[a]) == p and a not in self.stats for a in range(self.m))
+        """Whether process p still owes a result, a catalog or statistics for an agent it hosts."""
+        return any(int(self.owners[a]) == p and (a not in self.stats or not self._catalog_done(a))
+                   for a in range(self.m))
 
     def _check_deaths(self) -> None:
         """Mark processes whose token vanished as dead; raise _Lost if one of them still owed work."""
@@ -242,6 +255,14 @@ class Coordinator:
                     self.fail(JobFailed(f"no agent process appeared within {self.ready_timeout_s:.0f} s", None,
                                         "start", "Start the agents with the coordinator's --connect endpoint and "
                                         "--job id."))
+                if len(missing) > self.max_lost:  # not lost: never seen (still starting, or elsewhere)
+                    shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+                    self.fail(JobFailed(
+                        f"{len(missing)} of {self.m} agent processes ({shown}) did not appear within the ready "
+                        f"timeout of {self.ready_timeout_s:.0f} s, more than the {self.max_lost} the job may do "
+                        "without", missing[0], "start",
+                        "They may still be starting (many processes on few cores start slowly: start fewer agents "
+                        "per host, or raise --ready-timeout), or cannot reach the router (check their logs)."))
                 self.dead.update(missing)  # never appeared: lost before the start
                 self._reassign()
                 return
@@ -250,12 +271,13 @@ class Coordinator:
         """Start the current epoch and run it to the end; raises _Lost when a process owing work dies."""
         self.bus.set_epoch(self.epoch)
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
+        self.catalog_parts.clear()
         self.phase = "start"
         text = self.cfg.params_text()
         hosts = self._hosts()
         for p in hosts:
             self._send(p, "start", seed=self.seed, agents=self.m, owners=self.owners, params=text,
-                       params_hash=params_hash(text))
+                       params_hash=params_hash(text), catalog=int(self.catalog))
         t = time.monotonic()
         while len(self.ready) < len(hosts):
             self._poll()
@@ -275,7 +297,7 @@ class Coordinator:
         for p in hosts:
             self._send(p, "go")
         self.phase = "running"
-        while len(self.stats) < self.m:
+        while len(self.stats) < self.m or not all(self._catalog_done(a) for a in range(self.m)):
             self._poll()
             self._check_deaths()
             self._check_time()
@@ -292,17 +314,18 @@ class Coordinator:
                 self._reassign()
         t_done = time.monotonic()
         wire = tcp_bytes_received(tcp_port) if tcp_port else None
-        ids = np.concatenate([self.results[a]["ids"] for a in range(self.m)])
-        lab, offset = [], 0
-        for a in range(self.m):
-            la = self.results[a]["labels"]
-            lab.append(la + offset)
-            offset += int(la.max()) + 1 if len(la) else 0
-        labels = np.concatenate(lab)
-        order = np.argsort(ids, kind="stable")
-        ids, labels = ids[order], canonical_labels(labels[order])
+        ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
+                                               for a in range(self.m)])
         if len(np.unique(ids)) != len(ids):
-            self.fail(JobFailed("two agents reported the same feature (a bug)", None, "result"))
+            self.fail(JobFailed("two agents reported the same feature (feature ids must be unique across the "
+                                "job: give each FEATURES file its own feature_ids, or none)", None, "result"))
+        if self.catalog:
+            try:
+                catalogs = {a: protocol.merge_parts("catalog", list(self.catalog_parts[a].values()))
+                            for a in range(self.m)}
+                self.clusters = sources.assemble_clusters(ids, labels, catalogs)
+            except ValueError as exc:  # MessageError included: parts that do not fit together
+                self.fail(JobFailed(f"the agents' catalogs do not describe their results ({exc})", None, "result"))
         for p in self._hosts():
             if p not in self.dead:
                 self._send(p, "finish", clusters=int(labels.max() + 1) if len(labels) else 0)
@@ -350,6 +373,7 @@ class Coordinator:
             "ids": ids.tolist(), "labels": labels.tolist(),
             "time_ready_s": t_ready, "time_run_s": t_run,
             "epochs": self.epoch + 1, "lost": self.lost, "owners": [int(o) for o in self.owners],
+            "images_note": self.clusters.note if self.clusters is not None else "",
             "links": [{"src": name(s), "dst": name(d), "bytes": b, "messages": c}
                       for (s, d), (b, c) in sorted(links.items())],
             "kinds": {k: {"bytes": b, "messages": c} for k, (b, c) in sorted(kinds.items())},
@@ -378,27 +402,44 @@ def _write_json(path: Path, obj: dict) -> None:
     tmp.replace(path)
 
 
+def clusters_params(cfg: DQMConfig) -> dict:
+    """The ``params`` of a distributed job's CLUSTERS file: what made the clusters."""
+    return {"distributed": True, "mode": cfg.mode, "agents": cfg.agents, "seed": cfg.seed, "job": cfg.job,
+            "partition": cfg.partition, "rho": cfg.rho, "kernel": cfg.kernel, "parent": "any"}
+
+
 def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict] = None,
                      tcp_port: Optional[int] = None, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
                      connect_timeout_s: float = 5.0, max_lost: Optional[int] = None,
-                     progress_fd: Optional[int] = None, phase_timeout_s: float = 120.0) -> int:
+                     progress_fd: Optional[int] = None, phase_timeout_s: float = 120.0,
+                     clusters: Optional[str] = None) -> int:
+    """Entry point of ``dqm coordinator``: returns the process exit code. ``out``: the report JSON;
+    ``clusters``: the CLUSTERS file to write (the agents then send their catalogs)."""
     from .console import JobView
     from .lifeline import watch_parent
 
     signal.signal(signal.SIGTERM, _on_sigterm)
     watch_parent()
     keys.check_job(cfg.job)
-    view = JobView.for_fd(progress_fd, cfg.agents)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    check_job_free(session, keys.alive_coordinator(cfg.job), "the coordinator", cfg.job, endpoint)
+    view = JobView.for_fd(progress_fd, cfg.agents)
     bus = Bus(session, cfg.job, -1, cfg.agents)
     coord = Coordinator(bus, cfg, ready_timeout_s, job_timeout_s, max_lost=max_lost, view=view,
-                        phase_timeout_s=phase_timeout_s)
+                        phase_timeout_s=phase_timeout_s, catalog=clusters is not None)
     try:
         rep = coord.run(tcp_port=tcp_port)
+        if clusters:  # before the report: a report names a CLUSTERS file that exists
+            io.write_clusters(clusters, coord.clusters.features, {"labels": coord.clusters.labels},
+                              clusters_params(coord.cfg))
+            rep["clusters_file"] = str(clusters)
+            if coord.clusters.note:
+                coord.log(coord.clusters.note)
         if out:
             _write_json(Path(out), rep)
         coord.log(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered"
-                  + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else ""))
+                  + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else "")
+                  + (f"; wrote {clusters}" if clusters else ""))
         time.sleep(0.2)  # let the finish messages leave before closing
         return EXIT_OK
     except JobFailed as exc:

@@ -23,14 +23,53 @@ from typing import List, Optional
 
 import numpy as np
 
-from ..distributed import protocol
+from .. import io
 from ..distributed.config import DQMConfig
-from ..distributed.simulator import image_owners
+from ..distributed.sources import split_features
 from .coordinator import failure_paragraph, failure_path
-from .lifeline import PARENT_ENV, child_preexec
+from .lifeline import PARENT_ENV, child_preexec, signals_deferred
 
 #: temporary folders of ``dqm run``: dqm-run-<launcher pid>-<random>
 WORKDIR_PREFIX = "dqm-run-"
+
+
+#: measured on this 2-core host: an agent process spends about 1 CPU s starting (imports, zenoh session)
+#: and holds about 100 MB before its own features
+AGENT_START_CPU_S = 1.0
+AGENT_BASE_BYTES = 100 << 20
+#: agents per core beyond which ``dqm run`` warns that they only share the cores
+AGENTS_PER_CORE = 4
+
+
+def check_scale(m: int, n_images: int, ready_timeout_s: Optional[float] = None) -> float:
+    """Guard ``dqm run --agents M`` on this host, before anything starts; returns the ready timeout.
+
+    Refused (InputError): more agent processes than the memory holds. Warned: more agents than
+    images (the extra agents start with no features of their own; they still compute their cells)
+    and many agents per core (they share the cores: more agents make the job slower, not faster).
+    The default ready timeout grows with the start-up work per core.
+    """
+    import warnings
+
+    from ..core.memory import available_bytes, format_bytes
+    from ..validation import InputError
+
+    cores = os.cpu_count() or 1
+    need, avail = (m + 2) * AGENT_BASE_BYTES, available_bytes()
+    if need > 0.8 * avail:
+        raise InputError(f"--agents {m}: {m} agent processes need about {format_bytes(need)} before any features, "
+                         f"more than this host can give ({format_bytes(avail)} available); start fewer agents here "
+                         "and the others on other hosts (deploy/README.md)")
+    if m > n_images:
+        warnings.warn(f"--agents {m} for {n_images} images: an agent starts with whole images, so {m - n_images} "
+                      "agents start with none of their own (they still compute their cells)", stacklevel=2)
+    if m > AGENTS_PER_CORE * cores:
+        warnings.warn(f"--agents {m} on {cores} cores: the agent processes only share the cores, so the job is "
+                      f"slower than with fewer agents; starting them alone takes about "
+                      f"{AGENT_START_CPU_S * m / cores:.0f} s", stacklevel=2)
+    if ready_timeout_s is not None:
+        return float(ready_timeout_s)
+    return max(30.0, 3.0 * AGENT_START_CPU_S * m / cores)
 
 
 class JobFailure(RuntimeError):
@@ -91,16 +130,17 @@ def wait_listening(host: str, port: int, deadline_s: float, proc: subprocess.Pop
     raise RuntimeError(f"the router did not listen on {host}:{port} within {deadline_s:.0f} s")
 
 
-def write_agent_files(descriptors, image_ids, m: int, workdir: Path) -> List[Path]:
-    """Split features by image ownership (image k -> agent k mod m); ids are the row numbers."""
-    desc = protocol.wire_descriptors(descriptors)
-    ids = np.asarray(image_ids, np.int64)
-    owners = image_owners(ids, m)
+def write_agent_files(descriptors, image_ids, m: int, workdir: Path, features: Optional[io.FeatureSet] = None,
+                      image_lists=None) -> List[Path]:
+    """One FEATURES file per agent, ``workdir/agent<i>.npz``: ``features`` (or the descriptors and image
+    ids) split by image ownership (image k -> agent k mod m) or by ``image_lists``
+    (:func:`dqm.distributed.sources.split_features`: keypoints, image names and feature ids kept;
+    feature ids are the row numbers unless the set has its own)."""
+    fs = features if features is not None else io.FeatureSet(descriptors, np.asarray(image_ids, np.int64))
     paths = []
-    for a in range(m):
-        sel = np.flatnonzero(owners == a)
-        p = workdir / f"agent{a}.npz"
-        np.savez(p, descriptors=desc[sel], image_ids=ids[sel], feature_ids=sel.astype(np.int64))
+    for a, part in enumerate(split_features(fs, m, image_lists)):
+        p = Path(workdir) / f"agent{a}.npz"
+        io.save_features(p, part)
         paths.append(p)
     return paths
 
@@ -128,11 +168,14 @@ class Processes:
         fh = open(log_path, "w")
         env = dict(os.environ if env is None else env)
         env[PARENT_ENV] = str(os.getpid())
-        p = subprocess.Popen((prefix or []) + [sys.executable, "-m", "dqm"] + args, stdout=fh, stderr=subprocess.STDOUT,
-                             env=env, start_new_session=True, preexec_fn=child_preexec(os.getpid()),
-                             pass_fds=tuple(pass_fds))
-        fh.close()
-        self.procs.append(p)
+        try:
+            with signals_deferred():  # Ctrl-C / SIGTERM arrive once the child is started and known
+                p = subprocess.Popen((prefix or []) + [sys.executable, "-m", "dqm"] + args, stdout=fh,
+                                     stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                     preexec_fn=child_preexec(os.getpid()), pass_fds=tuple(pass_fds))
+                self.procs.append(p)
+        finally:
+            fh.close()
         return p
 
     def stop_all(self, grace_s: float = 5.0) -> None:
@@ -153,10 +196,12 @@ class Processes:
 
 
 def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: float,
-                     ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None) -> List[str]:
-    """Command-line options of the coordinator of ``cfg``'s job."""
+                     ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None,
+                     clusters: Optional[str] = None) -> List[str]:
+    """Command-line options of the coordinator of ``cfg``'s job (``clusters``: its CLUSTERS file, or none)."""
     args = ["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed), "--connect", connect,
             "--out", str(report), "--job-timeout", str(job_timeout_s), *algorithm_args(cfg)]
+    args += ["--clusters", str(clusters)] if clusters else ["--no-clusters"]
     if ready_timeout_s is not None:
         args += ["--ready-timeout", str(ready_timeout_s)]
     if max_lost is not None:
@@ -191,19 +236,22 @@ def job_outcome(rc: Optional[int], report_path: Path, workdir: Path) -> dict:
 
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
             env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
-            ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False) -> dict:
+            ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False,
+            features: Optional[io.FeatureSet] = None, clusters: Optional[str] = None) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
-    Raises :class:`JobFailure` (a RuntimeError) whose text is the operator's
-    paragraph. ``progress``: show the live job table on this process's
-    standard error if it is a terminal.
+    The agents start with ``features`` (a FEATURES set: its keypoints and image names reach the
+    CLUSTERS file), or with the descriptors and image ids. ``clusters``: where the coordinator
+    writes the CLUSTERS file (none: no catalogs travel). Raises :class:`JobFailure` (a
+    RuntimeError) whose text is the operator's paragraph. ``progress``: show the live job table
+    on this process's standard error if it is a terminal.
     """
-    cfg = cfg.validated(len(descriptors))
+    cfg = cfg.validated(len(features) if features is not None else len(descriptors))
     remove_stale_workdirs()
     tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
     wd = Path(tmp)
     wd.mkdir(parents=True, exist_ok=True)
-    files = write_agent_files(descriptors, image_ids, cfg.agents, wd)
+    files = write_agent_files(descriptors, image_ids, cfg.agents, wd, features)
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     procs = Processes()
@@ -224,7 +272,8 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
                               wd / f"agent{a}.log", env)
                   for a in range(cfg.agents)]
         report_path = wd / "report.json"
-        cargs = coordinator_args(cfg, endpoint, report_path, timeout_s, ready_timeout_s, max_lost)
+        cargs = coordinator_args(cfg, endpoint, report_path, timeout_s, ready_timeout_s, max_lost,
+                                 None if clusters is None else str(Path(clusters).resolve()))
         cargs += ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
         coord = procs.start(cargs, wd / "coordinator.log", env, pass_fds=[tty] if tty is not None else [])
         if on_started is not None:

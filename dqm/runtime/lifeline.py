@@ -16,15 +16,38 @@ import os
 import signal
 import threading
 import time
-from typing import List
+from contextlib import contextmanager
+from typing import Iterator, List
 
 PARENT_ENV = "DQM_PARENT_PID"
 _PR_SET_PDEATHSIG = 1
 
 
+#: the signals a launcher holds while it starts a child (:func:`signals_deferred`)
+DEFERRED = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM while a child process is being started; they arrive right after.
+
+    A Python signal handler that raises inside ``fork`` (its at-fork hooks) is printed and lost,
+    and one raised between the fork and the bookkeeping of the child's pid would leave that child
+    unknown to the launcher: so the launcher blocks them around ``Popen`` (the child unblocks them
+    again in :func:`child_preexec`).
+    """
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, DEFERRED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def child_preexec(parent_pid: int):
-    """A ``preexec_fn`` for :class:`subprocess.Popen`: arm the parent-death signal (Linux)."""
+    """A ``preexec_fn`` for :class:`subprocess.Popen`: unblock the signals the launcher held while
+    starting it (:func:`signals_deferred`) and arm the parent-death signal (Linux)."""
     def arm() -> None:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, DEFERRED)
         try:
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)

@@ -190,12 +190,13 @@ class Job:
 def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
               connect: Callable[[int], str], prefix: Callable[[int], Optional[List[str]]] = lambda a: None,
               client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
-              phase_timeout_s: float = 60.0, tag: str = "") -> Job:
+              phase_timeout_s: float = 60.0, tag: str = "", clusters: Optional[Path] = None) -> Job:
     """Start the agents and the coordinator of one job (the router is already running).
 
     ``connect(a)``, ``prefix(a)`` and ``client_args(a)`` give the endpoint, the
     command prefix (e.g. ``ip netns exec NS``) and extra options (TLS) of agent
-    ``a``; ``a = -1`` is the coordinator.
+    ``a``; ``a = -1`` is the coordinator. ``clusters``: the CLUSTERS file the
+    coordinator writes (none by default).
     """
     env = dict(os.environ if env is None else env)
     env.setdefault("DQM_THREADS", "1")
@@ -205,7 +206,8 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
                           prefix=prefix(a))
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
-    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s), *client_args(-1)],
+    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s, clusters=clusters),
+                         *client_args(-1)],
                         workdir / f"{tag}coordinator.log", env, prefix=prefix(-1))
     return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
 

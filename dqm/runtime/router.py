@@ -8,7 +8,7 @@ import sys
 import threading
 from typing import List, Optional
 
-from .bus import router_config
+from .bus import router_config, zenoh_message
 
 
 def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Optional[str] = None) -> int:
@@ -27,7 +27,8 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
     try:
         session = zenoh.open(router_config(endpoints, tls))
     except Exception as exc:  # noqa: BLE001 - port in use, bad address, bad certificate
-        print(f"[router] error: cannot listen on {', '.join(endpoints)}: {exc}", file=sys.stderr, flush=True)
+        print(f"[router] error: cannot listen on {', '.join(endpoints)}: {zenoh_message(exc)}", file=sys.stderr,
+              flush=True)
         return 2
     try:
         print(f"[router] listening on {', '.join(endpoints)}", file=sys.stderr, flush=True)

@@ -1,0 +1,68 @@
+"""`dqm run` before the job runs (issue 21): Ctrl-C and SIGTERM at any moment of the start-up end it
+at once with its exit code and no traceback, leaving no process; agent counts beyond the host are
+refused or warned about with a reason; large traffic tables are summarised."""
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from dqm.cli import main
+from dqm.distributed.protocol import traffic_table
+from dqm.runtime.launcher import check_scale
+from dqm.runtime.lifeline import launched_by
+from dqm.validation import InputError
+from runtime_helpers import alive
+
+pytest.importorskip("zenoh")
+
+
+@pytest.mark.parametrize("sig,delay,code", [(signal.SIGINT, 0.15, 130), (signal.SIGINT, 1.2, 130),
+                                            (signal.SIGTERM, 0.6, 143), (signal.SIGTERM, 2.5, 143)])
+def test_a_signal_during_start_up_ends_the_job_at_once(tmp_path, sig, delay, code):
+    """12 agent processes take seconds to start on 2 cores: the signal lands while the command
+    imports, while it forks the agents, or while they start; each time it must be obeyed."""
+    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "12", "--out", str(tmp_path / "c.npz")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    p.send_signal(sig)
+    t0 = time.monotonic()
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == code, (p.returncode, err[-2000:])
+    assert time.monotonic() - t0 < 10
+    assert "Traceback" not in err and "Exception ignored" not in err, err[-2000:]
+    assert "interrupted" in err or "terminated" in err
+    time.sleep(0.5)
+    assert not [pid for pid in launched_by(p.pid) if alive(pid)]
+    assert not (tmp_path / "c.npz").exists()
+
+
+def test_agent_counts_beyond_the_host_are_refused_or_warned(tmp_path, capsys):
+    assert main(["run", "--agents", "4000", "--out", str(tmp_path / "c.npz")]) == 2  # 400 GB of processes
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--agents 4000" in err[0] and "available" in err[0], err
+    for bad in ("0", "-2"):
+        with pytest.raises(SystemExit):
+            main(["run", "--agents", bad])
+        assert "--agents" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match="for 3 images: an agent starts with whole images, so 2 agents"):
+        assert check_scale(5, 3) == 30.0
+    with pytest.warns(UserWarning, match="on .* cores: the agent processes only share the cores"):
+        timeout = check_scale(100, 1000)
+    assert timeout > 30.0  # the ready timeout grows with the agents per core
+    with pytest.raises(InputError):
+        check_scale(10 ** 6, 10 ** 6)
+
+
+def test_large_traffic_tables_are_summarised():
+    links = [{"src": f"agent{a}", "dst": f"agent{b}", "bytes": 1000 * a + b, "messages": 1}
+             for a in range(40) for b in range(40) if a != b]
+    rep = {"links": links, "kinds": {"ghost": {"bytes": 5, "messages": 1}},
+           "total_bytes": sum(e["bytes"] for e in links)}
+    text = traffic_table(rep, max_links=24)
+    rows = [line for line in text.splitlines() if "->" in line]
+    assert len(rows) == 24 and rows[0].startswith("| agent39 -> agent38 |")
+    assert f"| {len(links) - 24} other links |" in text
+    assert f"| total | {rep['total_bytes']} | {len(links)} |" in text
+    assert len(traffic_table(rep).splitlines()) > len(links)
