@@ -1,61 +1,180 @@
-"""Export QuickMatch clusters to the tools structure-from-motion users run next.
+"""Export QuickMatch clusters to the tools structure-from-motion users run next: COLMAP and hloc.
 
     dqm export colmap clusters.npz --database model/database.db
+    dqm export colmap clusters.npz --database model/database.db --camera-model OPENCV --single-camera
     python -c "import pycolmap; pycolmap.incremental_mapping('model/database.db', IMAGE_DIR, 'model/sparse')"
 
-The database gets one camera per image (EXIF focal length when the image has one, otherwise
-COLMAP's default 1.2 x the larger side), the keypoints, the matches the clusters imply for
-every image pair (every two members of a cluster) and two-view geometries verified by COLMAP
-itself, so incremental mapping runs with no further step. --tracks also writes the clusters
-of 2+ features as a TRACKS CSV (docs/formats.md). Needs pycolmap: pip install 'dqm[colmap]'.
+    dqm export hloc clusters.npz --matches out/matches.h5 --pairs out/pairs.txt --features out/features.h5
+    # then hloc: reconstruction.main(sfm_dir, IMAGE_DIR, pairs, features, matches)
+
+COLMAP: the database gets the cameras (one per image by default, COLMAP's SIMPLE_RADIAL model
+unless --camera-model; --single-camera / --single-camera-per-folder share one, as COLMAP's
+ImageReader.single_camera / single_camera_per_folder; EXIF focal length when the image has one,
+otherwise COLMAP's default 1.2 x the larger side, or --camera-params for all), the keypoints,
+the matches the clusters imply for every image pair (every two members of a cluster) and
+two-view geometries verified by COLMAP itself, so incremental mapping runs with no further step.
+
+hloc: matches.h5 in hloc's match_features layout (a group per image pair, matches0 and
+matching_scores0), pairs.txt (one "name0 name1" line per image pair with a match) and, with
+--features, hloc's local-features file (keypoints, descriptors, image sizes). Image names are
+relative to --image-dir (default: the images' common folder): give the image folder that
+hloc's reconstruction / triangulation will read, and the names in its features file if it has one.
+
+--tracks also writes the clusters of 2+ features as a TRACKS CSV (docs/formats.md). Every
+option and output is checked before any work; an existing database or hloc file is never replaced. Needs
+pycolmap (colmap) or h5py (hloc): pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
 import time
+from pathlib import Path
+
+import numpy as np
 
 from .. import io, outputs
 from ..validation import InputError
 
 NAME = "export"
-HELP = "export clusters as a COLMAP database (keypoints, matches, verified geometries) and tracks"
+HELP = "export clusters as a COLMAP database or hloc matches / pairs / features files, and tracks"
+
+#: the options that only one format takes (dest name -> format)
+_ONLY_FOR = {"database": "colmap", "no_verify": "colmap", "camera_model": "colmap", "camera_params": "colmap",
+             "single_camera": "colmap", "single_camera_per_folder": "colmap",
+             "matches": "hloc", "pairs": "hloc", "features": "hloc"}
 
 
 def add_arguments(p) -> None:
-    p.add_argument("format", choices=("colmap",), help="what to write")
+    p.add_argument("format", choices=("colmap", "hloc"), help="what to write")
     p.add_argument("clusters", metavar="CLUSTERS", help="CLUSTERS.npz from dqm match (with keypoints and images)")
-    p.add_argument("--database", required=True, metavar="DB", help="COLMAP database to create (must not exist)")
     p.add_argument("--image-dir", default=None, metavar="DIR",
-                   help="folder COLMAP will read the images from; names in the database are relative to it "
+                   help="folder COLMAP / hloc will read the images from; image names are relative to it "
                         "(default: the images' common folder)")
     p.add_argument("--tracks", default=None, metavar="CSV", help="also write the tracks (clusters of 2+) as CSV")
-    p.add_argument("--no-verify", action="store_true",
+    g = p.add_argument_group("colmap")
+    g.add_argument("--database", default=None, metavar="DB", help="COLMAP database to create (must not exist)")
+    g.add_argument("--no-verify", action="store_true",
                    help="write matches only, no two-view geometries (run COLMAP's verification yourself)")
+    g.add_argument("--camera-model", default=None, metavar="MODEL",
+                   help="COLMAP camera model of every camera: SIMPLE_RADIAL (default, as COLMAP's), "
+                        "SIMPLE_PINHOLE, PINHOLE, RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, ...")
+    g.add_argument("--camera-params", default=None, metavar="P1,P2,...",
+                   help="the model's parameters for every camera, comma-separated in COLMAP's order "
+                        "(e.g. f,cx,cy,k for SIMPLE_RADIAL), as COLMAP's ImageReader.camera_params; marked as "
+                        "a prior (default: EXIF or 1.2 x the larger side, image centre, no distortion)")
+    shared = g.add_mutually_exclusive_group()
+    shared.add_argument("--single-camera", action="store_true",
+                        help="one camera for all images (they must have one size), as COLMAP's "
+                             "ImageReader.single_camera")
+    shared.add_argument("--single-camera-per-folder", action="store_true",
+                        help="one camera per folder of the image names, as COLMAP's "
+                             "ImageReader.single_camera_per_folder")
+    g = p.add_argument_group("hloc")
+    g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file to write (must not exist)")
+    g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file to write (must not exist)")
+    g.add_argument("--features", default=None, metavar="H5",
+                   help="also write hloc's local-features file (keypoints, descriptors, image sizes; must not "
+                        "exist); leave out to use the features file the clusters were imported from")
 
 
-def run(args) -> int:
-    from ..vision import colmap
+def _check_options(args) -> None:
+    """One line for an option that the chosen format does not take, or a missing required one."""
+    for dest, fmt in _ONLY_FOR.items():
+        value = getattr(args, dest)
+        if fmt != args.format and value not in (None, False):
+            option = "--" + dest.replace("_", "-")
+            raise InputError(f"{option} is an option of dqm export {fmt}, not of dqm export {args.format}")
+    required = ("database",) if args.format == "colmap" else ("matches", "pairs")
+    for dest in required:
+        if getattr(args, dest) is None:
+            raise InputError(f"dqm export {args.format} needs --{dest}")
 
-    t0 = time.perf_counter()
-    colmap.require_pycolmap()
-    db = outputs.check_file(args.database, "--database")
-    if db.exists():
-        raise InputError(f"--database {db} exists; the export creates a new database (remove it or pick another)")
-    if args.tracks:
-        outputs.check_file(args.tracks, "--tracks")
+
+def _new_file(path: str, option: str) -> Path:
+    """An output path that can be written and does not exist yet (the export never replaces a file)."""
+    p = outputs.check_file(path, option)
+    if p.exists():
+        raise InputError(f"{option} {p} exists; the export writes a new file (remove it or pick another name)")
+    return p
+
+
+def _load(args, needs: tuple) -> dict:
+    """The CLUSTERS file, with the arrays the export ``needs`` (one line naming a missing one)."""
     c = io.load_clusters(args.clusters)
-    for key in ("keypoints", "image_names", "image_ids"):
+    for key in needs:
         if key not in c:
             raise InputError(f"{args.clusters}: no {key!r} array; the export needs keypoints and image names "
                              "(match images, or FEATURES with keypoints and image_names)")
+    return c
+
+
+def run(args) -> int:
+    t0 = time.perf_counter()
+    _check_options(args)
+    if args.tracks:
+        outputs.check_file(args.tracks, "--tracks")
+    if args.format == "colmap":
+        c, image_dir = _run_colmap(args, t0)
+    else:
+        c, image_dir = _run_hloc(args, t0)
+    if args.tracks:
+        n = io.save_tracks_csv(args.tracks, c["labels"], c["image_ids"], c.get("keypoints"), c["image_names"])
+        print(f"wrote {n} tracks to {args.tracks}")
+    if args.format == "colmap":
+        print(f"reconstruct: pycolmap.incremental_mapping({str(args.database)!r}, {str(image_dir)!r}, OUTPUT_DIR)")
+    else:
+        features = args.features or "FEATURES_H5"
+        print(f"reconstruct: hloc.reconstruction.main(Path(SFM_DIR), Path({str(image_dir)!r}), "
+              f"Path({args.pairs!r}), Path({features!r}), Path({args.matches!r}))")
+    return 0
+
+
+def _run_colmap(args, t0: float):
+    from ..vision import colmap
+
+    colmap.require_pycolmap()
+    mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
+    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, args.camera_params)
+    db = _new_file(args.database, "--database")
+    c = _load(args, ("keypoints", "image_names", "image_ids"))
     paths = colmap.resolve_images(c["image_names"], args.image_dir)
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
-                               verify=not args.no_verify)
-    print(f"wrote {db}: {s.n_images} images, {s.n_keypoints} keypoints, {s.n_matches} matches in "
-          f"{s.n_image_pairs} image pairs" + ("" if args.no_verify else f", {s.n_verified_pairs} verified pairs")
+                               verify=not args.no_verify, camera=camera)
+    print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
+          f"{s.n_matches} matches in {s.n_image_pairs} image pairs"
+          + ("" if args.no_verify else f", {s.n_verified_pairs} verified pairs")
           + f" ({time.perf_counter() - t0:.1f} s)")
-    if args.tracks:
-        n = io.save_tracks_csv(args.tracks, c["labels"], c["image_ids"], c["keypoints"], c["image_names"])
-        print(f"wrote {n} tracks to {args.tracks}")
-    print(f"reconstruct: pycolmap.incremental_mapping({str(db)!r}, {str(s.image_dir)!r}, OUTPUT_DIR)")
-    return 0
+    return c, s.image_dir
+
+
+def _run_hloc(args, t0: float):
+    from ..vision import colmap, hloc
+
+    hloc.require_h5py()
+    outs = {"--matches": _new_file(args.matches, "--matches"), "--pairs": _new_file(args.pairs, "--pairs")}
+    if args.features:
+        outs["--features"] = _new_file(args.features, "--features")
+    resolved = {}
+    for option, p in outs.items():
+        other = resolved.setdefault(p.resolve(), option)
+        if other != option:
+            raise InputError(f"{other} and {option} name one file, {p}; give each its own")
+    c = _load(args, ("image_names", "image_ids") + (("keypoints",) if args.features else ()))
+    paths = []
+    for name in c["image_names"].tolist():  # a relative name not found as given is taken under --image-dir
+        p = Path(str(name))
+        if args.image_dir is not None and not p.is_absolute() and not p.exists():
+            p = Path(args.image_dir) / p
+        paths.append(p)
+    image_dir, names = colmap.image_folder(paths, None if args.image_dir is None else Path(args.image_dir))
+    names = hloc.check_pair_names(names)
+    if args.features:
+        fs = io.FeatureSet(descriptors=c["descriptors"], image_ids=c["image_ids"], keypoints=c["keypoints"],
+                           image_names=np.array([str(p) for p in paths]))
+        hloc.write_h5_features(outs["--features"], fs, names=names)
+    m = hloc.write_h5_matches(outs["--matches"], c["labels"], c["image_ids"], names)
+    hloc.write_pairs(outs["--pairs"], m.pairs)
+    wrote = ", ".join(str(p) for p in outs.values())
+    print(f"wrote {wrote}: {len(names)} images under {image_dir}, {m.n_matches} matches in {len(m.pairs)} "
+          f"image pairs ({time.perf_counter() - t0:.1f} s)")
+    return c, image_dir

@@ -1,9 +1,15 @@
 """Extract SIFT features from images into a FEATURES file (the input of dqm match and dqm run).
 
-IMAGES: a folder, a glob pattern, or image files (natural order; image id k is
-the k-th image). The FEATURES format is in docs/formats.md.
+IMAGES: folders, glob patterns or image files (image id k is the k-th image), and/or
+--image-list FILE (one image path a line, relative to the list's folder; blank lines and
+# comments ignored). A folder's images come in natural order (img2 before img10); its
+sub-folders are read only with --recursive (COLMAP and hloc always recurse into the image
+folder; dqm keeps a folder flat unless asked), and a glob's ** matches any depth.
+The FEATURES format is in docs/formats.md.
 
     dqm extract photos/ --out features.npz
+    dqm extract dataset/ --recursive --out features.npz       # dataset/seq1/*.jpg, dataset/seq2/*.jpg ...
+    dqm extract --image-list train.txt --out features.npz
     dqm extract 'frames/*.png' --out features.npz --preset paper --max-features 2000
     dqm match features.npz --out clusters.npz
 """
@@ -12,15 +18,21 @@ from __future__ import annotations
 import time
 
 from .. import io, outputs
-from ..vision.features import DEFAULT_PRESET, PRESETS
 from ..progress import ProgressBar
+from ..vision.features import DEFAULT_PRESET, PRESETS
 
 NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
 
 
 def add_image_options(p) -> None:
-    """SIFT options shared by the commands that read images."""
+    """Image-input and SIFT options shared by the commands that read images (see :func:`extract`)."""
+    p.add_argument("--image-list", default=None, metavar="FILE",
+                   help="also read the images named in FILE, one path a line (relative paths from FILE's "
+                        "folder; blank lines and # comments ignored), in the list's order")
+    p.add_argument("--recursive", action="store_true",
+                   help="read the images of the given folders' sub-folders too (natural order of the paths "
+                        "below each folder), as COLMAP and hloc read an image folder")
     p.add_argument("--preset", choices=sorted(PRESETS), default=DEFAULT_PRESET,
                    help="SIFT settings: rootsift = OpenCV's SIFT with RootSIFT descriptors (Hellinger-normalised, "
                         "as COLMAP stores them; better F1 on every dataset we measured, docs/sfm.md), opencv = "
@@ -32,20 +44,23 @@ def add_image_options(p) -> None:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("inputs", nargs="+", metavar="IMAGES", help="image folder, glob pattern or files")
+    p.add_argument("inputs", nargs="*", metavar="IMAGES",
+                   help="image folders, glob patterns or files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="FEATURES.npz to write")
     add_image_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def extract(args, min_images: int) -> io.FeatureSet:
-    """SIFT of the images named by ``args.inputs``, with the shared options; reports skipped files."""
+    """SIFT of the images named by ``args.inputs`` and ``args.image_list`` (``args.recursive``: folders with
+    their sub-folders), with the shared options of :func:`add_image_options`; reports skipped files."""
     from ..vision.features import extract_images
 
     bar = ProgressBar("sift", force=False if args.quiet else None, unit="images")
     skipped = []
     fs = extract_images(args.inputs, preset=args.preset, max_features=args.max_features, progress=bar,
-                        min_images=min_images, skip_bad=args.skip_bad_images, skipped=skipped)
+                        min_images=min_images, skip_bad=args.skip_bad_images, skipped=skipped,
+                        recursive=args.recursive, image_list=args.image_list)
     if skipped:
         print(f"warning: skipped {len(skipped)} unreadable image(s): {', '.join(skipped)}")
     empty = [str(fs.image_names[k]) for k in range(len(fs.image_names)) if not (fs.image_ids == k).any()]

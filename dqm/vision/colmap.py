@@ -2,10 +2,14 @@
 
 Export (:func:`export_database`) writes what COLMAP's own feature extraction and matching would:
 
-* one camera per image, ``SIMPLE_RADIAL``; the focal length comes from the image's EXIF when
-  COLMAP can read it there (then marked as a prior), otherwise COLMAP's own default,
-  ``1.2 * max(width, height)``; the principal point is the image centre;
-* a trivial rig and frame per image (COLMAP 3.12+ databases hold them);
+* cameras as COLMAP's image reader makes them (:class:`CameraOptions`): one per image by
+  default, or one for all images (``single``, COLMAP's ``ImageReader.single_camera``) or per
+  folder (``per-folder``, ``single_camera_per_folder``), whose images must then have one size;
+  model ``SIMPLE_RADIAL`` unless told (any COLMAP model name); the focal length comes from the
+  (first) image's EXIF when COLMAP can read it there (then marked as a prior), otherwise
+  COLMAP's own default, ``1.2 * max(width, height)``; the principal point is the image centre;
+  given parameters (``ImageReader.camera_params``) replace all that and are marked as a prior;
+* a trivial rig per camera and a frame per image (COLMAP 3.12+ databases hold them);
 * keypoints in COLMAP's convention (the centre of the top-left pixel is (0.5, 0.5); dqm and
   OpenCV put it at (0, 0), so 0.5 is added);
 * SIFT descriptors when the features are 128-D uint8 (COLMAP's descriptor type); other
@@ -23,9 +27,10 @@ pycolmap is an optional dependency (``pip install 'dqm[colmap]'``).
 from __future__ import annotations
 
 import os
+import posixpath
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -34,6 +39,10 @@ from ..validation import InputError
 
 #: COLMAP's default focal length without EXIF, relative to the larger image side
 DEFAULT_FOCAL_FACTOR = 1.2
+#: COLMAP's default camera model (``ImageReader.camera_model``)
+DEFAULT_CAMERA_MODEL = "SIMPLE_RADIAL"
+#: how images share cameras: one each, one for all (``single_camera``), one per folder
+CAMERA_MODES = ("per-image", "single", "per-folder")
 
 
 def require_pycolmap(quiet: bool = True):
@@ -50,7 +59,7 @@ def require_pycolmap(quiet: bool = True):
     return pycolmap
 
 
-def cluster_pairs(labels, image_ids) -> Dict[Tuple[int, int], np.ndarray]:
+def cluster_pairs(labels, image_ids) -> dict[tuple[int, int], np.ndarray]:
     """Every two members of every cluster, grouped by image pair.
 
     Returns ``{(a, b): (m, 2) int64 array of feature indices}`` with image ``a < b`` and column 0
@@ -82,8 +91,19 @@ def cluster_pairs(labels, image_ids) -> Dict[Tuple[int, int], np.ndarray]:
     return out
 
 
+def local_indices(image_ids) -> np.ndarray:
+    """Every feature's index among its own image's features, in row order (COLMAP's and hloc's keypoint index)."""
+    ids = np.asarray(image_ids, np.int64)
+    order = np.argsort(ids, kind="stable")
+    local = np.empty(len(ids), np.int64)
+    local[order] = np.arange(len(ids)) - np.searchsorted(ids[order], ids[order])
+    return local
+
+
 @dataclass
 class ExportSummary:
+    """What :func:`export_database` wrote."""
+
     database: Path
     image_dir: Path
     n_images: int
@@ -91,13 +111,79 @@ class ExportSummary:
     n_image_pairs: int
     n_matches: int
     n_verified_pairs: int = 0
-    names: List[str] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+    n_cameras: int = 0
 
 
-def _image_folder(paths: Sequence[Path], image_dir: Optional[Path]) -> Tuple[Path, List[str]]:
-    """The image folder and each image's name relative to it (COLMAP names images that way)."""
+@dataclass(frozen=True)
+class CameraOptions:
+    """The cameras of an export, checked by :func:`camera_options`.
+
+    ``model``: a COLMAP camera model name; ``mode``: one of :data:`CAMERA_MODES`;
+    ``params``: the model's parameters in COLMAP's order for every camera, or None
+    (focal length from EXIF or the default, principal point at the image centre, no distortion).
+    """
+
+    model: str = DEFAULT_CAMERA_MODEL
+    mode: str = "per-image"
+    params: tuple[float, ...] | None = None
+
+
+def camera_model_names() -> list[str]:
+    """The camera model names this pycolmap knows (``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ...)."""
+    pycolmap = require_pycolmap()
+    return [name for name in pycolmap.CameraModelId.__members__ if name != "INVALID"]
+
+
+def camera_options(model: str = DEFAULT_CAMERA_MODEL, mode: str = "per-image",
+                   params: None | str | Sequence[float] = None) -> CameraOptions:
+    """Check camera settings before any work: one InputError line naming a bad model, mode or parameter list.
+
+    ``model`` is a COLMAP model name (any case); ``params``: a comma-separated string
+    (COLMAP's ``ImageReader.camera_params``, e.g. ``"1200,640,480,0.01"``) or numbers, exactly
+    as many as the model has, finite, focal lengths positive.
+    """
+    pycolmap = require_pycolmap()
+    known = camera_model_names()
+    name = str(model).strip().upper()
+    if name not in known:
+        raise InputError(f"--camera-model {model}: not a COLMAP camera model; use one of {', '.join(known)}")
+    if mode not in CAMERA_MODES:
+        raise InputError(f"camera mode {mode!r}: use one of {', '.join(CAMERA_MODES)}")
+    if params is None:
+        return CameraOptions(name, mode, None)
+    text = params if isinstance(params, str) else ",".join(str(v) for v in params)
+    template = pycolmap.Camera.create_from_model_name(0, name, 1.0, 1, 1)
+    want = len(template.params)
+    info = template.params_info
+    try:
+        values = tuple(float(v) for v in text.replace(" ", "").split(","))
+    except ValueError:
+        raise InputError(f"--camera-params {text!r}: give {want} comma-separated numbers for {name} ({info})") \
+            from None
+    if len(values) != want:
+        raise InputError(f"--camera-params {text!r}: {name} has {want} parameters ({info}), got {len(values)}")
+    if not all(np.isfinite(values)):
+        raise InputError(f"--camera-params {text!r}: the parameters must be finite numbers")
+    names = [n.strip() for n in info.split(",")]
+    for k in template.focal_length_idxs():
+        if values[k] <= 0:
+            raise InputError(f"--camera-params {text!r}: the focal length {names[k]} must be positive, "
+                             f"got {values[k]:g}")
+    return CameraOptions(name, mode, values)
+
+
+def image_folder(paths: Sequence, image_dir: Path | None = None) -> tuple[Path, list[str]]:
+    """The image folder and each image's name relative to it, '/'-separated (COLMAP and hloc name images so).
+
+    ``image_dir`` None: the images' common folder. Raises InputError for an image outside it.
+    """
+    paths = [Path(p) for p in paths]
     if image_dir is None:
-        image_dir = Path(os.path.commonpath([str(p.parent) for p in paths]))
+        try:
+            image_dir = Path(os.path.commonpath([os.path.abspath(p.parent) for p in paths]))
+        except ValueError:
+            raise InputError("the images have no common folder (other drives?); pass --image-dir") from None
     names = []
     for p in paths:
         try:
@@ -105,10 +191,10 @@ def _image_folder(paths: Sequence[Path], image_dir: Optional[Path]) -> Tuple[Pat
             names.append(Path(os.path.abspath(p)).relative_to(os.path.abspath(image_dir)).as_posix())
         except ValueError:
             raise InputError(f"image {p} is not inside the image folder {image_dir}") from None
-    return image_dir, names
+    return Path(image_dir), names
 
 
-def resolve_images(image_names, image_dir=None) -> List[Path]:
+def resolve_images(image_names, image_dir=None) -> list[Path]:
     """Paths of the images, found as named or under ``image_dir``; one line if one is missing."""
     out = []
     for name in [str(n) for n in image_names]:
@@ -122,15 +208,50 @@ def resolve_images(image_names, image_dir=None) -> List[Path]:
     return out
 
 
+def _image_facts(paths: Sequence[Path]) -> list[tuple[int, int, float]]:
+    """(width, height, EXIF focal length in pixels or 0) of every image, as COLMAP reads them."""
+    pycolmap = require_pycolmap()
+    out = []
+    for path in paths:
+        bitmap = pycolmap.Bitmap.read(str(path), False)
+        if bitmap is None:
+            raise InputError(f"image {path} cannot be read")
+        exif = bitmap.exif_focal_length()
+        out.append((int(bitmap.width), int(bitmap.height), float(exif) if exif else 0.0))
+    return out
+
+
+def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]], mode: str) -> list[int]:
+    """The camera of every image, named by its first image: one each, one for all, or one per folder of its name.
+
+    A shared camera needs one image size: InputError naming two images that differ.
+    """
+    keys = {"per-image": list(range(len(names))), "single": [0] * len(names),
+            "per-folder": [posixpath.dirname(n) for n in names]}[mode]
+    first: dict[object, int] = {}
+    groups = []
+    for k, key in enumerate(keys):
+        j = first.setdefault(key, k)
+        if facts[j][:2] != facts[k][:2]:
+            where = "all images" if mode == "single" else f"the images of folder '{key or '.'}'"
+            raise InputError(f"one camera for {where} needs one image size: {names[j]} is {facts[j][0]}x{facts[j][1]}, "
+                             f"{names[k]} is {facts[k][0]}x{facts[k][1]}")
+        groups.append(j)
+    return groups
+
+
 def export_database(database, keypoints, image_ids, image_paths: Sequence, labels, *,
                     image_dir=None, descriptors=None, verify: bool = True,
-                    num_threads: int = -1) -> ExportSummary:
+                    num_threads: int = -1, camera: CameraOptions | None = None) -> ExportSummary:
     """Write a COLMAP database from clusters (see the module docstring); refuses an existing file.
 
     ``keypoints``: (n, >=2) OpenCV pixel coordinates; ``image_ids``: 0..m-1 indexing
-    ``image_paths`` (existing image files); ``labels``: the clusters.
+    ``image_paths`` (existing image files); ``labels``: the clusters; ``camera``: the camera
+    model, sharing and parameters (:func:`camera_options`; default one ``SIMPLE_RADIAL`` per image).
+    Every image is read (its size) before the database is created.
     """
     pycolmap = require_pycolmap()
+    camera = camera or CameraOptions()
     database = Path(database)
     if database.exists():
         raise InputError(f"{database} exists; the export writes a new database (remove it or pick another name)")
@@ -143,32 +264,34 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     paths = [Path(p) for p in image_paths]
     if n and (ids.min() < 0 or ids.max() >= len(paths)):
         raise InputError(f"image ids must index the {len(paths)} images (0..{len(paths) - 1})")
-    folder, names = _image_folder(paths, None if image_dir is None else Path(image_dir))
+    folder, names = image_folder(paths, None if image_dir is None else Path(image_dir))
+    facts = _image_facts(paths)
+    groups = _camera_groups(names, facts, camera.mode)
     desc = None if descriptors is None else np.asarray(descriptors)
     if desc is not None and (desc.dtype != np.uint8 or desc.shape[1:] != (128,)):
         desc = None  # COLMAP's descriptor type is 128-D uint8; the mapper does not need others
     pairs = cluster_pairs(labels, ids)
     rows_of = [np.flatnonzero(ids == k) for k in range(len(paths))]
-    local = np.zeros(n, np.int64)  # index of each feature within its image
-    for rows in rows_of:
-        local[rows] = np.arange(len(rows))
+    local = local_indices(ids)
     database.parent.mkdir(parents=True, exist_ok=True)
     colmap_id = {}
+    cameras: dict[int, tuple[object, int]] = {}  # camera group -> (pycolmap camera, rig id)
     db = pycolmap.Database.open(str(database))
     try:
         for k, (path, name) in enumerate(zip(paths, names)):
-            bitmap = pycolmap.Bitmap.read(str(path), False)
-            if bitmap is None:
-                raise InputError(f"image {path} cannot be read")
-            w, h = bitmap.width, bitmap.height
-            exif = bitmap.exif_focal_length()
-            focal = float(exif) if exif else DEFAULT_FOCAL_FACTOR * max(w, h)
-            cam = pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", focal, w, h)
-            cam.has_prior_focal_length = bool(exif)
-            cam.camera_id = db.write_camera(cam)
-            rig = pycolmap.Rig()
-            rig.add_ref_sensor(cam.sensor_id)
-            rig_id = db.write_rig(rig)
+            if groups[k] not in cameras:
+                w, h, exif = facts[k]
+                focal = exif if exif else DEFAULT_FOCAL_FACTOR * max(w, h)
+                cam = pycolmap.Camera.create_from_model_name(0, camera.model, focal, w, h)
+                cam.has_prior_focal_length = bool(exif)
+                if camera.params is not None:
+                    cam.params = np.asarray(camera.params, np.float64)
+                    cam.has_prior_focal_length = True  # as COLMAP's ImageReader.camera_params
+                cam.camera_id = db.write_camera(cam)
+                rig = pycolmap.Rig()
+                rig.add_ref_sensor(cam.sensor_id)
+                cameras[groups[k]] = (cam, db.write_rig(rig))
+            cam, rig_id = cameras[groups[k]]
             image_id = db.write_image(pycolmap.Image(name=name, camera_id=cam.camera_id))
             frame = pycolmap.Frame()
             frame.rig_id = rig_id
@@ -186,7 +309,8 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
             n_matches += len(m)
     finally:
         db.close()
-    summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names)
+    summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
+                            n_cameras=len(cameras))
     if verify and pairs:
         opts = pycolmap.GeometricVerifierOptions()
         if hasattr(opts, "num_threads"):

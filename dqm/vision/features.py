@@ -3,24 +3,25 @@
 Keypoints travel as a float32 (n, 4) array with columns x, y, size, angle
 (OpenCV conventions: pixels, 0-based, angle in degrees, -1 = not set).
 
-Images come as paths or arrays; :func:`collect_images` turns a folder, a glob
-pattern or a list of files into a naturally sorted list of image paths
-(``img2`` before ``img10``).
+Images come as paths or arrays; :func:`collect_images` turns folders (optionally
+recursive), glob patterns, files and image-list files (:func:`read_image_list`)
+into a list of image paths, each folder's in natural order (``img2`` before ``img10``).
 """
 from __future__ import annotations
 
 import glob
+import os
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from ..validation import InputError
 
 #: SIFT settings; "paper" is the seed paper's experiment preset
-PRESETS: Dict[str, Dict[str, float]] = {
+PRESETS: dict[str, dict[str, float]] = {
     "opencv": {},
     "paper": {"nOctaveLayers": 6, "contrastThreshold": 0.10, "edgeThreshold": 15, "sigma": 1.0},
     "rootsift": {},
@@ -63,43 +64,105 @@ class ImageFeatures:
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
 
-def natural_key(path: Union[str, Path]) -> tuple:
+def natural_key(path: str | Path) -> tuple:
     """Sort key that orders embedded numbers by value: img2 < img10, seq9 < seq10."""
     parts = re.split(r"(\d+)", str(path))
     return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts)
 
 
-def collect_images(inputs: Union[str, Path, Iterable[Union[str, Path]]]) -> List[Path]:
-    """Expand folders, glob patterns and files into a naturally sorted list of image paths.
+def _folder_images(folder: Path, recursive: bool) -> list[Path]:
+    """The image files in ``folder`` (and its sub-folders when ``recursive``), in natural order.
 
-    Each item: a folder (its image files, not recursive), a glob pattern
-    (``'photos/*.jpg'``) or an image file. Order: items in the order given,
-    each item's images in natural order. Raises InputError naming a missing item,
-    a pattern that matches no image, or when nothing is found at all.
+    Natural order part by part of the path below ``folder`` (``a/img2`` < ``a/img10`` < ``b/img1``).
+    Links to folders are not followed (as COLMAP's image reader).
+    """
+    if recursive:
+        found = [Path(root) / name for root, _, files in os.walk(folder) for name in files]
+    else:
+        found = list(folder.iterdir())
+    found = [q for q in found if q.suffix.lower() in IMAGE_SUFFIXES and q.is_file()]
+    return sorted(found, key=lambda q: tuple(natural_key(part) for part in q.relative_to(folder).parts))
+
+
+def read_image_list(path: str | Path) -> list[Path]:
+    """The image files named in a list file, one path a line, in the list's order.
+
+    Relative paths are taken from the list file's folder; blank lines and lines
+    starting with ``#`` are ignored; leading and trailing white space is dropped.
+    The paths come back absolute (not resolved: links stay links). Raises
+    InputError naming the list and the line of the first missing or non-file entry
+    (and how many are missing), or a list that names no image.
+    """
+    lst = Path(path)
+    if not lst.is_file():
+        raise InputError(f"image list not found: {lst}" if not lst.exists() else f"image list {lst} is not a file")
+    try:
+        lines = lst.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"image list {lst}: not a readable UTF-8 text file ({exc})") from None
+    root = Path(os.path.abspath(lst.parent))
+    out: list[Path] = []
+    missing: list[tuple[int, str]] = []
+    for number, line in enumerate(lines, 1):
+        entry = line.strip()
+        if not entry or entry.startswith("#"):
+            continue
+        q = Path(os.path.normpath(root / entry))
+        if q.is_dir():
+            raise InputError(f"{lst}:{number}: {entry} is a folder; an image list names image files")
+        if not q.is_file():
+            missing.append((number, entry))
+        out.append(q)
+    if missing:
+        number, entry = missing[0]
+        more = f" ({len(missing)} of the {len(out)} listed images are missing)" if len(missing) > 1 else ""
+        raise InputError(f"{lst}:{number}: image not found: {entry} (looked for {root / entry}){more}")
+    if not out:
+        raise InputError(f"image list {lst} names no image (blank lines and # comments only)")
+    return out
+
+
+def collect_images(inputs: str | Path | Iterable[str | Path] = (), recursive: bool = False,
+                   image_list: str | Path | None = None) -> list[Path]:
+    """Expand folders, glob patterns, files and an image list into a list of image paths.
+
+    Each item: a folder (its image files; with ``recursive`` those of its
+    sub-folders too), a glob pattern (``'photos/*.jpg'``; ``**`` matches any
+    depth of folders) or an image file. ``image_list``: a text file naming
+    images, one a line (:func:`read_image_list`), read after the items. Order:
+    items in the order given, each folder's or pattern's images in natural order
+    (``img2`` before ``img10``), then the list's images in its order; an image
+    named twice is kept at its first place. Raises InputError naming a missing
+    item, a folder or pattern without images, or when nothing is given.
     """
     items = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
-    if not items:
-        raise InputError("no image inputs given")
-    out: List[Path] = []
+    if not items and image_list is None:
+        raise InputError("no image inputs given: name image folders, glob patterns or files, or an image list")
+    out: list[Path] = []
     for item in items:
         text = str(item)
         p = Path(text)
         if p.is_dir():
-            found = sorted((q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES),
-                           key=natural_key)
+            found = _folder_images(p, recursive)
             if not found:
-                raise InputError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in folder {p}")
+                hint = ""
+                if not recursive:
+                    below = len(_folder_images(p, True))
+                    hint = f"; its sub-folders hold {below} image(s) (--recursive reads them)" if below else ""
+                raise InputError(f"no image files ({', '.join(IMAGE_SUFFIXES)}) in folder {p}{hint}")
             out += found
         elif p.exists():
             out.append(p)
         elif any(ch in text for ch in "*?["):
-            found = sorted((Path(q) for q in glob.glob(text) if Path(q).suffix.lower() in IMAGE_SUFFIXES),
-                           key=natural_key)
+            found = sorted((Path(q) for q in glob.glob(text, recursive=True)
+                            if Path(q).suffix.lower() in IMAGE_SUFFIXES and Path(q).is_file()), key=natural_key)
             if not found:
                 raise InputError(f"no image files match {text!r}")
             out += found
         else:
             raise InputError(f"input not found: {text}")
+    if image_list is not None:
+        out += read_image_list(image_list)
     seen, unique = set(), []
     for q in out:
         r = q.resolve()
@@ -195,7 +258,7 @@ def describe_at(image, points, size: float = 24.0, angle: float = 0.0,
     return ImageFeatures(_kp_array(out_kps), _finish(desc, preset))
 
 
-def landmark_descriptors(seq, size: float = 24.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def landmark_descriptors(seq, size: float = 24.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Describe every labelled landmark of every frame of a :class:`LandmarkSequence`.
 
     Returns ``(descriptors, image_ids, landmark_ids, keypoints)``. Upright
@@ -213,7 +276,7 @@ def landmark_descriptors(seq, size: float = 24.0) -> Tuple[np.ndarray, np.ndarra
 
 
 def extract_many(images: Sequence, preset: str = DEFAULT_PRESET, max_features: int = 0,
-                 progress=None, failed: Optional[List[int]] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 progress=None, failed: list[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Extract from a list of images (paths or arrays): ``(descriptors, image_ids, keypoints)`` stacked.
 
     Image ids are positions in ``images`` (0, 1, ...); an image without
@@ -244,7 +307,7 @@ def extract_many(images: Sequence, preset: str = DEFAULT_PRESET, max_features: i
     return np.vstack(descs), np.concatenate(ids).astype(np.int64), np.vstack(kps)
 
 
-def unreadable_images(paths: Sequence[Path]) -> List[Path]:
+def unreadable_images(paths: Sequence[Path]) -> list[Path]:
     """The files OpenCV has no decoder for (by their header; cheap, nothing is decoded)."""
     import cv2
 
@@ -252,8 +315,11 @@ def unreadable_images(paths: Sequence[Path]) -> List[Path]:
 
 
 def extract_images(inputs, preset: str = DEFAULT_PRESET, max_features: int = 0, progress=None, min_images: int = 2,
-                   skip_bad: bool = False, skipped: Optional[List[str]] = None):
+                   skip_bad: bool = False, skipped: list[str] | None = None, recursive: bool = False,
+                   image_list: str | Path | None = None):
     """SIFT of every image in folders / globs / files: a :class:`dqm.io.FeatureSet` with keypoints and names.
+
+    ``inputs``, ``recursive`` and ``image_list`` name the images as in :func:`collect_images`.
 
     Unreadable files are found before any SIFT runs: by default they are
     refused in one line naming them; with ``skip_bad`` they are left out (and
@@ -263,7 +329,7 @@ def extract_images(inputs, preset: str = DEFAULT_PRESET, max_features: int = 0, 
     """
     from ..io import FeatureSet
 
-    paths = collect_images(inputs)
+    paths = collect_images(inputs, recursive=recursive, image_list=image_list)
     bad = unreadable_images(paths)
     if bad and not skip_bad:
         raise InputError(f"cannot read image(s) (not an image or empty): {len(bad)} file(s): "
@@ -275,7 +341,7 @@ def extract_images(inputs, preset: str = DEFAULT_PRESET, max_features: int = 0, 
         raise InputError(f"need at least {min_images} images to match, got {len(paths)}: "
                          + ", ".join(str(p) for p in paths))
     # with skip_bad, a file whose header looks fine but fails to decode is left out too
-    failed: Optional[List[int]] = [] if skip_bad else None
+    failed: list[int] | None = [] if skip_bad else None
     D, ids, kp = extract_many(paths, preset=preset, max_features=max_features, progress=progress, failed=failed)
     if failed:
         gone = set(failed)

@@ -1,4 +1,4 @@
-"""hloc's local-feature files (HDF5) as dqm FEATURES sets, and back.
+"""hloc's local-feature files (HDF5) as dqm FEATURES sets, and back; clusters as hloc matches and pairs.
 
 hloc (https://github.com/cvg/Hierarchical-Localization) stores the local
 features of an image folder in one HDF5 file (``feats-superpoint-n4096-r1024.h5``,
@@ -29,6 +29,19 @@ sources (snapshot of 2025-12, commit c13273b):
   optional ``uncertainty`` attribute. ``hloc/match_features.py``
   (``FeaturePairsDataset``) loads every dataset of the two groups and needs
   ``image_size``.
+* Matches (``hloc/match_features.py``, ``writer_fn``): one group per image pair,
+  named ``names_to_pair(name0, name1)`` (``hloc/utils/parsers.py``: each name
+  with '/' replaced by '-', the two joined by '/', so a nested group), holding
+  ``matches0`` (one entry per keypoint of ``name0``: the index of its match in
+  ``name1``, -1 for none; int16 there) and ``matching_scores0`` (float16).
+  ``hloc/utils/io.py`` ``find_pair`` / ``get_matches`` look the pair up in both
+  orders (and in an older '_'-separated form) and keep the entries != -1.
+  The pairs file (``pairs_from_exhaustive.py``, read by ``parse_retrieval`` and
+  ``triangulation.import_matches``) holds one ``name0 name1`` line per pair,
+  split on white space. ``triangulation.import_features`` reads
+  ``file[name]["keypoints"]`` of every image of the COLMAP database and adds
+  0.5; ``reconstruction.main`` imports the images of its image folder
+  (COLMAP's reader, recursive) and names them relative to it.
 
 dqm's FEATURES keypoints are (n, 4) float32: x, y, size, angle in OpenCV's
 conventions (see :mod:`dqm.io`). hloc's x, y are already in that convention and
@@ -46,8 +59,11 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Union
+from typing import Union
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -74,7 +90,7 @@ def require_h5py():
     return h5py
 
 
-def list_image_names(path: PathLike) -> List[str]:
+def list_image_names(path: PathLike) -> list[str]:
     """The image names in an hloc HDF5 file, sorted: every group that directly holds a dataset."""
     h5py = require_h5py()
     path = _check_h5_file(h5py, Path(path))
@@ -90,7 +106,7 @@ def _check_h5_file(h5py, path: Path) -> Path:
     return path
 
 
-def _image_names(h5py, fd) -> List[str]:
+def _image_names(h5py, fd) -> list[str]:
     names = set()
 
     def visit(_, obj):
@@ -110,8 +126,8 @@ def _kind_hint(keys: Sequence[str]) -> str:
     return ""
 
 
-def read_h5_features(path: PathLike, image_dir: Optional[PathLike] = None,
-                     names: Optional[Sequence[str]] = None) -> FeatureSet:
+def read_h5_features(path: PathLike, image_dir: PathLike | None = None,
+                     names: Sequence[str] | None = None) -> FeatureSet:
     """Read an hloc local-features file as a FEATURES set.
 
     Images come in sorted name order (Python string order), or in the order of
@@ -145,10 +161,10 @@ def read_h5_features(path: PathLike, image_dir: Optional[PathLike] = None,
             if missing:
                 raise InputError(f"{path}: no image named {missing[0]!r} ({len(missing)} of the names missing; "
                                  f"the file has e.g. {present[:3]})")
-        D: List[np.ndarray] = []
-        K: List[np.ndarray] = []
-        ids: List[np.ndarray] = []
-        dim: Optional[int] = None
+        D: list[np.ndarray] = []
+        K: list[np.ndarray] = []
+        ids: list[np.ndarray] = []
+        dim: int | None = None
         dim_from = ""
         for k, name in enumerate(order):
             desc, kp = _read_group(fd[name], name, path)
@@ -222,8 +238,8 @@ def _check_name(name: str) -> str:
     return name
 
 
-def _names_for_writing(fs: FeatureSet, names: Optional[Sequence[str]], image_dir: Optional[PathLike],
-                       n_ids: int) -> List[str]:
+def _names_for_writing(fs: FeatureSet, names: Sequence[str] | None, image_dir: PathLike | None,
+                       n_ids: int) -> list[str]:
     """hloc's name of every image id: at least ``n_ids`` names, all valid group names, no repeats."""
     if names is not None:
         out = [str(n) for n in names]
@@ -253,7 +269,7 @@ def _names_for_writing(fs: FeatureSet, names: Optional[Sequence[str]], image_dir
     return out
 
 
-def _image_size_of(path: str) -> Optional[np.ndarray]:
+def _image_size_of(path: str) -> np.ndarray | None:
     """(width, height) of an image file as hloc reads it (EXIF orientation ignored), or None."""
     if not Path(path).is_file():
         return None
@@ -265,9 +281,9 @@ def _image_size_of(path: str) -> Optional[np.ndarray]:
     return np.array([img.shape[1], img.shape[0]], np.int64)
 
 
-def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Optional[Sequence[str]] = None, *,
-                      image_dir: Optional[PathLike] = None, image_sizes: Optional[ArrayLike] = None,
-                      scores: Optional[ArrayLike] = None,
+def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[str] | None = None, *,
+                      image_dir: PathLike | None = None, image_sizes: ArrayLike | None = None,
+                      scores: ArrayLike | None = None,
                       overwrite: bool = False) -> Path:
     """Write a FEATURES set as an hloc local-features file; returns the path.
 
@@ -317,7 +333,7 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Optional[S
         sc = np.asarray(scores, np.float32)
         if sc.shape != (len(desc),):
             raise InputError(f"scores must have one value per feature ({len(desc)}), got shape {sc.shape}")
-    wh: Dict[int, np.ndarray] = {}
+    wh: dict[int, np.ndarray] = {}
     if image_sizes is not None:
         arr = np.asarray(image_sizes)
         if arr.shape != (m, 2) or not np.issubdtype(arr.dtype, np.number):
@@ -330,32 +346,159 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Optional[S
                 wh[k] = size
     order = np.argsort(ids, kind="stable")
     bounds = np.searchsorted(ids[order], np.arange(m + 1))
+    with _atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
+        for k, name in enumerate(image_names):
+            rows = order[bounds[k]:bounds[k + 1]]
+            try:
+                grp = fd.create_group(name)
+            except ValueError as exc:
+                raise InputError(f"image name {name!r} clashes with another image's group ({exc})") from None
+            grp.create_dataset("keypoints", data=np.ascontiguousarray(kp[rows, :2]))
+            grp.create_dataset("descriptors", data=np.ascontiguousarray(desc[rows].T, dtype=np.float32))
+            grp.create_dataset("scores", data=sc[rows])
+            if write_scales:
+                grp.create_dataset("scales", data=sizes[rows])
+            if write_oris:
+                grp.create_dataset("oris", data=angles[rows])
+            if k in wh:
+                grp.create_dataset("image_size", data=wh[k])
+    return path
+
+
+@contextmanager
+def _atomic_output(path: Path) -> Iterator[str]:
+    """A temporary file next to ``path``, renamed to ``path`` when the block ends, removed if it fails.
+
+    So a failed write leaves no partial file; the result gets the permissions of any new file
+    (0666 minus the umask; ``mkstemp`` makes 0600).
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd_, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.h5", dir=path.parent)
+    fd_, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp" + path.suffix, dir=path.parent)
     os.close(fd_)
     try:
-        with h5py.File(tmp, "w") as fd:
-            for k, name in enumerate(image_names):
-                rows = order[bounds[k]:bounds[k + 1]]
-                try:
-                    grp = fd.create_group(name)
-                except ValueError as exc:
-                    raise InputError(f"image name {name!r} clashes with another image's group ({exc})") from None
-                grp.create_dataset("keypoints", data=np.ascontiguousarray(kp[rows, :2]))
-                grp.create_dataset("descriptors", data=np.ascontiguousarray(desc[rows].T, dtype=np.float32))
-                grp.create_dataset("scores", data=sc[rows])
-                if write_scales:
-                    grp.create_dataset("scales", data=sizes[rows])
-                if write_oris:
-                    grp.create_dataset("oris", data=angles[rows])
-                if k in wh:
-                    grp.create_dataset("image_size", data=wh[k])
+        yield tmp
         mask = os.umask(0)
         os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; follow the umask like any other output
+        os.chmod(tmp, 0o666 & ~mask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def names_to_pair(name0: str, name1: str) -> str:
+    """hloc's group of an image pair in a matches file: both names with '/' made '-', joined by '/'.
+
+    As ``hloc/utils/parsers.py`` ``names_to_pair`` (the current format; hloc's readers also
+    try the reversed pair and an older '_' separator).
+    """
+    return name0.replace("/", "-") + "/" + name1.replace("/", "-")
+
+
+def check_pair_names(names: Sequence[str]) -> list[str]:
+    """The names, checked for hloc's matches and pairs files; InputError naming the first problem.
+
+    Each must be a relative '/'-separated path (an hloc group name), hold no white space
+    (``pairs.txt`` is split on it) and stay distinct once '/' becomes '-' (:func:`names_to_pair`).
+    """
+    out = [_check_name(str(n)) for n in names]
+    for n in out:
+        if any(ch.isspace() for ch in n):
+            raise InputError(f"image name {n!r} holds white space, which hloc's pairs file cannot carry "
+                             "(rename the image)")
+    flat: dict[str, str] = {}
+    for n in out:
+        other = flat.setdefault(n.replace("/", "-"), n)
+        if other != n:
+            raise InputError(f"images {other!r} and {n!r} get one hloc pair name ({n.replace('/', '-')!r}: "
+                             "'/' becomes '-'); rename one")
+    return out
+
+
+@dataclass
+class MatchesSummary:
+    """What :func:`write_h5_matches` wrote: the image pairs (hloc names, in file order) and the match count."""
+
+    path: Path
+    pairs: list[tuple[str, str]]
+    n_matches: int
+
+
+def write_h5_matches(path: PathLike, labels: ArrayLike, image_ids: ArrayLike, names: Sequence[str], *,
+                     overwrite: bool = False) -> MatchesSummary:
+    """Write the matches that clusters imply as an hloc matches file (``match_features`` layout).
+
+    Every two members of a cluster, in two different images, are a match. One group per image
+    pair with at least one match, named ``names_to_pair(names[a], names[b])`` with image ``a``
+    before ``b`` in image-id order, holding ``matches0`` (int32, one entry per feature of image
+    ``a`` in row order: the index of its match among image ``b``'s features, -1 for none) and
+    ``matching_scores0`` (float16: 1 where matched, 0 elsewhere). hloc itself stores ``matches0``
+    as int16; int32 keeps images with more than 32,767 features right, and hloc's readers take any
+    integer type. ``names``: hloc's name of every image id (relative to the image folder,
+    :func:`check_pair_names`). An existing ``path`` is refused unless ``overwrite``; the file is
+    written to a temporary name and renamed.
+    """
+    from .colmap import cluster_pairs, local_indices
+
+    h5py = require_h5py()
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(f"{path} exists; pass overwrite=True to replace it")
+    labels = np.asarray(labels, np.int64)
+    ids = np.asarray(image_ids, np.int64)
+    if labels.shape != ids.shape or labels.ndim != 1:
+        raise InputError(f"labels {labels.shape} and image_ids {ids.shape} must be 1-D arrays of one length")
+    names = check_pair_names(names)
+    if len(ids) and (ids.min() < 0 or ids.max() >= len(names)):
+        raise InputError(f"image ids must index the {len(names)} image names (0..{len(names) - 1})")
+    pairs = cluster_pairs(labels, ids)
+    local = local_indices(ids)
+    counts = np.bincount(ids, minlength=len(names))
+    written: list[tuple[str, str]] = []
+    n_matches = 0
+    with _atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
+        for (a, b), m in sorted(pairs.items()):
+            matches0 = np.full(counts[a], -1, np.int32)
+            scores0 = np.zeros(counts[a], np.float16)
+            matches0[local[m[:, 0]]] = local[m[:, 1]]
+            scores0[local[m[:, 0]]] = 1.0
+            grp = fd.create_group(names_to_pair(names[a], names[b]))
+            grp.create_dataset("matches0", data=matches0)
+            grp.create_dataset("matching_scores0", data=scores0)
+            written.append((names[a], names[b]))
+            n_matches += len(m)
+    return MatchesSummary(path, written, n_matches)
+
+
+def write_pairs(path: PathLike, pairs: Sequence[tuple[str, str]], *, overwrite: bool = False) -> Path:
+    """Write an hloc pairs file: one ``name0 name1`` line per pair (``pairs_from_*`` layout); returns the path.
+
+    Refuses an existing ``path`` unless ``overwrite``; written to a temporary name and renamed.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(f"{path} exists; pass overwrite=True to replace it")
+    with _atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        fh.writelines(f"{a} {b}\n" for a, b in pairs)
     return path
+
+
+def read_h5_matches(path: PathLike, name0: str, name1: str) -> np.ndarray:
+    """The matches of one image pair in an hloc matches file: (k, 2) int64 keypoint indices, column 0 in ``name0``.
+
+    Finds the pair's group in either order (as hloc's ``find_pair``; the older '_' separator is
+    not read) and keeps the entries of ``matches0`` that are not -1. InputError if the pair is absent.
+    """
+    h5py = require_h5py()
+    path = _check_h5_file(h5py, Path(path))
+    with h5py.File(str(path), "r") as fd:
+        for key, flip in ((names_to_pair(name0, name1), False), (names_to_pair(name1, name0), True)):
+            if key in fd and isinstance(fd[key], h5py.Group) and "matches0" in fd[key]:
+                m0 = np.asarray(fd[key]["matches0"][()], np.int64)
+                break
+        else:
+            raise InputError(f"{path}: no matches for the image pair {name0!r}, {name1!r}")
+    idx = np.flatnonzero(m0 != -1)
+    out = np.stack([idx, m0[idx]], axis=1)
+    return out[:, ::-1].copy() if flip else out
