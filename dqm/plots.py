@@ -14,14 +14,14 @@ with :func:`save`.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
 from .evaluation import PRCurve
-from .vision.features import as_gray
 from .validation import InputError
+from .vision.features import as_gray
 
 
 def _figure(width: float, height: float, dpi: int = 100):
@@ -41,7 +41,7 @@ def save(fig, path, dpi: int = 100) -> Path:
     return p
 
 
-def pair_figure(image_a, image_b, xy_a, xy_b, correct: Optional[np.ndarray] = None, *,
+def pair_figure(image_a, image_b, xy_a, xy_b, correct: np.ndarray | None = None, *,
                 title: str = "", max_lines: int = 300, seed: int = 0):
     """Two images side by side with a line for every match (xy_a[k] <-> xy_b[k]).
 
@@ -99,7 +99,7 @@ def _patch(img: np.ndarray, x: float, y: float, radius: int) -> np.ndarray:
 
 
 def clusters_figure(images: Sequence, keypoints, image_ids, clusters: Sequence[np.ndarray], *,
-                    radius: int = 32, title: str = "", point_ids: Optional[np.ndarray] = None,
+                    radius: int = 32, title: str = "", point_ids: np.ndarray | None = None,
                     max_columns: int = 12):
     """One row per cluster: a patch around each of its features, in image order.
 
@@ -118,7 +118,7 @@ def clusters_figure(images: Sequence, keypoints, image_ids, clusters: Sequence[n
     cols = min(max_columns, max(len(c) for c in clusters))
     rows = len(clusters)
     fig = _figure(1.3 * cols + 0.4, 1.45 * rows + 0.5)
-    cache: Dict[int, np.ndarray] = {}
+    cache: dict[int, np.ndarray] = {}
     for r, members in enumerate(clusters):
         members = np.asarray(members)[np.argsort(ids[np.asarray(members)], kind="stable")]
         majority = None
@@ -177,29 +177,34 @@ def cluster_sizes_figure(labels, image_ids=None, *, title: str = "Cluster sizes"
 
 
 _STYLE = {
-    "quickmatch": dict(color="#d73027", lw=2.2, marker="o"),
-    "quickmatch-verify": dict(color="#f46d43", lw=1.6, marker="D", ms=5),
-    "bf": dict(color="#4575b4", lw=1.2, ls=":", marker="."),
-    "flann": dict(color="#74add1", lw=1.2, ls=":", marker="."),
-    "bf-drop-track": dict(color="#1a9850", lw=1.4, ls="--", marker="s", ms=3),
-    "bf-drop-later": dict(color="#984ea3", lw=1.4, ls="--", marker="^", ms=3),
-    "flann-drop-track": dict(color="#a6d96a", lw=1.2, ls="-.", marker="s", ms=3),
-    "flann-drop-later": dict(color="#c2a5cf", lw=1.2, ls="-.", marker="^", ms=3),
+    "quickmatch": {"color": "#d73027", "lw": 2.2, "marker": "o"},
+    "quickmatch-verify": {"color": "#f46d43", "lw": 1.6, "marker": "D", "ms": 5},
+    "bf": {"color": "#4575b4", "lw": 1.2, "ls": ":", "marker": "."},
+    "flann": {"color": "#74add1", "lw": 1.2, "ls": ":", "marker": "."},
+    "bf-drop-track": {"color": "#1a9850", "lw": 1.4, "ls": "--", "marker": "s", "ms": 3},
+    "bf-drop-later": {"color": "#984ea3", "lw": 1.4, "ls": "--", "marker": "^", "ms": 3},
+    "flann-drop-track": {"color": "#a6d96a", "lw": 1.2, "ls": "-.", "marker": "s", "ms": 3},
+    "flann-drop-later": {"color": "#c2a5cf", "lw": 1.2, "ls": "-.", "marker": "^", "ms": 3},
 }
 
 
-def pr_figure(curves: Sequence[PRCurve], points: Optional[Dict[str, Tuple[float, float]]] = None, *,
-              labels: Optional[Dict[str, str]] = None, title: str = ""):
-    """Precision-recall curves (one per method); ``points[method] = (recall, precision)`` marked with a star."""
+def pr_figure(curves: Sequence[PRCurve], points: dict[str, tuple[float, float]] | None = None, *,
+              labels: dict[str, str] | None = None, title: str = ""):
+    """Precision-recall curves (one per method); ``points[method] = (recall, precision)`` marked with a star.
+
+    A curve of one point (no threshold sweep, e.g. QuickMatch geometrically
+    verified) is drawn as that point, without an AUC in its legend entry.
+    """
     if not curves:
         raise InputError("no curves to draw")
     fig = _figure(6.5, 5)
     ax = fig.add_subplot(1, 1, 1)
     for c in curves:
-        style = dict(_STYLE.get(c.method, dict(lw=1.2, marker=".")))
+        style = dict(_STYLE.get(c.method, {"lw": 1.2, "marker": "."}))
         name = (labels or {}).get(c.method, c.method)
         order = np.argsort(c.thresholds)
-        ax.plot(c.recall[order], c.precision[order], label=f"{name} (AUC {c.auc():.3f})", **style)
+        area = f" (AUC {c.auc():.3f})" if len(c.thresholds) > 1 else " (one point)"
+        ax.plot(c.recall[order], c.precision[order], label=name + area, **style)
         if points and c.method in points:
             r, p = points[c.method]
             ax.plot([r], [p], marker="*", ms=13, color=style.get("color", "k"), mec="black", mew=0.6, ls="none")

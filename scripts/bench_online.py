@@ -18,7 +18,8 @@ frames, OpenCV SIFT with --hotel-features per frame; skipped without ../shared/d
     python scripts/bench_online.py [--sequences generated,hotel] [--points 400] [--hotel-features 500]
                                    [--images 100] [--check-every 1] [--out-dir DIR] [--quick]
 
---quick: 20 images of 100 points (the CI check). JSON and a figure go to --out-dir (default
+--quick: 20 images of 100 points (the CI check: labels identical at every step; too small to
+judge the 10% target, so it prints no verdict on it). JSON and a figure go to --out-dir (default
 ./dqm-out/bench_online; nothing is written into the repository unless --out-dir points there).
 """
 from __future__ import annotations
@@ -90,7 +91,30 @@ def run(name: str, X: np.ndarray, img_ids: np.ndarray, check_every: int):
     return rows, len(om._edges)
 
 
-def summarize(name, rows, stored):
+#: the target: the mean add at most this fraction of one batch run at the end, judged at the full size only
+TARGET = 0.10
+QUICK_VERDICT = "not judged"
+
+
+def target_verdict(ratio: float, quick: bool) -> str:
+    """"met" / "MISSED" against :data:`TARGET` at the full size; :data:`QUICK_VERDICT` for a --quick run.
+
+    At --quick's size (20 images of 100 points) a batch run takes milliseconds, so fixed per-call
+    costs dominate the ratio and it says nothing about the target, which is set for the full size.
+    """
+    if quick:
+        return QUICK_VERDICT
+    return "met" if ratio <= TARGET else "MISSED"
+
+
+def target_line(verdict: str) -> str:
+    """The words printed after the ratio: the verdict, or why a --quick run gives none."""
+    if verdict == QUICK_VERDICT:
+        return (f"target <= {TARGET:.0%} (full size only; --quick is too small to judge): {verdict}")
+    return f"target <= {TARGET:.0%}: {verdict}"
+
+
+def summarize(name, rows, stored, quick: bool = False):
     adds = np.array([r["add_s"] for r in rows])
     checked = [r for r in rows if "batch_s" in r]
     batches = np.array([r["batch_s"] for r in checked])
@@ -112,9 +136,9 @@ def summarize(name, rows, stored):
     print(f"\n{name}: {out['images']} images, {out['features']:,} features, {stored:,} stored neighbour pairs")
     print(f"  labels identical to batch at every checked step: {out['identical_every_checked_step']} "
           f"({len(checked)} of {len(rows)} steps)")
-    target = "met" if out["mean_add_over_final_batch"] <= 0.10 else "MISSED"
+    out["target"] = target_verdict(out["mean_add_over_final_batch"], quick)
     print(f"  mean add {out['mean_add_s']:.3f} s = {out['mean_add_over_final_batch']:.1%} of the batch at "
-          f"{out['images']} images ({out['batch_at_end_s']:.2f} s); target <= 10%: {target}")
+          f"{out['images']} images ({out['batch_at_end_s']:.2f} s); {target_line(out['target'])}")
     print(f"  last {tail} adds / last {tail} batches: {out['last10_add_over_last10_batch']:.1%}")
     print(f"  total: online {out['total_add_s']:.1f} s, batch{every} {out['total_batch_checked_s']:.1f} s "
           f"({out['total_batch_checked_s'] / out['total_add_s']:.1f}x), one batch at the end "
@@ -177,10 +201,11 @@ def main() -> int:
             continue
         rows, stored = run(name, *data, args.check_every)
         all_rows[name] = rows
-        results[name] = summarize(name, rows, stored)
+        results[name] = summarize(name, rows, stored, quick=args.quick)
     if not results:
         return 1
-    (out_dir / "bench_online.json").write_text(json.dumps({"rho": RHO, "kernel": "quadratic", "results": results,
+    (out_dir / "bench_online.json").write_text(json.dumps({"rho": RHO, "kernel": "quadratic", "quick": args.quick,
+                                                           "target": TARGET, "results": results,
                                                            "steps": all_rows}, indent=1))
     fig = figure(all_rows, out_dir / "bench_online.png")
     print(f"\nwrote {out_dir / 'bench_online.json'} and {fig}")

@@ -1,8 +1,10 @@
 """Check this installation: the tile kernel, the optional and required libraries, the shared data.
 
 Prints one line per check and exits with 0 when everything required works
-(1 otherwise). Optional parts (faiss for --approximate, the shared real data
-for the evaluations) are reported but not required.
+(1 otherwise). Optional parts (faiss for --approximate; pycolmap and h5py, the
+``dqm[colmap]`` extra, for ``dqm export colmap`` / ``dqm import colmap`` and
+hloc files; the shared real data for the evaluations) are reported with their
+versions but not required.
 
     dqm doctor
 """
@@ -13,7 +15,7 @@ import os
 from pathlib import Path
 
 NAME = "doctor"
-HELP = "check the installation: native kernel, zenoh, OpenCV, faiss, shared data"
+HELP = "check the installation: native kernel, zenoh, OpenCV, faiss, pycolmap, h5py, shared data"
 
 
 def add_arguments(p) -> None:
@@ -38,7 +40,9 @@ def _checks(data_dir: Path):
     for name, module, required in (("numpy", "numpy", True), ("scipy", "scipy", True),
                                    ("OpenCV", "cv2", True), ("eclipse-zenoh", "zenoh", True),
                                    ("msgpack", "msgpack", True), ("matplotlib", "matplotlib", True),
-                                   ("faiss-cpu (--approximate)", "faiss", False)):
+                                   ("faiss-cpu (--approximate)", "faiss", False),
+                                   ("pycolmap (dqm[colmap]: dqm export / import colmap)", "pycolmap", False),
+                                   ("h5py (dqm[colmap]: dqm import h5, hloc feature files)", "h5py", False)):
         mod, text = _module(module)
         if module == "cv2" and mod is not None:
             text = f"{mod.__version__}, SIFT {'available' if hasattr(mod, 'SIFT_create') else 'MISSING'}"

@@ -11,29 +11,40 @@ are absent are skipped with a note.
     dqm evaluate                          # the table in docs/evaluation.md
     dqm evaluate scene:3 --out-dir /tmp/ev
     dqm evaluate my_sequence/ --tol 3 --max-features 2000
+    dqm evaluate --clusters clusters.npz graf         # score a CLUSTERS file (dqm match, dqm run)
+    dqm evaluate --clusters clusters.npz              # ... against its own point_ids (generated data)
 
-Outputs in --out-dir: evaluation.md (settings, table, findings), evaluation.json
-(every number and curve), pr_<data>.png, and with --figures also
-matches_<data>.png (QuickMatch's matches of images 1-2, green = correct) and
-clusters_<data>.png / sizes_<data>.png.
+Outputs in --out-dir: evaluation.md (settings with the command line that
+regenerates it, table, findings), evaluation.json (every number and curve),
+pr_<data>.png, and with --figures also matches_<data>.png (QuickMatch's matches
+of images 1-2, green = correct) and clusters_<data>.png / sizes_<data>.png.
+<data> is the data-set name made safe for file names (scene:3 -> scene-3).
+
+--clusters scores the clusters of a file as they are, with the code that scores
+the QuickMatch row: against the file's point_ids, or with one DATA (homography
+data: an Oxford-layout folder, graf ..., scene:SEED) against that data set's
+homographies at the file's keypoints, after checking that the file's images are
+the data set's (count, order, sizes). It prints the table row (P, R, F1, C1/C2)
+and writes evaluation_<file>[_<data>].json (evaluation.json's layout).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List
 
 import numpy as np
 
 from .. import __version__, benchmark, evaluation, outputs
-from ..vision import baselines
 from ..core import DEFAULT_RHO
-from ..vision.features import DEFAULT_PRESET, PRESETS
 from ..validation import InputError
+from ..vision import baselines
+from ..vision.features import DEFAULT_PRESET, PRESETS
 
 NAME = "evaluate"
 HELP = "QuickMatch vs BF / FLANN (pairs and tracks) on ground truth: table + PR curves"
@@ -59,86 +70,115 @@ def add_arguments(p) -> None:
     p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
     p.add_argument("--seed", type=int, default=0, help="seed of FLANN's randomised trees")
     p.add_argument("--figures", action="store_true", help="also draw matches, clusters and size histograms")
+    p.add_argument("--clusters", default=None, metavar="CLUSTERS.npz",
+                   help="score this CLUSTERS file (dqm match, dqm run / coordinator) instead of running the methods: "
+                        "against its point_ids (generated data), or with one DATA (Oxford-layout folder, graf ..., "
+                        "scene:SEED) against that data set's homographies at its keypoints; prints one table row "
+                        "and writes evaluation_<file>[_<data>].json in --out-dir")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
-def _findings(results: Dict[str, List[benchmark.MethodResult]]) -> List[str]:
-    """Computed (not hand-written) statements on where QuickMatch wins and loses."""
-    out = []
-    for name, rows in results.items():
-        qm = next((r for r in rows if r.method == "quickmatch"), None)
-        others = [r for r in rows if r.method != "quickmatch"]
-        if qm is None or not others:
-            continue
-        tracks = [r for r in others if "-drop-" in r.method]
-        bf1 = max(others, key=lambda r: r.scores.f1)
-        bauc = max(others, key=lambda r: r.curve.auc())
-        bor = max(others, key=lambda r: r.curve.best_f1()[0])
-        qf, qat = qm.curve.best_f1()
+def _preset_words(preset: str) -> str:
+    """What a SIFT preset is, from its settings: detector parameters and descriptor kind."""
+    from ..vision.features import ROOT_PRESETS
 
-        def word(win: bool) -> str:
-            return "**wins**" if win else "**loses**"
-        line = (f"- **{name}**: at the defaults QuickMatch {word(qm.scores.f1 > bf1.scores.f1)} in F1 "
-                f"({qm.scores.f1:.3f} vs {bf1.scores.f1:.3f}, {bf1.label}); at each method's best threshold it "
-                f"{word(qf > bor.curve.best_f1()[0])} ({qf:.3f} at rho {qat:g} vs {bor.curve.best_f1()[0]:.3f}, "
-                f"{bor.label}); in PR AUC it {word(qm.curve.auc() > bauc.curve.auc())} "
-                f"({qm.curve.auc():.3f} vs {bauc.curve.auc():.3f}, {bauc.label}).")
-        if tracks:
-            lost = [r.label for r in tracks if qm.scores.f1 <= r.scores.f1]
-            line += (f" Default F1 against the {len(tracks)} track variants: beats {len(tracks) - len(lost)}"
-                     + (f", loses to {'; '.join(lost)}" if lost else "") + ".")
-            line += (f" Precision {qm.scores.precision:.3f} vs {max(r.scores.precision for r in tracks):.3f} "
-                     f"(most precise track), recall {qm.scores.recall:.3f} vs "
-                     f"{max(r.scores.recall for r in tracks):.3f} (highest-recall track).")
-        fastest = min(rows, key=lambda r: r.time_s)
-        if fastest.method != "quickmatch" and fastest.time_s < 0.8 * qm.time_s:
-            line += f" Faster than QuickMatch ({qm.time_s:.2f} s): {fastest.label} ({fastest.time_s:.2f} s)."
-        out.append(line)
+    params = PRESETS[preset]
+    det = ", ".join(f"{k} {v:g}" for k, v in params.items()) if params else "OpenCV's default detector parameters"
+    return det + (", RootSIFT descriptors" if preset in ROOT_PRESETS else ", plain SIFT descriptors")
+
+
+def _option_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dqm evaluate", add_help=False)
+    add_arguments(p)
+    return p
+
+
+def changed_options(args) -> list[tuple[str, object]]:
+    """(long option, value) of every option of ``args`` that differs from its default, in parser order."""
+    out = []
+    for act in _option_parser()._actions:
+        if act.option_strings and getattr(args, act.dest, act.default) != act.default:
+            out.append((act.option_strings[-1], getattr(args, act.dest)))
     return out
 
 
-def _markdown(args, results, benches, skipped, plots, total_s, load) -> str:
+def command_line(args) -> str:
+    """The ``dqm evaluate`` command line that reproduces ``args``: DATA and every non-default option, quoted."""
+    parts = ["dqm", "evaluate", *args.data]
+    for opt, val in changed_options(args):
+        parts += [opt] if isinstance(val, bool) else [opt, str(val)]
+    return " ".join(shlex.quote(x) for x in parts)
+
+
+def _markdown(args, methods, results, benches, skipped, plots, total_s, load) -> str:
     cpu = os.cpu_count()
-    cmd = "dqm evaluate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else "dqm evaluate"
+    default = " (the default)"
+    verify = [
+        (f"- {benchmark.METHODS['quickmatch-verify']}: the QuickMatch clusters at rho {args.rho:g}, then per image "
+        "pair OpenCV USAC (MAGSAC++) fits a fundamental matrix and a homography to the matches the clusters imply "
+        "(4 px, the model chosen as COLMAP does, a pair verified with >= 15 inliers) and members that the verified "
+        f"pairs reject are split off (dqm.vision.verify, OpenCV RNG seed {args.seed}). One operating point: no "
+        "threshold sweep, so no best-threshold F1 and no PR AUC (\"-\"); its time is clustering plus verification.")
+    ] if "quickmatch-verify" in methods else []
+    ours = [
+        (f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel; PR curve over "
+         f"rho {args.rhos}.")
+    ] if "quickmatch" in methods else [
+        f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel."
+    ] if "quickmatch-verify" in methods else []
+    pairwise = ([
+        (f"- BF / FLANN: every image pair (i < j, queries from i), Euclidean 2-NN, Lowe ratio {args.ratio:g}"
+        f"{default if args.ratio == baselines.DEFAULT_RATIO else ''}; "
+        f"FLANN kd-trees {baselines.FLANN_INDEX_PARAMS['trees']} trees, {baselines.FLANN_SEARCH_PARAMS['checks']} "
+        f"checks, seed {args.seed}; PR curve over ratio {args.ratios}."),
+        ("- Tracks: union-find of the pairwise matches; a track holding two features of one image is dropped "
+        "whole (OpenMVG) or keeps the first-listed feature per image (Theia)."),
+    ] if any(not m.startswith("quickmatch") for m in methods) else [])
+    if not any("-drop-" in m for m in methods):
+        pairwise = pairwise[:1]
     lines = [
         "# QuickMatch vs pairwise matching on ground truth",
         "",
-        f"Generated by `{cmd}` (dqm {__version__}, {platform.python_implementation()} "
+        (f"Generated by `{command_line(args)}` (dqm {__version__}, {platform.python_implementation()} "
         f"{platform.python_version()}, {platform.machine()}, {cpu} CPU threads, load average {load} at the "
         f"start: times are noisy on a shared machine) in {total_s:.0f} s. "
-        "Regenerate rather than edit; interpretation: `docs/evaluation-notes.md`.",
+        "Regenerate rather than edit; interpretation: `docs/evaluation-notes.md`."),
         "",
         "## Settings",
         "",
-        f"- SIFT: OpenCV, preset `{args.preset}`, max features per image: {args.max_features or 'no limit'}; "
+        f"- Methods (rows, in this order): {'; '.join(benchmark.METHODS[m] for m in benchmark.METHODS if m in methods)}.",
+        (f"- SIFT: OpenCV, preset `{args.preset}` ({'the default: ' if args.preset == DEFAULT_PRESET else ''}"
+        f"{_preset_words(args.preset)}), max features per image: {args.max_features or 'no limit'}; "
         "hotel (any preset): OpenCV SIFT described at the 30 labelled landmarks of every frame "
-        "(24 px upright patches).",
-        f"- QuickMatch: rho {args.rho:g} (default), Gaussian kernel; PR curve over rho {args.rhos}.",
-        f"- BF / FLANN: every image pair (i < j, queries from i), Euclidean 2-NN, Lowe ratio {args.ratio:g}; "
-        f"FLANN kd-trees {baselines.FLANN_INDEX_PARAMS['trees']} trees, {baselines.FLANN_SEARCH_PARAMS['checks']} "
-        f"checks, seed {args.seed}; PR curve over ratio {args.ratios}.",
-        "- Tracks: union-find of the pairwise matches; a track holding two features of one image is dropped "
-        "whole (OpenMVG) or keeps the first-listed feature per image (Theia).",
-        f"- Truth: Oxford / generated scenes: a pair is correct if the homography maps one keypoint within "
+        "(24 px upright patches)."),
+        *ours,
+        *verify,
+        *pairwise,
+        (f"- Truth: Oxford / generated scenes: a pair is correct if the homography maps one keypoint within "
         f"{args.tol:g} px of the other; recall against the greedy one-to-one correspondences within {args.tol:g} px "
-        "of every image pair. Hotel: same landmark; recall against all same-landmark pairs.",
-        "- P, R, F1 count pairs of features (a cluster / track of k features implies k(k-1)/2 pairs). "
-        "PR AUC: trapezoid area under the curve, extended flat to recall 0 (see dqm/evaluation.py).",
-        "- C1 features: features not matched to every other-image feature of their connected component "
+        "of every image pair. Hotel: same landmark; recall against all same-landmark pairs."),
+        ("- P, R, F1 count pairs of features (a cluster / track of k features implies k(k-1)/2 pairs). "
+        "PR AUC: trapezoid area under the curve, extended flat to recall 0 (see dqm/evaluation.py)."),
+        ("- C1 features: features not matched to every other-image feature of their connected component "
         "(matching not transitive); C2 tracks: components holding two features of one image. "
-        "Counted on each method's output matches; clusters satisfy both by construction.",
-        "- Time: matching only (QuickMatch call; all-pairs 2-NN search, + track building), seconds, "
-        "on the machine above. SIFT extraction time is listed per dataset below.",
+        "Counted on each method's output matches; clusters satisfy both by construction."),
+        ("- Time: matching only (QuickMatch call; all-pairs 2-NN search, + track building), seconds, "
+        "on the machine above. SIFT extraction time is listed per dataset below."),
         "",
         "## Results",
         "",
         benchmark.markdown_table(results, benches),
-        "Bold: best of the dataset. best F1 (at): the highest F1 along the method's threshold sweep and the "
-        "threshold giving it (an oracle choice; the other columns are at the default threshold).",
+        ("Bold: best of the dataset. best F1 (at): the highest F1 along the method's threshold sweep and the "
+        "threshold giving it (an oracle choice; the other columns are at the default threshold)."),
         "",
-        "## Where QuickMatch wins and loses (computed from the table)",
+        "## Where QuickMatch wins and loses against the pairwise baselines (computed from the table)",
         "",
-        *_findings(results),
+        ("Each QuickMatch variant against the best pairwise-baseline row of each measure (never one QuickMatch "
+         "variant against another); what geometric verification changes in QuickMatch is listed separately.")
+        if any(not m.startswith("quickmatch") for m in methods)
+        else "No BF / FLANN method in this run: nothing to compare QuickMatch with.",
+        "",
+        *benchmark.findings(results),
         "",
         "## Data",
         "",
@@ -159,7 +199,7 @@ def _markdown(args, results, benches, skipped, plots, total_s, load) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-def _figures(bench: benchmark.Benchmark, out_dir: Path, rho: float) -> List[Path]:
+def _figures(bench: benchmark.Benchmark, out_dir: Path, rho: float, stem: str) -> list[Path]:
     from .. import plots
     from ..core import quickmatch
 
@@ -171,20 +211,20 @@ def _figures(bench: benchmark.Benchmark, out_dir: Path, rho: float) -> List[Path
     pa, pb = np.where(ids[a[sel]] == 0, a[sel], b[sel]), np.where(ids[a[sel]] == 0, b[sel], a[sel])
     fig = plots.pair_figure(bench.images[0], bench.images[1], bench.keypoints[pa, :2], bench.keypoints[pb, :2],
                             bench.correct(pa, pb), title=f"{bench.name}: QuickMatch (rho {rho:g}), images 0-1")
-    files.append(plots.save(fig, out_dir / f"matches_{bench.name}.png"))
+    files.append(plots.save(fig, out_dir / f"matches_{stem}.png"))
     big = [c for c in r.clusters(min_size=3)]
     big.sort(key=lambda c: (-len(c), int(c.min())))
     if big:
         fig = plots.clusters_figure(bench.images, bench.keypoints, ids, big[:6],
                                     point_ids=bench.point_ids,
                                     title=f"{bench.name}: the six largest QuickMatch clusters")
-        files.append(plots.save(fig, out_dir / f"clusters_{bench.name}.png"))
+        files.append(plots.save(fig, out_dir / f"clusters_{stem}.png"))
     fig = plots.cluster_sizes_figure(r.labels, ids, title=f"{bench.name}: QuickMatch cluster sizes (rho {rho:g})")
-    files.append(plots.save(fig, out_dir / f"sizes_{bench.name}.png"))
+    files.append(plots.save(fig, out_dir / f"sizes_{stem}.png"))
     return files
 
 
-def _floats(text: str, name: str) -> List[float]:
+def _floats(text: str, name: str) -> list[float]:
     try:
         vals = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
@@ -194,9 +234,80 @@ def _floats(text: str, name: str) -> List[float]:
     return vals
 
 
+#: the options that apply to --clusters (the others choose how the methods run)
+CLUSTERS_OPTIONS = ("--clusters", "--data-root", "--out-dir", "--tol", "--quiet")
+
+
+def _load_clusters(path: str) -> dict:
+    import zipfile
+
+    from .. import io
+
+    p = Path(path)
+    if p.exists() and not zipfile.is_zipfile(p):
+        raise InputError(f"--clusters {p}: not an .npz clusters file (an .npz is a zip archive of numpy arrays)")
+    try:
+        return io.load_clusters(p)
+    except InputError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise InputError(f"--clusters {p}: not a readable clusters file ({type(exc).__name__}: {exc})") from None
+
+
+def _finite(obj):
+    """``obj`` with every NaN / inf float replaced by None, so the JSON is strict (e.g. a file without its rho)."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def run_clusters(args) -> int:
+    """``dqm evaluate --clusters``: score one CLUSTERS file (see :func:`dqm.benchmark.evaluate_clusters`)."""
+    other = [opt for opt, _ in changed_options(args) if opt not in CLUSTERS_OPTIONS]
+    if other:
+        raise InputError(f"--clusters scores the file's clusters as they are; {', '.join(other)} "
+                         f"{'does' if len(other) == 1 else 'do'} not apply (only {', '.join(CLUSTERS_OPTIONS[1:])})")
+    if len(args.data) > 1:
+        raise InputError(f"--clusters is scored against one DATA set, got {len(args.data)}: {' '.join(args.data)}")
+    if not args.tol > 0:
+        raise InputError(f"--tol must be positive (pixels), got {args.tol}")
+    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
+    cl = _load_clusters(args.clusters)
+    if not args.data and "point_ids" not in cl:
+        raise InputError(f"--clusters {args.clusters} has no point_ids (ground truth of generated data); name the "
+                         "data set it was matched from (DATA: an Oxford-layout folder, graf ..., scene:SEED)")
+    source = benchmark.locate(args.data[0], args.data_root) if args.data else None
+    bench, row = benchmark.evaluate_clusters(cl, source, tol=args.tol, origin=args.clusters)
+    truth = (f"{bench.name}'s homographies, {args.tol:g} px" if bench.kind == "homography" else
+             "the file's point_ids" if source is None else f"the file's point_ids ({bench.name})")
+    s, v = row.scores, row.violations
+    print(benchmark.markdown_table({bench.name: [row]}, {bench.name: bench}), end="")
+    print(f"{args.clusters} against {truth}: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f} "
+          f"({s.n_correct} of {s.n_predicted} implied pairs correct, {s.n_truth} true pairs); "
+          f"C1 features {v.c1_features}, C2 tracks {v.c2_tracks}")
+    stem = benchmark.file_stem(Path(args.clusters).stem)
+    out = out_dir / (f"evaluation_{stem}" + (f"_{benchmark.file_stem(bench.name)}" if source else "") + ".json")
+    payload = {
+        "dqm_version": __version__,
+        "clusters": {"path": str(Path(args.clusters).resolve()), "params": cl.get("params", {})},
+        "settings": {"tol": args.tol, "truth": bench.kind, "data": args.data[0] if args.data else None},
+        "datasets": {bench.name: {"n_features": len(bench), "n_images": bench.n_images, "kind": bench.kind,
+                                  "methods": [row.as_dict()]}},
+    }
+    out.write_text(json.dumps(_finite(payload), indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
 def run(args) -> int:
     from .. import plots
 
+    if args.clusters:
+        return run_clusters(args)
     t0 = time.perf_counter()
     load = f"{os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else "unknown"
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -210,10 +321,11 @@ def run(args) -> int:
     specs = args.data or list(benchmark.DATASETS) + ["scene"]
     say = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
     out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
-    results: Dict[str, List[benchmark.MethodResult]] = {}
-    benches: Dict[str, benchmark.Benchmark] = {}
+    results: dict[str, list[benchmark.MethodResult]] = {}
+    benches: dict[str, benchmark.Benchmark] = {}
     skipped = []
-    plot_files: Dict[str, List[Path]] = {}
+    plot_files: dict[str, list[Path]] = {}
+    stems: dict[str, str] = {}  # data-set name -> its part of file names, unique in out_dir
     for spec in specs:
         try:
             say(f"loading {spec}")
@@ -226,6 +338,7 @@ def run(args) -> int:
             skipped.append((spec, str(exc)))
             continue
         name = bench.name if bench.name not in results else f"{bench.name}-{len(results)}"
+        stems[name] = benchmark.file_stem(name, stems.values())
         rows = benchmark.evaluate(bench, methods, rho=args.rho, ratio=args.ratio, rhos=rhos, ratios=ratios,
                                   seed=args.seed, log=say)
         results[name] = rows
@@ -234,16 +347,16 @@ def run(args) -> int:
                               {r.method: (r.scores.recall, r.scores.precision) for r in rows},
                               labels=benchmark.METHODS,
                               title=f"{name}: {len(bench)} features, {bench.n_images} images")
-        plot_files[name] = [plots.save(fig, out_dir / f"pr_{name}.png")]
+        plot_files[name] = [plots.save(fig, out_dir / f"pr_{stems[name]}.png")]
         if args.figures:
-            plot_files[name] += _figures(bench, out_dir, args.rho)
+            plot_files[name] += _figures(bench, out_dir, args.rho, stems[name])
         if not args.quiet:
             print(benchmark.markdown_table({name: rows}, {name: bench}), flush=True)
     if not results:
         raise InputError("no dataset could be loaded: " + "; ".join(f"{s}: {w}" for s, w in skipped))
     total = time.perf_counter() - t0
     out_dir.mkdir(parents=True, exist_ok=True)
-    md = _markdown(args, results, benches, skipped, plot_files, total, load)
+    md = _markdown(args, methods, results, benches, skipped, plot_files, total, load)
     (out_dir / "evaluation.md").write_text(md)
     payload = {
         "dqm_version": __version__,
@@ -253,6 +366,7 @@ def run(args) -> int:
                             "methods": [r.as_dict() for r in rows]} for name, rows in results.items()},
         "skipped": dict(skipped),
     }
+    payload["settings"].update(methods=methods, command=command_line(args))
     (out_dir / "evaluation.json").write_text(json.dumps(payload, indent=1))
     print(f"wrote {out_dir / 'evaluation.md'}, {out_dir / 'evaluation.json'} and "
           f"{sum(len(v) for v in plot_files.values())} plot(s) in {total:.0f} s")

@@ -55,10 +55,13 @@ def add_arguments(p) -> None:
     s.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
     r = sub.add_parser("pr", formatter_class=HelpFormatter, help="PR curves from a dqm evaluate JSON")
     r.add_argument("evaluation", metavar="EVALUATION.json")
-    r.add_argument("--out-dir", required=True, help="folder for one pr_<data set>.png per data set")
+    r.add_argument("--out-dir", required=True, help="folder for one pr_<data set>.png per data set (the name made "
+                                                         "safe for file names: scene:3 -> pr_scene-3.png)")
 
 
-def _images(cl: dict, image_dir) -> list:
+def _images(cl: dict, image_dir, needed) -> list:
+    """Paths of the images (row k: image id k); only the ``needed`` image ids must exist (a CLUSTERS
+    file may name images it holds no feature of, e.g. a distributed job's)."""
     if "image_names" not in cl:
         raise InputError("this clusters file records no image names (made from a FEATURES file without them); "
                          "pair and clusters plots need the images")
@@ -67,9 +70,12 @@ def _images(cl: dict, image_dir) -> list:
         p = Path(name)
         if not p.is_absolute() and image_dir is not None:
             p = Path(image_dir) / p
-        if not p.exists():
-            raise InputError(f"image {p} not found (use --image-dir to say where the images are)")
         out.append(p)
+    for k in sorted(set(int(k) for k in needed)):
+        if not 0 <= k < len(out) or not str(cl["image_names"][k]):
+            raise InputError(f"this clusters file names no image for image id {k}")
+        if not out[k].exists():
+            raise InputError(f"image {out[k]} not found (use --image-dir to say where the images are)")
     return out
 
 
@@ -82,13 +88,14 @@ def _keypoints(cl: dict) -> np.ndarray:
 def _pair(args) -> int:
     cl = io.load_clusters(args.clusters)
     ids = np.asarray(cl["image_ids"])
-    images = _images(cl, args.image_dir)
     i, j = args.images
+    top = max(len(cl.get("image_names", ())), int(ids.max()) + 1 if len(ids) else 0)
     for k in (i, j):
-        if not 0 <= k < len(images):
-            raise InputError(f"image id {k} out of range 0..{len(images) - 1}")
+        if not 0 <= k < top:
+            raise InputError(f"image id {k} out of range 0..{top - 1}")
     if i == j:
         raise InputError("--images needs two different image ids")
+    images = _images(cl, args.image_dir, (i, j))
     kp = _keypoints(cl)
     a, b = cluster_pairs(cl["labels"], ids)
     sel = ((ids[a] == i) & (ids[b] == j)) | ((ids[a] == j) & (ids[b] == i))
@@ -126,7 +133,8 @@ def _clusters(args) -> int:
     if not big:
         raise InputError(f"no cluster has {args.min_size} or more features")
     members = [np.flatnonzero(labels == k) for k in big]
-    fig = plots.clusters_figure(_images(cl, args.image_dir), _keypoints(cl), cl["image_ids"], members,
+    used = np.unique(np.asarray(cl["image_ids"])[np.concatenate(members)])
+    fig = plots.clusters_figure(_images(cl, args.image_dir, used), _keypoints(cl), cl["image_ids"], members,
                                 radius=args.radius, point_ids=cl.get("point_ids"),
                                 title=f"{len(members)} largest clusters")
     print(f"wrote {plots.save(fig, args.out)}")
@@ -149,15 +157,17 @@ def _pr(args) -> int:
         sets = data["datasets"]
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"{p}: not a dqm evaluate JSON ({exc})") from None
-    from ..benchmark import METHODS
+    from ..benchmark import METHODS, file_stem
 
+    stems: list = []  # data-set names as file names: one rule everywhere (benchmark.file_stem), unique here
     for name, d in sets.items():
+        stems.append(file_stem(name, stems))
         rows = d["methods"]
         curves = [PRCurve.from_dict(r["curve"]) for r in rows]
         points = {r["method"]: (r["scores"]["recall"], r["scores"]["precision"]) for r in rows}
         fig = plots.pr_figure(curves, points, labels=METHODS,
                               title=f"{name}: {d['n_features']} features, {d['n_images']} images")
-        print(f"wrote {plots.save(fig, Path(args.out_dir) / f'pr_{name}.png')}")
+        print(f"wrote {plots.save(fig, Path(args.out_dir) / f'pr_{stems[-1]}.png')}")
     return 0
 
 

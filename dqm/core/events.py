@@ -25,14 +25,27 @@ Replaying a change set's events in order over the previous assignment
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Mapping, MutableMapping
+from typing import Any
 
 import numpy as np
 
 EVENT_KINDS = ("shrunk", "removed", "split", "merged", "created", "grown")
 #: kinds after which the features no longer belong to any cluster
 LEAVING = ("shrunk", "removed")
+#: events a change set's ``str`` / ``repr`` spell out (the rest are counted), so that printing a change
+#: set stays short whatever its size
+SHOWN_EVENTS = 3
+#: feature keys / image ids an event's ``repr`` spells out
+SHOWN_KEYS = 6
+
+
+def _few(values: np.ndarray, limit: int = SHOWN_KEYS) -> str:
+    """``[1, 2, 3, ...]`` (the first ``limit`` values, with their count when there are more)."""
+    vals = [str(int(v)) for v in np.asarray(values).ravel()[:limit]]
+    more = f", ... ({len(values)} in all)" if len(values) > limit else ""
+    return "[" + ", ".join(vals) + more + "]"
 
 
 @dataclass(frozen=True)
@@ -69,13 +82,18 @@ class ClusterEvent:
             return f"cluster {self.cluster} lost {what} (removed)"
         return f"cluster {self.cluster} removed with its last {what}"
 
-    def to_dict(self) -> Dict[str, Any]:
+    def __repr__(self) -> str:
+        """Bounded: at most :data:`SHOWN_KEYS` feature keys and image ids, then their count."""
+        return (f"ClusterEvent(kind={self.kind!r}, cluster={self.cluster}, features={_few(self.features)}, "
+                f"images={_few(self.images)}, source={self.source}, new={self.new})")
+
+    def to_dict(self) -> dict[str, Any]:
         """Plain types (ints and lists), for JSON or msgpack."""
         return {"kind": self.kind, "cluster": int(self.cluster), "source": int(self.source), "new": bool(self.new),
                 "features": [int(k) for k in self.features], "images": [int(i) for i in self.images]}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "ClusterEvent":
+    def from_dict(cls, d: Mapping[str, Any]) -> ClusterEvent:
         """Inverse of :meth:`to_dict` (no validation: check untrusted input first)."""
         return cls(str(d["kind"]), int(d["cluster"]), np.asarray(d["features"], np.int64),
                    np.asarray(d["images"], np.int64), int(d.get("source", -1)), bool(d.get("new", False)))
@@ -91,12 +109,12 @@ class ChangeSet:
     parent changed, features whose merges were replayed, seconds).
     """
 
-    events: List[ClusterEvent]
+    events: list[ClusterEvent]
     added: np.ndarray
     removed: np.ndarray
-    stats: Dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
 
-    def counts(self) -> Dict[str, int]:
+    def counts(self) -> dict[str, int]:
         """Number of events of every kind."""
         out = {k: 0 for k in EVENT_KINDS}
         for e in self.events:
@@ -111,13 +129,29 @@ class ChangeSet:
         tt = f"; merges replayed over {touched:.0f} features" if touched is not None else ""
         return f"+{len(self.added)} / -{len(self.removed)} features: {kinds}{tt}"
 
-    def to_dict(self) -> Dict[str, Any]:
+    def _first_events(self) -> list[str]:
+        shown = [str(e) for e in self.events[:SHOWN_EVENTS]]
+        if len(self.events) > SHOWN_EVENTS:
+            shown.append(f"... {len(self.events) - SHOWN_EVENTS} more event(s)")
+        return shown
+
+    def __str__(self) -> str:
+        """The :meth:`summary` line, then the first :data:`SHOWN_EVENTS` events, one per line (bounded)."""
+        return "\n".join([self.summary()] + ["  " + line for line in self._first_events()])
+
+    def __repr__(self) -> str:
+        """One bounded line: the summary and the first events (``events`` holds them all)."""
+        events = "; ".join(self._first_events()) or "none"
+        return f"ChangeSet({self.summary()}; {len(self.events)} event(s): {events})"
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain types (ints, floats and lists), for JSON or msgpack."""
         return {"events": [e.to_dict() for e in self.events], "added": [int(k) for k in self.added],
                 "removed": [int(k) for k in self.removed],
                 "stats": {k: float(v) for k, v in self.stats.items()}}
 
 
-def replay(assignment: MutableMapping[int, int], events: List[ClusterEvent]) -> MutableMapping[int, int]:
+def replay(assignment: MutableMapping[int, int], events: list[ClusterEvent]) -> MutableMapping[int, int]:
     """Apply ``events`` in order to ``assignment`` (feature key -> cluster id), in place; returns it."""
     for e in events:
         keys = [int(k) for k in e.features]
