@@ -5,16 +5,18 @@ Starts, on this host, a zenoh router, a `dqm stream` process and one process per
 camera of the camera-network simulator (dqm.camnet.simulator). Every camera
 process renders its frames, extracts SIFT (dqm.vision.features) and puts one
 `image` message per frame on dqm/<job>/stream/images at --rate Hz (image id =
-frame * cameras + camera; the cameras are staggered within a period), once the
-stream's liveliness token is present. This script also puts --bad malformed
+camera * 10^9 + frame, as dqm camera numbers them; the frame is saved as a PNG
+whose path is the image's name; the cameras are staggered within a period), once
+the stream's liveliness token is present. This script also puts --bad malformed
 messages, which the stream must reject, count and survive, and listens to the
 change sets on dqm/<job>/stream/changes.
 
 At the end it checks that the stream's final clusters (its --out CLUSTERS file)
 equal batch dqm.quickmatch(kernel="quadratic") on the same images in arrival
 order (with --window: the images still in the window), and that the published
-events replayed from an empty assignment give them too; it prints the latency
-of every image (camera put -> change set received here) and the counts.
+events replayed from an empty assignment give them too, and that the file names
+every image (image_names, so that `dqm plot clusters` can draw it); it prints the
+latency of every image (camera put -> change set received here) and the counts.
 
     python scripts/stream_demo.py                         # 3 cameras x 12 frames, about 15 s
     python scripts/stream_demo.py --cameras 5 --frames 40 --window 30
@@ -44,30 +46,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dqm.distributed import keys, messages  # noqa: E402
+from dqm.runtime.stream import camera_image_id, split_image_id, wait_for_token  # noqa: E402
 
 BAD_KINDS = ("garbage", "nan", "version", "job", "dimension", "duplicate")
 
 
 # ---------------------------------------------------------------------- camera node (a child process)
-def wait_for_token(session, key: str, deadline_s: float) -> bool:
-    """Whether the liveliness token ``key`` appeared within ``deadline_s``."""
-    seen = queue.Queue()
-    sub = session.liveliness().declare_subscriber(key, lambda smp: seen.put(str(smp.kind)), history=True)
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < deadline_s:
-            try:
-                if seen.get(timeout=0.1).endswith("PUT"):
-                    return True
-            except queue.Empty:
-                pass
-        return False
-    finally:
-        sub.undeclare()
-
-
 def camera_node(args) -> int:
     """Render this camera's frames, extract SIFT, put one image message per frame at the slot times."""
+    import cv2
     import zenoh
 
     from dqm.camnet.simulator import SimConfig, build_world
@@ -103,8 +90,11 @@ def camera_node(args) -> int:
                 late += 1
             img, truth = world.render(c, f)
             feats = features.extract(img, max_features=args.max_features)
-            image_id = f * n_cams + c
-            payload = messages.image_message(args.job, c, image_id, feats.descriptors, feats.keypoints, seq=f)
+            image_id = camera_image_id(c, f)
+            png = wd / f"cam{c}_frame{f:03d}.png"  # named by its path: dqm plot can draw the stream's result
+            cv2.imwrite(str(png), img)
+            payload = messages.image_message(args.job, c, image_id, feats.descriptors, feats.keypoints, seq=f,
+                                             name=str(png.resolve()))
             session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
             sent.append(image_id)
             descs.append(feats.descriptors)
@@ -209,7 +199,7 @@ def main(argv=None) -> int:
     remove_stale_workdirs()
     wd = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-"))
     wd.mkdir(parents=True, exist_ok=True)
-    for stale in list(wd.glob("cam*")) + [wd / "go", wd / "clusters.npz"]:
+    for stale in list(wd.glob("cam*")) + [wd / "go", wd / "clusters.npz"]:  # cam*.ready, .npz, .log, _frame*.png
         stale.unlink(missing_ok=True)
     total = args.cameras * args.frames
     port = free_port()
@@ -326,6 +316,7 @@ def report(args, wd: Path, inbox, received, rc: int, bad_sent: Counter, total: i
         print(f"stream_demo: the stream exited with code {rc}; logs in {wd}", file=sys.stderr)
         return 1
     # what the cameras sent, and what the stream kept (arrival order, minus the window's removals)
+    names = {m["image_id"]: m["name"] for _, m in received if m["op"] == "add"}
     sent = {}
     for c in range(args.cameras):
         z = np.load(wd / f"cam{c}.npz")
@@ -337,13 +328,13 @@ def report(args, wd: Path, inbox, received, rc: int, bad_sent: Counter, total: i
     present = [i for i in arrival if i not in removed]
     # latency: the camera's put (its clock) -> this process received the change set of that add
     lat = {m["image_id"]: (t - m["time"]) * 1e3 for t, m in received if m["op"] == "add"}
-    print(f"\n{'image':>6} {'camera':>6} {'frame':>5} {'features':>8} {'events':>6} {'latency':>9}")
+    print(f"\n{'image':>10} {'camera':>6} {'frame':>5} {'features':>8} {'events':>6} {'latency':>9}")
     for t, m in received:
         if m["op"] != "add":
             continue
         i = m["image_id"]
-        print(f"{i:>6} {i % args.cameras:>6} {i // args.cameras:>5} {len(m['added']):>8} {len(m['event_kind']):>6} "
-              f"{lat[i]:>6.0f} ms")
+        cam, frame = split_image_id(i)
+        print(f"{i:>10} {cam:>6} {frame:>5} {len(m['added']):>8} {len(m['event_kind']):>6} {lat[i]:>6.0f} ms")
     events = Counter()
     for _, m in received:
         for k in m["event_kind"]:
@@ -353,7 +344,11 @@ def report(args, wd: Path, inbox, received, rc: int, bad_sent: Counter, total: i
     cl = io.load_clusters(wd / "clusters.npz")
     X = np.concatenate([sent[i] for i in present])
     ids = np.concatenate([np.full(len(sent[i]), i, np.int64) for i in present])
-    same_input = np.array_equal(cl["descriptors"], X) and np.array_equal(cl["image_ids"], ids)
+    # the file numbers the present images 0..K-1 in arrival order; params stream_image_ids maps them back
+    file_ids = np.concatenate([np.full(len(sent[i]), k, np.int64) for k, i in enumerate(present)])
+    same_input = (np.array_equal(cl["descriptors"], X) and np.array_equal(cl["image_ids"], file_ids)
+                  and cl["params"].get("stream_image_ids") == present)
+    named = "image_names" in cl and cl["image_names"].tolist() == [names[i] for i in present]
     batch = dqm.quickmatch(X, ids, rho=args.rho, kernel="quadratic")
     same = same_input and np.array_equal(cl["labels"], batch.labels)
     assignment = {}
@@ -374,8 +369,11 @@ def report(args, wd: Path, inbox, received, rc: int, bad_sent: Counter, total: i
     print(f"final clusters vs batch dqm.quickmatch(kernel='quadratic') on the {len(present)} images: "
           f"{'IDENTICAL' if same else 'DIFFERENT'}; events replayed from scratch give the same clusters: "
           f"{'yes' if replayed else 'NO'}")
-    print(f"{wall:.1f} s in all" + (f"; logs and clusters.npz in {wd}" if args.keep else ""))
-    ok = same and replayed and len(arrival) == total and (last is None or last["rejected"] == sum(bad_sent.values()))
+    print(f"the CLUSTERS file names every image (image_names): {'yes' if named else 'NO'}")
+    print(f"{wall:.1f} s in all" + (f"; logs, frames and clusters.npz in {wd} (draw it: dqm plot clusters "
+                                    f"{wd / 'clusters.npz'} --out clusters.png)" if args.keep else ""))
+    ok = (same and replayed and named and len(arrival) == total
+          and (last is None or last["rejected"] == sum(bad_sent.values())))
     return 0 if ok else 1
 
 

@@ -3,6 +3,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -84,6 +85,9 @@ BAD_IMAGES = [
     (lambda: _mutate(_image(), seq=-1), "bad seq"),
     (lambda: msgpack.packb({k: v for k, v in msgpack.unpackb(_image(), raw=False).items() if k != "keypoints"}),
      "lacks field 'keypoints'"),
+    (lambda: _mutate(_image(), name=7), "image.name must be a string"),
+    (lambda: _image(name="a\nb"), "without control characters"),
+    (lambda: _image(name="x" * (messages.MAX_NAME_CHARS + 1)), "at most 4096 characters"),
 ]
 
 
@@ -92,6 +96,24 @@ def test_decode_rejects_malformed_image_messages(make, reason):
     with pytest.raises(messages.MessageError) as err:
         messages.decode(make(), job=JOB)
     assert reason in str(err.value), str(err.value)
+
+
+def test_image_names_are_optional_and_travel():
+    """A name goes through; a message of an older sender (no name field, same version) reads as name ""."""
+    named = messages.decode(_image(name="/data/cam1/img 07.png"), job=JOB)
+    assert named["name"] == "/data/cam1/img 07.png"
+    old = msgpack.packb({k: v for k, v in msgpack.unpackb(_image(), raw=False).items() if k != "name"})
+    assert "name" not in msgpack.unpackb(old, raw=False)
+    assert messages.decode(old, job=JOB)["name"] == ""
+    om = OnlineQuickMatch()
+    cs = om.add(np.random.default_rng(0).integers(0, 255, (6, DIM)).astype(np.uint8), np.zeros(6, np.int64))
+    raw = messages.changes_message(JOB, cs, "add", 0, sent=1.0, n_images=1, n_features=6, n_clusters=6,
+                                   rejected=0, name="img 07.png")
+    assert messages.decode(raw, job=JOB)["name"] == "img 07.png"
+    old = msgpack.packb({k: v for k, v in msgpack.unpackb(raw, raw=False).items() if k != "name"})
+    assert messages.decode(old, job=JOB)["name"] == ""
+    with pytest.raises(messages.MessageError, match="changes.name must be at most"):
+        messages.decode(_mutate(raw, name="a\x00b"), job=JOB)
 
 
 def test_decode_checks_dimension_and_size_limits():
@@ -135,8 +157,8 @@ def test_changes_round_trip_and_rejects_malformed(data):
 def test_decode_raises_only_message_errors_on_mutated_images():
     """Random truncations, bit flips and field swaps: MessageError every time, nothing else."""
     rng = np.random.default_rng(0)
-    good = _image(kp_rows=5)
-    fields = ["v", "kind", "job", "src", "seq", "epoch", "image_id", "time", "descriptors", "keypoints"]
+    good = _image(kp_rows=5, name="img.png")
+    fields = ["v", "kind", "job", "src", "seq", "epoch", "image_id", "time", "descriptors", "keypoints", "name"]
     values = [None, -1, 2 ** 63, 1.5, "x", b"\x00", [], {}, {"dtype": "<f4", "shape": [3], "data": b"1"}, True]
     for trial in range(300):
         r = trial % 3
@@ -177,12 +199,9 @@ def router():
 
 
 def _wait_token(session, key, deadline_s=30.0):
-    seen = threading.Event()
-    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
-    try:
-        assert seen.wait(deadline_s), f"no liveliness token {key}"
-    finally:
-        sub.undeclare()
+    from dqm.runtime.stream import wait_for_token
+
+    assert wait_for_token(session, key, deadline_s), f"no liveliness token {key}"
 
 
 def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
@@ -207,7 +226,10 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
         _wait_token(session, keys.alive_stream(job))
         put = lambda raw: session.put(keys.stream_images(job), raw,  # noqa: E731
                                       congestion_control=zenoh.CongestionControl.BLOCK)
-        img = lambda i, **kw: messages.image_message(job, i % 2, i, X[ids == i], **kw)  # noqa: E731
+        img = lambda i, **kw: messages.image_message(job, i % 2, i, X[ids == i], name=f"img{i}.png",  # noqa: E731
+                                                     keypoints=np.c_[X[ids == i][:, :2], np.full((n(i), 2), i)]
+                                                     .astype(np.float32), **kw)
+        n = lambda i: int((ids == i).sum())  # noqa: E731
         nan = X[ids == 0].astype(np.float32)
         nan[1, 2] = np.nan
         bad = [
@@ -251,6 +273,7 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
     assert [(m["op"], m["image_id"]) for m in msgs] == [
         ("add", 0), ("add", 1), ("add", 2), ("remove", 0), ("add", 3), ("remove", 1), ("add", 4)]
     assert [m["seq"] for m in msgs] == list(range(7))
+    assert [m["name"] for m in msgs] == [f"img{i}.png" for i in (0, 1, 2, 0, 3, 1, 4)]
     assert msgs[-1]["rejected"] == 8 and msgs[-1]["n_images"] == window
     # the events, replayed over the previous assignment, give every next one; the last equals the file's clusters
     present = [2, 3, 4]
@@ -258,7 +281,12 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
     Xp = np.concatenate([X[ids == i] for i in present])
     idp = np.concatenate([ids[ids == i] for i in present])
     np.testing.assert_array_equal(cl["descriptors"], Xp)
-    np.testing.assert_array_equal(cl["image_ids"], idp)
+    # the file numbers the present images 0..K-1 in arrival order (image_names row k names image k), and
+    # keeps the stream's ids in its params; names and keypoints follow their images
+    np.testing.assert_array_equal(cl["image_ids"], np.searchsorted(present, idp))
+    assert cl["params"]["stream_image_ids"] == present
+    assert [Path(n).name for n in cl["image_names"].tolist()] == [f"img{i}.png" for i in present]
+    np.testing.assert_array_equal(cl["keypoints"][:, 2], idp)
     batch = dqm.quickmatch(Xp, idp, kernel="quadratic")
     np.testing.assert_array_equal(cl["labels"], batch.labels)
     assignment, sizes = {}, []

@@ -3,39 +3,33 @@
     dqm stream --connect tcp/127.0.0.1:7447 --job cams
     dqm stream --connect tcp/ROUTER:7447 --job cams --window 50 --idle 30 --out clusters.npz
 
-Camera nodes put one `image` message per image (msgpack, dqm.distributed.messages:
-image_id, time, descriptors, keypoints) on dqm/<job>/stream/images, once the
-stream's liveliness token dqm/<job>/alive/stream is present. After every add
-(and every removal by --window) the stream publishes a `changes` message (the
-cluster events, the image, the counts) on dqm/<job>/stream/changes. Its clusters
-equal dqm match --kernel quadratic on the images present, in arrival order.
+Camera nodes (dqm camera, one per camera) put one `image` message per image (msgpack,
+dqm.distributed.messages: image_id, name, time, descriptors, keypoints) on
+dqm/<job>/stream/images, once the stream's liveliness token dqm/<job>/alive/stream
+is present. After every add (and every removal by --window) the stream publishes a
+`changes` message (the cluster events, the image and its name, the counts) on
+dqm/<job>/stream/changes. Its clusters equal dqm match --kernel quadratic on the
+images present, in arrival order.
 
 Malformed messages (bad msgpack, version, kind, job, arrays, dimensions, an image
 received before, an image without features) are dropped and counted by reason; the
 stream goes on. It stops on Ctrl-C / SIGTERM, after --images accepted images or
 --idle seconds without a message, then writes --out (a CLUSTERS file of the images
-present) and prints a summary.
+present, numbered 0..K-1 in arrival order -- params stream_image_ids holds the
+stream's ids -- with image_names and keypoints when every image sent them, so that
+dqm plot pair / clusters can draw it) and prints a summary.
 
 Exit codes: 0 done, 2 bad input or no router, 130 interrupted, 143 terminated
 (SIGTERM); --out is written in every case once an image was accepted.
 """
 import argparse
 
-from .runtime_options import add_tls, tls_from
 from ..core import DEFAULT_RHO
+from ..validation import positive_int_arg
+from .runtime_options import add_tls, tls_from
 
 NAME = "stream"
 HELP = "online matching of images that camera nodes put over zenoh"
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
 
 
 def _positive_float(text: str) -> float:
@@ -53,10 +47,10 @@ def add_arguments(p) -> None:
     p.add_argument("--job", default="stream", help="job id: the keys live under dqm/<job>/ (default: stream)")
     p.add_argument("--rho", type=_positive_float, default=DEFAULT_RHO,
                    help=f"merge ratio (default {DEFAULT_RHO}); the kernel is the quadratic one")
-    p.add_argument("--window", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--window", type=positive_int_arg, default=None, metavar="N",
                    help="keep at most N images: before adding an image beyond N, remove the oldest (its change "
                         "set is published too)")
-    p.add_argument("--images", type=_positive_int, default=None, metavar="N", help="stop after N accepted images")
+    p.add_argument("--images", type=positive_int_arg, default=None, metavar="N", help="stop after N accepted images")
     p.add_argument("--idle", type=_positive_float, default=None, metavar="SECONDS",
                    help="stop after this many seconds without a message")
     p.add_argument("--out", default=None, metavar="CLUSTERS.npz",
@@ -65,7 +59,7 @@ def add_arguments(p) -> None:
     p.add_argument("--verbose", action="store_true", help="a line per image even when not a terminal")
     p.add_argument("--connect-timeout", type=_positive_float, default=5.0,
                    help="seconds of retries to reach the router")
-    p.add_argument("--max-message-bytes", type=_positive_int, default=64 << 20, help="reject larger messages")
+    p.add_argument("--max-message-bytes", type=positive_int_arg, default=64 << 20, help="reject larger messages")
     add_tls(p)
 
 
