@@ -501,31 +501,37 @@ def markdown_table(results: dict[str, list[MethodResult]], benches: dict[str, Be
     return "\n".join(lines) + "\n"
 
 
-def _word(win: bool) -> str:
-    return "**wins**" if win else "**loses**"
+def _word(ours: float, theirs: float) -> str:
+    """**wins** / **loses**, or ties where the two agree to the 3 decimals the table shows."""
+    if round(ours, 3) == round(theirs, 3):
+        return "ties"
+    return "**wins**" if ours > theirs else "**loses**"
 
 
 def _against_baselines(qm: MethodResult, base: list[MethodResult]) -> str:
     """How one QuickMatch variant compares with the best BF / FLANN baseline of each measure."""
     bf1 = max(base, key=lambda r: r.scores.f1)
-    line = (f"{qm.label} {_word(qm.scores.f1 > bf1.scores.f1)} in F1 at the defaults "
+    line = (f"{qm.label} {_word(qm.scores.f1, bf1.scores.f1)} in F1 at the defaults "
             f"({qm.scores.f1:.3f} vs {bf1.scores.f1:.3f}, {bf1.label})")
     swept = [r for r in base if r.swept]
     if qm.swept and swept:
         qf, qat = qm.curve.best_f1()
         bor = max(swept, key=lambda r: r.curve.best_f1()[0])
         bauc = max(swept, key=lambda r: r.curve.auc())
-        line += (f"; at each method's best threshold it {_word(qf > bor.curve.best_f1()[0])} "
+        line += (f"; at each method's best threshold it {_word(qf, bor.curve.best_f1()[0])} "
                  f"({qf:.3f} at {qm.threshold_name} {qat:g} vs {bor.curve.best_f1()[0]:.3f}, {bor.label}); "
-                 f"in PR AUC it {_word(qm.curve.auc() > bauc.curve.auc())} "
+                 f"in PR AUC it {_word(qm.curve.auc(), bauc.curve.auc())} "
                  f"({qm.curve.auc():.3f} vs {bauc.curve.auc():.3f}, {bauc.label})")
     elif not qm.swept:
         line += " (one operating point: no threshold sweep, so no best-threshold F1 or PR AUC)"
     line += "."
     tracks = [r for r in base if "-drop-" in r.method]
     if tracks:
-        lost = [r.label for r in tracks if qm.scores.f1 <= r.scores.f1]
-        line += (f" Default F1 against the {len(tracks)} track variant(s): beats {len(tracks) - len(lost)}"
+        verdict = {r.label: _word(qm.scores.f1, r.scores.f1) for r in tracks}
+        lost = [label for label, w in verdict.items() if w == "**loses**"]
+        tied = [label for label, w in verdict.items() if w == "ties"]
+        line += (f" Default F1 against the {len(tracks)} track variant(s): beats {len(tracks) - len(lost) - len(tied)}"
+                 + (f", ties with {'; '.join(tied)}" if tied else "")
                  + (f", loses to {'; '.join(lost)}" if lost else "") + ".")
         line += (f" Precision {qm.scores.precision:.3f} vs {max(r.scores.precision for r in tracks):.3f} "
                  f"(most precise track), recall {qm.scores.recall:.3f} vs "

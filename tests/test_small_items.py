@@ -140,11 +140,17 @@ def test_findings_compare_quickmatch_with_the_baselines_and_verification_separat
     assert (f"precision {p['precision']:.3f} -> {v['precision']:.3f}, recall {p['recall']:.3f} -> "
             f"{v['recall']:.3f}, F1 {p['f1']:.3f} -> {v['f1']:.3f}") in bullets[2]
     base_f1 = max(rows[m]["scores"]["f1"] for m in ("bf", "bf-drop-later"))
-    word = "**wins**" if p["f1"] > base_f1 else "**loses**"
+    word = ("ties" if round(p["f1"], 3) == round(base_f1, 3) else "**wins**" if p["f1"] > base_f1 else "**loses**")
     assert f"QuickMatch {word} in F1 at the defaults ({p['f1']:.3f} vs {base_f1:.3f}" in bullets[0]
     # the verified row has one operating point: no best-threshold F1, no PR AUC in the table
     vrow = next(x for x in md.splitlines() if x.startswith("|  | " + verified))
     assert vrow.split(" | ")[6:8] == ["-", "-"]
+
+
+def test_equal_shown_values_are_a_tie_not_a_win():
+    assert benchmark._word(0.9694, 0.9690) == "ties"  # hotel's old "win" within 0.001
+    assert benchmark._word(0.2803, 0.2801) == "ties"
+    assert benchmark._word(0.612, 0.597) == "**wins**" and benchmark._word(0.486, 0.499) == "**loses**"
 
 
 def test_header_states_the_settings_and_the_command_that_regenerates_it(evaluated):
