@@ -323,6 +323,11 @@ def test_stream_stops_when_idle_and_on_sigterm(router, tmp_path):
         _wait_token(session, keys.alive_stream("stream-term"))
     finally:
         session.close()
+    # a second stream under the same job id would split the cameras' images: refused in one line
+    twin = subprocess.run([sys.executable, "-m", "dqm", "stream", "--connect", router, "--job", "stream-term"],
+                          capture_output=True, text=True, timeout=60)
+    assert twin.returncode == 2 and "the stream of job 'stream-term' is already running" in twin.stderr, twin.stderr
+    assert twin.stderr.strip().count("\n") == 0
     p.terminate()
     stdout, stderr = p.communicate(timeout=30)
     assert p.returncode == 143, stderr

@@ -269,7 +269,7 @@ def main_stream(endpoint: str, job: str, *, rho: float = 0.9, window: Optional[i
     """Entry point of ``dqm stream``; returns the exit code. Raises RouterUnreachable when no router answers."""
     import zenoh
 
-    from .bus import open_client
+    from .bus import JobIdInUse, check_job_free, open_client
     from .lifeline import watch_parent
 
     keys.check_job(job)
@@ -283,6 +283,12 @@ def main_stream(endpoint: str, job: str, *, rho: float = 0.9, window: Optional[i
     watch_parent()
     inbox: "queue.Queue" = queue.Queue()
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    try:  # a second stream under this job id would split the cameras' images between two
+        check_job_free(session, keys.alive_stream(job), "the stream", job, endpoint)
+    except JobIdInUse:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+        raise
     sub = token = None
     why = "stopped"
     try:
