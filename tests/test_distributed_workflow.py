@@ -1,6 +1,7 @@
 """The workflow the distributed runtime exists for (issue 21): robots that each extract their own
 images, then run agents; the job's clusters must be the centralized ones, flow into a CLUSTERS
 file that plot / export / evaluate read, and two jobs must not share a job id silently."""
+import json
 import subprocess
 import sys
 import time
@@ -60,7 +61,7 @@ def test_agents_numbering_their_images_alike_give_the_centralized_clusters(tmp_p
         procs.stop_all()
     assert rep["agent_exit_codes"] == [0, 0]
     np.testing.assert_array_equal(np.asarray(rep["labels"]), expected)
-    assert "image id(s) 0, 1, 2 are used by agents 0, 1" in rep["images_note"]
+    assert "image id(s) 0, 1, 2 are used by more than one FEATURES file (agents 0, 1)" in rep["images_note"]
     c = io.load_clusters(clusters)
     np.testing.assert_array_equal(c["labels"], expected)
     np.testing.assert_array_equal(c["image_ids"], true_ids)  # numbered agent after agent: 0..2, then 3..5
@@ -134,6 +135,13 @@ def test_dqm_run_writes_clusters_that_plot_export_and_evaluate_read(tmp_path, ca
     assert main(["match", str(feats), "--out", str(central), "--kernel", "quadratic", "--quiet"]) == 0
     c, m = io.load_clusters(out), io.load_clusters(central)
     np.testing.assert_array_equal(c["labels"], m["labels"])
+    # one traffic ledger: the runtime sent what the simulator meters, catalogs included
+    rep = json.loads((tmp_path / "run.json").read_text())
+    fs = io.load_features(feats)
+    sim = simulate(fs.descriptors, fs.image_ids, DQMConfig(agents=2), catalog=True, features=fs)
+    assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items()
+            if k not in ("stats", "progress")} == sim.traffic.per_kind()
+    assert rep["kinds"]["catalog"]["messages"] == 2
     for key in ("image_ids", "keypoints", "image_names"):
         np.testing.assert_array_equal(c[key], m[key])
     assert main(["plot", "clusters", str(out), "--out", str(tmp_path / "c.png")]) == 0

@@ -113,15 +113,17 @@ def run(args) -> int:
              if rep.get("wire_bytes_received_by_router") else "") + ".")
     print(traffic_table(rep, max_links=TABLE_LINKS))
     if len(rep["links"]) > TABLE_LINKS:
-        print(f"({len(rep['links']) - TABLE_LINKS} smaller links left out" +
-              (f"; every link is in {args.report})" if args.report else "; --report writes every link)"))
+        print(f"(the {TABLE_LINKS} busiest of {len(rep['links'])} links; every link is in "
+              + (f"{args.report})" if args.report else "the report: --report FILE)"))
     if args.report:  # before the check: a long check must not put the job's result at risk
         with open(args.report, "w") as fh:
             json.dump(rep, fh)
         print(f"wrote {args.report}")
     if rep.get("images_note"):
         print(f"Images: {rep['images_note']}.")
-    print(f"wrote {out} (CLUSTERS: dqm plot clusters {out} --out clusters.png; dqm export colmap {out} ...)")
+    drawable = fs.keypoints is not None and fs.image_names is not None
+    print(f"wrote {out} (CLUSTERS" + (f": dqm plot clusters {out} --out clusters.png, dqm export colmap {out} ..."
+                                      if drawable else f": dqm plot sizes {out} --out sizes.png") + ")")
     if args.check:
         from ..distributed.simulator import simulate
 

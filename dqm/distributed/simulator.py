@@ -219,13 +219,16 @@ def _setup(wire: _Wire, clock: _Clock, cfg: DQMConfig, sources: List[seeding.Sou
             sources[a].on_weights(w if a == seeding.LEADER else wire.single("weights", seeding.LEADER, a, **w))
 
 
-def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: bool = False) -> DQMResult:
+def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: bool = False,
+             features: Optional[io.FeatureSet] = None) -> DQMResult:
     """Run Distributed QuickMatch for ``config.agents`` agents in this process.
 
     Agent a starts with the features of its images (:func:`dqm.distributed.sources.image_owners`),
     named on the wire as the runtime names them (:func:`dqm.distributed.sources.agent_features`).
     ``progress``: a callable ``(done, total)`` called after each protocol step. ``catalog``: also
-    meter the ``catalog`` messages that a runtime job writing a CLUSTERS file sends with its results.
+    meter the ``catalog`` messages that a runtime job writing a CLUSTERS file sends with its results;
+    ``features``: the FEATURES set the descriptors and image ids come from, whose keypoints, image
+    names and ground truth then travel in the catalogs as they do at the runtime's agents.
     """
     t_all = time.perf_counter()
     X = check_descriptors(descriptors)
@@ -240,7 +243,10 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     # features travel as uint8 (SIFT) or float32: every agent computes on what it receives
     store = protocol.wire_descriptors(np.asarray(descriptors) if np.asarray(descriptors).dtype == np.uint8 else X)
     owners = image_owners(ids, m)
-    held = [agent_features([part], a) for a, part in enumerate(split_features(io.FeatureSet(store, ids), m))]
+    if features is not None and len(features) != n:
+        raise InputError(f"features has {len(features)} rows, the descriptors {n}: pass the set they come from")
+    whole = io.FeatureSet(store, ids) if features is None else features
+    held = [agent_features([part], a) for a, part in enumerate(split_features(whole, m))]
     traffic = Traffic()
     wire = _Wire(traffic, cfg.job, m, dim)
     clock = _Clock(m)

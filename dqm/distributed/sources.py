@@ -251,7 +251,7 @@ def assemble_clusters(ids: np.ndarray, labels: np.ndarray, catalogs: Dict[int, D
         shared = io.shared_image_ids(local_ids)
         holders = sorted({a for (a, _), lids in zip(sources, local_ids) if np.isin(lids, shared).any()})
         note = (f"image id(s) {', '.join(map(str, shared[:5].tolist()))}{' ...' if len(shared) > 5 else ''} are used "
-                f"by agents {', '.join(map(str, holders))} for different images (every FEATURES file numbers its own "
-                f"images): the CLUSTERS file numbers the {sum(len(x) for x in local_ids)} images 0.. agent after "
-                "agent; image_names say which is which")
+                f"by more than one FEATURES file (agents {', '.join(map(str, holders))}) for different images (every "
+                f"file numbers its own images): the CLUSTERS file numbers the {sum(len(x) for x in local_ids)} "
+                "images 0.. agent after agent; image_names say which is which")
     return AssembledClusters(fs, labels, note)
