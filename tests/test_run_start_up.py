@@ -1,6 +1,7 @@
 """`dqm run` before the job runs (issue 21): Ctrl-C and SIGTERM at any moment of the start-up end it
 at once with its exit code and no traceback, leaving no process; agent counts beyond the host are
 refused or warned about with a reason; large traffic tables are summarised."""
+import os
 import signal
 import subprocess
 import sys
@@ -10,7 +11,7 @@ import pytest
 
 from dqm.cli import main
 from dqm.distributed.protocol import traffic_table
-from dqm.runtime.launcher import check_scale
+from dqm.runtime.launcher import MAX_AGENTS_PER_CORE, JobFailure, check_scale, overload_note
 from dqm.runtime.lifeline import launched_by
 from dqm.validation import InputError
 from runtime_helpers import alive
@@ -48,11 +49,23 @@ def test_agent_counts_beyond_the_host_are_refused_or_warned(tmp_path, capsys):
         assert "--agents" in capsys.readouterr().err
     with pytest.warns(UserWarning, match="for 3 images: an agent starts with whole images, so 2 agents"):
         assert check_scale(5, 3) == 30.0
+    cores = os.cpu_count() or 1
     with pytest.warns(UserWarning, match="on .* cores: the agent processes only share the cores"):
-        timeout = check_scale(100, 1000)
+        timeout = check_scale(MAX_AGENTS_PER_CORE * cores, 10 ** 6)
     assert timeout > 30.0  # the ready timeout grows with the agents per core
-    with pytest.raises(InputError):
-        check_scale(10 ** 6, 10 ** 6)
+    with pytest.raises(InputError, match="cannot keep their 2 s liveliness leases"):
+        check_scale(MAX_AGENTS_PER_CORE * cores + 1, 10 ** 6)
+
+
+def test_agents_taken_for_lost_that_never_crashed_are_said_to_be_overloaded():
+    failure = JobFailure("The distributed job failed: 147 agent processes were lost (6, 1, ...), more than the "
+                         "limit of 75 (agent 114, phase routed).", 3, {"what": "147 agent processes were lost"})
+    text = str(overload_note(failure, [3] * 100 + [0] * 50, 150))
+    assert text.startswith(str(failure)) and "None of the 150 agent processes crashed" in text
+    assert "Run fewer agents on this host" in text
+    assert overload_note(failure, [3, -9, 0], 3) is failure  # one was killed: a real loss, nothing to add
+    other = JobFailure("The distributed job failed: an agent refused the job", 4)
+    assert overload_note(other, [0, 4], 2) is other
 
 
 def test_large_traffic_tables_are_summarised():
@@ -66,3 +79,14 @@ def test_large_traffic_tables_are_summarised():
     assert f"| {len(links) - 24} other links |" in text
     assert f"| total | {rep['total_bytes']} | {len(links)} |" in text
     assert len(traffic_table(rep).splitlines()) > len(links)
+
+
+def test_statistics_of_a_large_job_are_accepted():
+    """An agent reports bytes and messages per (destination, kind): 2,048 entries at 64 agents. A
+    decoder limit of 1,024 map entries refused them, and the coordinator waited for them until its
+    timeout (a 64-agent dqm run stalled)."""
+    from dqm.distributed import messages
+
+    values = {f"sent:{d}:{k}:{w}": 1.0 for d in range(64) for k in range(16) for w in ("bytes", "messages")}
+    msg = messages.decode(messages.encode("stats", "job", 3, values=values), job="job", n_agents=64)
+    assert msg["values"] == values

@@ -36,6 +36,10 @@ from ..core.events import EVENT_KINDS, ClusterEvent
 VERSION = 4
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
+#: most entries of a map: an agent's ``stats`` hold two per (destination, kind) it sent to, so 1,024
+#: (the earlier limit) rejected the statistics of every agent of a job of 43 or more agents and the
+#: coordinator waited for them until its timeout; the message size limit bounds the memory anyway
+MAX_MAP_ENTRIES = 1 << 20
 
 _ALLOWED_DTYPES = {"|u1", "|i1", "<i4", "<i8", "<f4", "<f8", "<u8"}
 
@@ -224,7 +228,7 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
     try:
         body = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
                                max_bin_len=max_bytes, max_str_len=1 << 16, max_array_len=1 << 16,
-                               max_map_len=1 << 10)
+                               max_map_len=MAX_MAP_ENTRIES)
     except Exception as exc:  # noqa: BLE001 - any malformed input
         raise MessageError(f"not valid msgpack ({type(exc).__name__})") from None
     if not isinstance(body, dict):

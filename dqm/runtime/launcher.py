@@ -27,6 +27,7 @@ from .. import io
 from ..distributed.config import DQMConfig
 from ..distributed.sources import split_features
 from .coordinator import failure_paragraph, failure_path
+from .bus import LEASE_MS
 from .lifeline import PARENT_ENV, child_preexec, signals_deferred
 
 #: temporary folders of ``dqm run``: dqm-run-<launcher pid>-<random>
@@ -39,6 +40,9 @@ AGENT_START_CPU_S = 1.0
 AGENT_BASE_BYTES = 100 << 20
 #: agents per core beyond which ``dqm run`` warns that they only share the cores
 AGENTS_PER_CORE = 4
+#: agents per core beyond which ``dqm run`` refuses: measured on 2 cores, 40 agent processes ran the
+#: default job in 38 s, 64 took minutes, and 150 missed their liveliness leases and were taken for lost
+MAX_AGENTS_PER_CORE = 24
 
 
 def check_scale(m: int, n_images: int, ready_timeout_s: Optional[float] = None) -> float:
@@ -60,6 +64,11 @@ def check_scale(m: int, n_images: int, ready_timeout_s: Optional[float] = None) 
         raise InputError(f"--agents {m}: {m} agent processes need about {format_bytes(need)} before any features, "
                          f"more than this host can give ({format_bytes(avail)} available); start fewer agents here "
                          "and the others on other hosts (deploy/README.md)")
+    if m > MAX_AGENTS_PER_CORE * cores:
+        raise InputError(f"--agents {m} on {cores} cores: beyond {MAX_AGENTS_PER_CORE} agent processes per core they "
+                         f"cannot keep their {LEASE_MS / 1000:g} s liveliness leases (150 on 2 cores were taken for "
+                         f"lost); run at most {MAX_AGENTS_PER_CORE * cores} agents on this host and the others on "
+                         "other hosts (deploy/README.md)")
     if m > n_images:
         warnings.warn(f"--agents {m} for {n_images} images: an agent starts with whole images, so {m - n_images} "
                       "agents start with none of their own (they still compute their cells)", stacklevel=2)
@@ -81,6 +90,19 @@ class JobFailure(RuntimeError):
         self.exit_code = exit_code
         self.failure = failure or {}
         self.logs = logs
+
+
+def overload_note(exc: JobFailure, exit_codes: List[Optional[int]], m: int) -> JobFailure:
+    """A job that failed for "lost" agent processes which were in fact running (each exited by itself,
+    none was killed): on one host that means they missed their liveliness lease, the host being
+    overloaded. Say so, instead of leaving the operator to look for crashes that did not happen."""
+    if "were lost" not in str(exc) or any(code is None or code < 0 for code in exit_codes):
+        return exc
+    cores = os.cpu_count() or 1
+    text = (f"{exc} None of the {m} agent processes crashed (each left by itself when the job was aborted): "
+            f"{m} processes on {cores} cores could not answer the {LEASE_MS / 1000:g} s liveliness lease in time "
+            "and were taken for lost. Run fewer agents on this host.")
+    return JobFailure(text, exc.exit_code, exc.failure, exc.logs)
 
 
 def remove_stale_workdirs(root: Optional[str] = None) -> int:
@@ -282,12 +304,16 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
             rc = coord.wait(timeout=timeout_s + 15)
         except subprocess.TimeoutExpired:
             rc = None
+        deadline = time.monotonic() + 10.0  # for all of them together: hundreds of agents, one wait
         for p in agents:
             try:
-                p.wait(timeout=10)
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 pass
-        report = job_outcome(rc, report_path, wd)
+        try:
+            report = job_outcome(rc, report_path, wd)
+        except JobFailure as exc:
+            raise overload_note(exc, [p.returncode for p in agents], cfg.agents) from None
         report["agent_exit_codes"] = [p.returncode for p in agents]
         report["workdir"] = str(wd)
         return report
