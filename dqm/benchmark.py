@@ -382,7 +382,8 @@ class MethodResult:
 
     def as_dict(self) -> dict[str, object]:
         return {"method": self.method, "label": self.label, "threshold_name": self.threshold_name,
-                    "threshold": self.threshold, "scores": self.scores.as_dict(), "violations": self.violations.as_dict(),
+                    "threshold": self.threshold, "scores": self.scores.as_dict(),
+                    "violations": self.violations.as_dict(),
                     "time_s": self.time_s, "curve": self.curve.as_dict()}
 
 

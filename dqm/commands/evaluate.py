@@ -146,7 +146,8 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         "",
         "## Settings",
         "",
-        f"- Methods (rows, in this order): {'; '.join(benchmark.METHODS[m] for m in benchmark.METHODS if m in methods)}.",
+        "- Methods (rows, in this order): "
+        f"{'; '.join(benchmark.METHODS[m] for m in benchmark.METHODS if m in methods)}.",
         (f"- SIFT: OpenCV, preset `{args.preset}` ({'the default: ' if args.preset == DEFAULT_PRESET else ''}"
         f"{_preset_words(args.preset)}), max features per image: {args.max_features or 'no limit'}; "
         "hotel (any preset): OpenCV SIFT described at the 30 labelled landmarks of every frame "

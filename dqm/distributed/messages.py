@@ -363,7 +363,8 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
             raise MessageError("catalog.image_file and image_local differ in length")
         if len(out["image"]) and ((out["image"] < 0) | (out["image"] >= len(out["image_local"]))).any():
             raise MessageError("catalog.image names an entry outside the image table")
-        if len(out["keypoints"]) and (not 2 <= out["keypoints"].shape[1] <= 4 or not np.isfinite(out["keypoints"]).all()):
+        kp = out["keypoints"]
+        if len(kp) and (not 2 <= kp.shape[1] <= 4 or not np.isfinite(kp).all()):
             raise MessageError("catalog.keypoints must be finite rows of 2..4 numbers")
     if kind == "result" and len(out["ids"]) != len(out["labels"]):
         raise MessageError("result ids and labels differ in length")
