@@ -14,6 +14,7 @@ from dqm import io
 from dqm.cli import main
 from dqm.distributed import DQMConfig, simulate
 from dqm.distributed.sources import agent_features, assemble_clusters, split_features
+from dqm.runtime.bus import live_tokens, open_client
 from dqm.runtime.launcher import Processes, free_port
 from dqm.runtime.multihost import finish_job, start_job, start_router
 from dqm.synthetic import sift_like
@@ -156,8 +157,15 @@ def test_dqm_run_writes_clusters_that_plot_export_and_evaluate_read(tmp_path, ca
     assert main(["export", "colmap", str(out), "--database", str(tmp_path / "db.db")]) == 0
 
 
-def _cli(args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "dqm", *args], capture_output=True, text=True, timeout=timeout)
+def _cli_all(*commands, timeout=60):
+    """Run several dqm commands at the same time; their completed processes (returncode, stdout, stderr)."""
+    procs = [subprocess.Popen([sys.executable, "-m", "dqm", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for args in commands]
+    done = []
+    for p in procs:
+        out, err = p.communicate(timeout=timeout)
+        done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    return done
 
 
 def test_a_second_job_under_a_live_job_id_is_refused_and_missing_agents_are_named(tmp_path):
@@ -171,13 +179,21 @@ def test_a_second_job_under_a_live_job_id_is_refused_and_missing_agents_are_name
         start_router(procs, [ep], tmp_path, ("127.0.0.1", port))
         agent = procs.start(["agent", "--id", "0", "--agents", "3", "--connect", ep, "--job", "busy", str(f)],
                             tmp_path / "agent0.log")
-        coord = procs.start(["coordinator", "--agents", "3", "--connect", ep, "--job", "busy", "--ready-timeout", "4",
+        coord = procs.start(["coordinator", "--agents", "3", "--connect", ep, "--job", "busy", "--ready-timeout", "6",
                              "--max-lost", "1", "--no-clusters"], tmp_path / "coordinator.log")
-        time.sleep(2.0)  # both are up and waiting for the missing agents
-        second = _cli(["coordinator", "--agents", "3", "--connect", ep, "--job", "busy", "--no-clusters"])
-        twin = _cli(["agent", "--id", "0", "--agents", "3", "--connect", ep, "--job", "busy", str(f)])
-        other = _cli(["coordinator", "--agents", "1", "--connect", ep, "--job", "other", "--ready-timeout", "1",
-                      "--no-clusters"])
+        watcher = open_client(ep)
+        try:  # both are up (their tokens live) and waiting for the missing agents
+            t0 = time.monotonic()
+            while len(live_tokens(watcher, "dqm/busy/alive/**")) < 2 and time.monotonic() - t0 < 30:
+                time.sleep(0.05)
+        finally:
+            watcher.close()
+        # all three at once, well within the first coordinator's ready timeout
+        second, twin, other = _cli_all(
+            ["coordinator", "--agents", "3", "--connect", ep, "--job", "busy", "--no-clusters"],
+            ["agent", "--id", "0", "--agents", "3", "--connect", ep, "--job", "busy", str(f)],
+            ["coordinator", "--agents", "1", "--connect", ep, "--job", "other", "--ready-timeout", "1",
+             "--no-clusters"])
         rc = coord.wait(timeout=30)
         agent.wait(timeout=30)
     finally:
@@ -189,4 +205,4 @@ def test_a_second_job_under_a_live_job_id_is_refused_and_missing_agents_are_name
     assert other.returncode == 3  # another job id is free (and has no agents)
     assert rc == 3
     log = (tmp_path / "coordinator.log").read_text()
-    assert "2 of 3 agent processes (1, 2) did not appear within the ready timeout of 4 s" in log, log
+    assert "2 of 3 agent processes (1, 2) did not appear within the ready timeout of 6 s" in log, log
