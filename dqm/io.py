@@ -197,7 +197,9 @@ def _read_npz(p: Path, what: str) -> dict:
     if p.is_dir():
         raise InputError(f"{p} is a folder, not a {what} .npz file")
     if not zipfile.is_zipfile(p):
-        hint = " (it looks like JSON: a job report, not a CLUSTERS file)" if p.read_bytes()[:1] in (b"{", b"[") else ""
+        with open(p, "rb") as fh:
+            looks_json = fh.read(1) in (b"{", b"[")
+        hint = " (it looks like JSON: a job report, not a CLUSTERS file)" if looks_json else ""
         raise InputError(f"{p}: not an .npz {what} file{hint} (an .npz is a zip archive of numpy arrays; "
                          "see docs/formats.md)")
     try:

@@ -65,7 +65,8 @@ def read_image_list(path: str, names: List[str], ids: np.ndarray) -> List[int]:
 
 def run(args) -> int:
     from .. import io, outputs
-    from ..runtime.launcher import write_agent_files
+    from ..distributed.sources import split_features
+    from ..runtime.launcher import save_agent_files
 
     out = outputs.check_dir(args.out or outputs.default_dir("split"), "--out")
     fs = io.load_features(args.features)
@@ -78,10 +79,10 @@ def run(args) -> int:
     elif args.agents > n_images:
         raise InputError(f"--agents {args.agents} for {n_images} images: every agent holds whole images, so at most "
                          f"{n_images} agents can have any")
-    paths = write_agent_files(None, None, args.agents or len(lists), out, features=fs, image_lists=lists)
+    parts = split_features(fs, args.agents, lists)
+    paths = save_agent_files(parts, out)
     m = len(paths)
-    for a, path in enumerate(paths):
-        part = io.load_features(path)
+    for a, (path, part) in enumerate(zip(paths, parts)):
         print(f"agent {a}: {path} ({len(np.unique(part.image_ids))} images, {len(part)} features)")
     print(f"start each agent on its host with its file, e.g.\n  dqm agent --id 0 --agents {m} --connect "
           f"tcp/ROUTER:7447 --job JOB {paths[0]}\nand a coordinator: dqm coordinator --agents {m} --connect "

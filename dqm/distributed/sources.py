@@ -143,10 +143,7 @@ def agent_features(sets: Sequence[io.FeatureSet], agent: int, sources: Optional[
         keypoints.append(None if fs.keypoints is None else np.asarray(fs.keypoints, np.float32))
         points.append(None if fs.point_ids is None else np.asarray(fs.point_ids, np.int64))
     all_ids = np.concatenate(ids)
-    srt = np.sort(all_ids)
-    dup = srt[1:][srt[1:] == srt[:-1]]
-    if len(dup):
-        raise InputError(f"feature id {int(dup[0])} appears twice among this agent's FEATURES files")
+    io.check_feature_ids(all_ids, len(all_ids), "this agent's FEATURES files")
     image = np.concatenate(images).astype(np.int64)
     kp = (np.concatenate(keypoints) if all(k is not None for k in keypoints)
           and len({k.shape[1] for k in keypoints}) == 1 else np.zeros((0, 4), np.float32))
@@ -209,27 +206,23 @@ def assemble_clusters(ids: np.ndarray, labels: np.ndarray, catalogs: Dict[int, D
     keeps their ids when no two sources share one and numbers them afresh otherwise.
     """
     agents = sorted(catalogs)
-    sources, local_ids, names = [], [], {}
+    sources, local_ids = [], []  # one source per (agent, file): its rows of the agent's image table
     for a in agents:
-        cat = catalogs[a]
-        files, local = np.asarray(cat["image_file"], np.int64), np.asarray(cat["image_local"], np.int64)
+        files = np.asarray(catalogs[a]["image_file"], np.int64)
+        local = np.asarray(catalogs[a]["image_local"], np.int64)
         for f in np.unique(files).tolist():
-            sources.append((a, f))
-            local_ids.append(local[files == f])
+            rows = np.flatnonzero(files == f)
+            sources.append((a, rows))
+            local_ids.append(local[rows])
     new_ids, renumbered = io.combine_images(local_ids)
-    # output image id of every (agent, table index)
-    out_of: Dict[int, np.ndarray] = {}
+    # output image id of every (agent, table index); combine_images gives each source's ids in sorted order
+    out_of = {a: np.zeros(len(catalogs[a]["image_local"]), np.int64) for a in agents}
+    for (a, rows), lids, out in zip(sources, local_ids, new_ids):
+        out_of[a][rows] = out[np.searchsorted(np.unique(lids), lids)]
+    names: Dict[int, str] = {}
     for a in agents:
-        cat = catalogs[a]
-        files, local = np.asarray(cat["image_file"], np.int64), np.asarray(cat["image_local"], np.int64)
-        table = np.zeros(len(local), np.int64)
-        for (sa, f), lids, out in zip(sources, local_ids, new_ids):
-            if sa == a:
-                rows = np.flatnonzero(files == f)
-                table[rows] = out[np.searchsorted(np.unique(lids), local[rows])]
-        out_of[a] = table
-        for k, name in enumerate(catalog_names(cat)):
-            names.setdefault(int(table[k]), name)
+        for k, name in enumerate(catalog_names(catalogs[a])):
+            names.setdefault(int(out_of[a][k]), name)
     cat_ids = np.concatenate([np.asarray(catalogs[a]["ids"], np.int64) for a in agents])
     order = np.argsort(cat_ids, kind="stable")
     if not np.array_equal(cat_ids[order], ids):

@@ -48,7 +48,8 @@ MAX_AGENTS_PER_CORE = 24
 def check_scale(m: int, n_images: int, ready_timeout_s: Optional[float] = None) -> float:
     """Guard ``dqm run --agents M`` on this host, before anything starts; returns the ready timeout.
 
-    Refused (InputError): more agent processes than the memory holds. Warned: more agents than
+    Refused (InputError): more agent processes than the memory holds, or more than
+    :data:`MAX_AGENTS_PER_CORE` per core (they miss their liveliness leases). Warned: more agents than
     images (the extra agents start with no features of their own; they still compute their cells)
     and many agents per core (they share the cores: more agents make the job slower, not faster).
     The default ready timeout grows with the start-up work per core.
@@ -159,8 +160,13 @@ def write_agent_files(descriptors, image_ids, m: int, workdir: Path, features: O
     (:func:`dqm.distributed.sources.split_features`: keypoints, image names and feature ids kept;
     feature ids are the row numbers unless the set has its own)."""
     fs = features if features is not None else io.FeatureSet(descriptors, np.asarray(image_ids, np.int64))
+    return save_agent_files(split_features(fs, m, image_lists), workdir)
+
+
+def save_agent_files(parts: List[io.FeatureSet], workdir: Path) -> List[Path]:
+    """Write ``workdir/agent<i>.npz`` for every agent's FEATURES set; returns the paths."""
     paths = []
-    for a, part in enumerate(split_features(fs, m, image_lists)):
+    for a, part in enumerate(parts):
         p = Path(workdir) / f"agent{a}.npz"
         io.save_features(p, part)
         paths.append(p)
