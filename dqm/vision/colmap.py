@@ -68,14 +68,14 @@ def cluster_pairs(labels, image_ids) -> dict[tuple[int, int], np.ndarray]:
     labels = np.asarray(labels, np.int64)
     ids = np.asarray(image_ids, np.int64)
     order = np.argsort(labels, kind="stable")
-    bounds = np.flatnonzero(np.diff(labels[order])) + 1
+    starts = np.r_[0, np.flatnonzero(np.diff(labels[order])) + 1]
+    sizes = np.diff(np.r_[starts, len(order)])
     first, second = [], []
-    for members in np.split(order, bounds):
-        if len(members) < 2:
-            continue
-        i, j = np.triu_indices(len(members), 1)
-        first.append(members[i])
-        second.append(members[j])
+    for size in np.unique(sizes[sizes >= 2]):  # clusters of one size at once: a (clusters, size) table
+        members = order[starts[sizes == size][:, None] + np.arange(size)]
+        i, j = np.triu_indices(int(size), 1)
+        first.append(members[:, i].ravel())
+        second.append(members[:, j].ravel())
     if not first:
         return {}
     f, g = np.concatenate(first), np.concatenate(second)
