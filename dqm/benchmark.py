@@ -60,6 +60,7 @@ DEFAULT_RATIOS = (0.4, 0.5, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 METHODS: dict[str, str] = {
     "quickmatch": "QuickMatch",
     "quickmatch-verify": "QuickMatch, geometrically verified",
+    "quickmatch-guided": "QuickMatch, grown by geometry",
     "bf": "BF pairs",
     "flann": "FLANN pairs",
     "bf-drop-track": "BF tracks, drop track (OpenMVG)",
@@ -409,7 +410,7 @@ def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: flo
     say = log or (lambda s: None)
     ids = bench.image_ids
     out: list[MethodResult] = []
-    if "quickmatch" in methods or "quickmatch-verify" in methods:
+    if any(m.startswith("quickmatch") for m in methods):
         say(f"{bench.name}: QuickMatch at rho={rho:g}")
         r = quickmatch(bench.descriptors, ids, rho=rho)  # shared by both QuickMatch methods
         t_qm = float(r.stats["time_total"])
@@ -433,6 +434,16 @@ def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: flo
         s, v = bench.score_clusters(labels)
         out.append(MethodResult("quickmatch-verify", "rho", rho, s, v, t_v,
                                 evaluation.pr_curve("quickmatch-verify", "rho", [rho], [s])))
+    if "quickmatch-guided" in methods:
+        say(f"{bench.name}: geometry-guided growth of the QuickMatch clusters")
+        from .vision.guided import guided_labels
+
+        t0 = time.perf_counter()
+        labels, _ = guided_labels(r, bench.keypoints, bench.descriptors, seed=seed)
+        t_g = t_qm + time.perf_counter() - t0  # clustering plus verification and growth
+        s, v = bench.score_clusters(labels)
+        out.append(MethodResult("quickmatch-guided", "rho", rho, s, v, t_g,
+                                evaluation.pr_curve("quickmatch-guided", "rho", [rho], [s])))
     for matcher in baselines.MATCHERS:
         wanted = [m for m in methods if m == matcher or m.startswith(matcher + "-")]
         if not wanted:
@@ -546,10 +557,13 @@ def _against_baselines(qm: MethodResult, base: list[MethodResult]) -> str:
 
 
 def _verification(plain: MethodResult, verified: MethodResult) -> str:
-    """What geometric verification does to QuickMatch's own clusters (a change, not a rival)."""
+    """What geometric verification (or guided growth) does to QuickMatch's own clusters (a change, not a rival)."""
     p, v = plain.scores, verified.scores
-    line = (f"Geometric verification of QuickMatch's clusters (the same clusters, members without geometric "
-            f"support split off): precision {p.precision:.3f} -> {v.precision:.3f}, recall {p.recall:.3f} -> "
+    what = ("Geometry-guided growth of QuickMatch's clusters (verified, then joined along links the image pairs' "
+            "geometry supports)" if verified.method == "quickmatch-guided" else
+            "Geometric verification of QuickMatch's clusters (the same clusters, members without geometric "
+            "support split off)")
+    line = (f"{what}: precision {p.precision:.3f} -> {v.precision:.3f}, recall {p.recall:.3f} -> "
             f"{v.recall:.3f}, F1 {p.f1:.3f} -> {v.f1:.3f} ({v.f1 - p.f1:+.3f})")
     if plain.time_s is not None and verified.time_s is not None:
         line += f"; time {plain.time_s:.2f} -> {verified.time_s:.2f} s"
@@ -560,9 +574,9 @@ def findings(results: Mapping[str, Sequence[MethodResult]]) -> list[str]:
     """Computed (not hand-written) markdown bullets: where QuickMatch wins and loses against the BF / FLANN rows.
 
     Every QuickMatch variant in a dataset's rows (plain, geometrically
-    verified) is compared with the best BF / FLANN baseline of each measure,
-    never with another QuickMatch variant; when both variants are present, a
-    sub-bullet says what verification changes in QuickMatch. A dataset with
+    verified, guided) is compared with the best BF / FLANN baseline of each
+    measure, never with another QuickMatch variant; when plain QuickMatch and
+    a variant are present, a sub-bullet says what the variant changes. A dataset with
     neither QuickMatch nor a baseline gives no bullet.
     """
     out = []
@@ -571,8 +585,9 @@ def findings(results: Mapping[str, Sequence[MethodResult]]) -> list[str]:
         ours = [r for r in rows if r.method.startswith("quickmatch")]
         parts = [_against_baselines(qm, base) for qm in ours] if base else []
         by = {r.method: r for r in ours}
-        if "quickmatch" in by and "quickmatch-verify" in by:
-            parts.append(_verification(by["quickmatch"], by["quickmatch-verify"]))
+        for variant in ("quickmatch-verify", "quickmatch-guided"):
+            if "quickmatch" in by and variant in by:
+                parts.append(_verification(by["quickmatch"], by[variant]))
         if not parts:
             continue
         out.append(f"- **{name}**: {parts[0]}")
@@ -594,7 +609,7 @@ def evaluate_clusters(clusters: Mapping[str, np.ndarray], source: DataSource | N
     s, v = bench.score_clusters(labels)
     params = clusters.get("params") if isinstance(clusters.get("params"), dict) else {}
     rho = float(params.get("rho", float("nan")))
-    verified = ", verified" if params.get("verify") else ""
+    verified = ", guided" if params.get("guided") else ", verified" if params.get("verify") else ""
     label = f"{Path(origin).name} (rho {rho:g}{verified})" if params else Path(origin).name
     row = MethodResult("clusters", "rho", rho, s, v, None, evaluation.pr_curve("clusters", "rho", [rho], [s]),
                        name=label)

@@ -179,6 +179,7 @@ def cluster_sizes_figure(labels, image_ids=None, *, title: str = "Cluster sizes"
 _STYLE = {
     "quickmatch": {"color": "#d73027", "lw": 2.2, "marker": "o"},
     "quickmatch-verify": {"color": "#f46d43", "lw": 1.6, "marker": "D", "ms": 5},
+    "quickmatch-guided": {"color": "#a50026", "lw": 1.8, "marker": "*", "ms": 8},
     "bf": {"color": "#4575b4", "lw": 1.2, "ls": ":", "marker": "."},
     "flann": {"color": "#74add1", "lw": 1.2, "ls": ":", "marker": "."},
     "bf-drop-track": {"color": "#1a9850", "lw": 1.4, "ls": "--", "marker": "s", "ms": 3},

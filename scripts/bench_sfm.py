@@ -94,14 +94,15 @@ def main() -> int:
     ap.add_argument("--pipelines", default="a,b,c,d,e", help="the rows to run, comma-separated letters a..e")
     args = ap.parse_args()
     chosen = {x.strip() for x in args.pipelines.split(",") if x.strip()}
-    if not chosen or not chosen <= set("abcde"):
-        sys.exit(f"bench_sfm: --pipelines takes letters a..e separated by commas, got {args.pipelines!r}")
+    if not chosen or not chosen <= set("abcdef"):
+        sys.exit(f"bench_sfm: --pipelines takes letters a..f separated by commas, got {args.pipelines!r}")
     try:
         import pycolmap
     except ImportError:
         sys.exit("bench_sfm: needs pycolmap (pip install 'dqm[colmap]')")
     import dqm
     from dqm.vision import baselines, colmap, features
+    from dqm.vision.guided import guided_labels
     from dqm.vision.verify import verify_clusters
 
     colmap.require_pycolmap()
@@ -126,16 +127,22 @@ def main() -> int:
 
     methods = {}
     vs = None
-    if chosen & {"a", "b"}:
+    gs = None
+    if chosen & {"a", "b", "f"}:
         t0 = time.perf_counter()
         r = dqm.quickmatch(D, ids)
         t_qm = time.perf_counter() - t0
         if "a" in chosen:
             methods["(a) dqm QuickMatch"] = (r.labels, t_qm)
+        print(f"QuickMatch: {t_qm:.1f} s", flush=True)
         if "b" in chosen:
             t0 = time.perf_counter()
             lab_v, vs = verify_clusters(r.labels, ids, kp)
             methods["(b) dqm QuickMatch --verify"] = (lab_v, t_qm + time.perf_counter() - t0)
+        if "f" in chosen:
+            t0 = time.perf_counter()
+            lab_g, gs = guided_labels(r, kp, D)
+            methods["(f) dqm QuickMatch --guided"] = (lab_g, t_qm + time.perf_counter() - t0)
     if "d" in chosen:
         t0 = time.perf_counter()
         a, b = baselines.pairwise_matches(D, ids, "bf", baselines.DEFAULT_RATIO)
@@ -183,6 +190,8 @@ def main() -> int:
     summary = f"\nExtraction: dqm SIFT {t_extract:.1f} s" + (f", COLMAP SIFT {t_cx:.1f} s" if t_cx else "") + "."
     if vs is not None:
         summary += f" Verification (b): {vs.n_verified}/{vs.n_pairs} pairs verified, {vs.n_split} features split off."
+    if gs is not None:
+        summary += f" Guided (f): {gs.summary()}."
     (out_dir / "sfm.md").write_text("\n".join(lines) + "\n" + summary + "\n")
     print(summary)
     figure = out_dir / "sfm_model.png"

@@ -103,7 +103,8 @@ def test_full_evaluation_of_a_scene():
     for m, r in by.items():
         assert 0 < r.scores.precision <= 1 and 0 < r.scores.recall <= 1 and r.time_s >= 0
         expected = {"quickmatch": {0.5, 0.75, 1.0, dqm.DEFAULT_RHO},
-                    "quickmatch-verify": {dqm.DEFAULT_RHO}}.get(m, {0.6, 0.75, 0.9})
+                    "quickmatch-verify": {dqm.DEFAULT_RHO},
+                    "quickmatch-guided": {dqm.DEFAULT_RHO}}.get(m, {0.6, 0.75, 0.9})
         assert set(np.round(r.curve.thresholds, 6)) == expected and 0 < r.curve.auc() <= 1, m
         if m in ("bf", "flann"):  # raw pairwise matches are not consistent
             assert r.violations.c1_features > 0 and r.violations.c2_tracks > 0

@@ -24,7 +24,7 @@ def scene(tmp_path_factory):
     """A small generated scene on disk and its CLUSTERS files (plain and verified) made by dqm match."""
     root = tmp_path_factory.mktemp("evalclusters")
     assert main(["scene", str(root / "scene"), "--images", "3", "--size", "240", "320", "--seed", "5"]) == 0
-    for name, extra in (("clusters.npz", []), ("verified.npz", ["--verify"])):
+    for name, extra in (("clusters.npz", ["--no-guided"]), ("verified.npz", ["--verify"]), ("guided.npz", [])):
         assert main(["match", str(root / "scene"), "--out", str(root / name), "--quiet",
                      "--max-features", str(MAX_FEATURES), *extra]) == 0
     return root
@@ -44,7 +44,8 @@ def test_match_then_evaluate_clusters_equals_the_builtin_quickmatch_row(scene, c
                  "--out-dir", str(out)]) == 0
     printed = capsys.readouterr().out
     bench = benchmark.load_benchmark(scene / "scene", max_features=MAX_FEATURES)
-    rows = {r.method: r for r in benchmark.evaluate(bench, ["quickmatch", "quickmatch-verify"], curves=False)}
+    rows = {r.method: r for r in benchmark.evaluate(bench, ["quickmatch", "quickmatch-verify", "quickmatch-guided"],
+                                                    curves=False)}
     name, d, row = _row(out / "evaluation_clusters_scene.json")
     assert name == "scene" and d["kind"] == "homography" and d["n_features"] == len(bench)
     assert row["scores"] == rows["quickmatch"].scores.as_dict()
@@ -59,6 +60,13 @@ def test_match_then_evaluate_clusters_equals_the_builtin_quickmatch_row(scene, c
     _, _, row = _row(out / "evaluation_verified_scene.json")
     assert row["scores"] == rows["quickmatch-verify"].scores.as_dict()
     assert "verified" in row["label"]
+    # dqm match on images grows the clusters by geometry by default: the built-in guided row
+    assert main(["evaluate", "--clusters", str(scene / "guided.npz"), str(scene / "scene"),
+                 "--out-dir", str(out)]) == 0
+    _, _, row = _row(out / "evaluation_guided_scene.json")
+    assert row["scores"] == rows["quickmatch-guided"].scores.as_dict()
+    assert "guided" in row["label"]
+    assert rows["quickmatch-guided"].scores.f1 > rows["quickmatch"].scores.f1
 
 
 def test_generated_descriptors_are_scored_against_their_point_ids(tmp_path, capsys):

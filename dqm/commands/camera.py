@@ -131,7 +131,7 @@ def run(args) -> int:
     from ..runtime import stream
     from ..runtime.bus import RouterUnreachable, check_endpoint
     from ..validation import InputError
-    from ..vision.features import collect_images, create_sift, unreadable_images
+    from ..vision.features import collect_images, check_preset, unreadable_images
 
     check_endpoint(args.connect)
     keys.check_job(args.job)
@@ -141,7 +141,7 @@ def run(args) -> int:
     limit = None if args.limit is None else _number(args.limit, "--limit", integer=True, low=1)
     wait_s = _number(args.wait, "--wait", low=0.0, low_ok=False)
     connect_s = _number(args.connect_timeout, "--connect-timeout", low=0.0, low_ok=False)
-    create_sift(args.preset, args.max_features)  # refuses a bad --max-features before any work
+    check_preset(args.preset, args.max_features)  # refuses a bad --max-features before any work
     tls = tls_from(args, listen=False)
     paths = collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)
     bad = unreadable_images(paths)

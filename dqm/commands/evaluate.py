@@ -44,7 +44,7 @@ from .. import __version__, benchmark, evaluation, outputs
 from ..core import DEFAULT_RHO
 from ..validation import InputError
 from ..vision import baselines
-from ..vision.features import DEFAULT_PRESET, PRESETS
+from ..vision.features import DEFAULT_PRESET, EXTERNAL_PRESETS, PRESET_NAMES, PRESETS
 
 NAME = "evaluate"
 HELP = "QuickMatch vs BF / FLANN (pairs and tracks) on ground truth: table + PR curves"
@@ -66,7 +66,7 @@ def add_arguments(p) -> None:
     p.add_argument("--ratios", default=",".join(f"{r:g}" for r in benchmark.DEFAULT_RATIOS),
                    help="BF / FLANN PR-curve thresholds (comma-separated)")
     p.add_argument("--tol", type=float, default=5.0, help="pixel tolerance of a correct match (homographies)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default=DEFAULT_PRESET, help="SIFT settings")
+    p.add_argument("--preset", choices=sorted(PRESET_NAMES), default=DEFAULT_PRESET, help="SIFT settings")
     p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
     p.add_argument("--seed", type=int, default=0, help="seed of FLANN's randomised trees")
     p.add_argument("--figures", action="store_true", help="also draw matches, clusters and size histograms")
@@ -82,6 +82,8 @@ def _preset_words(preset: str) -> str:
     """What a SIFT preset is, from its settings: detector parameters and descriptor kind."""
     from ..vision.features import ROOT_PRESETS
 
+    if preset in EXTERNAL_PRESETS:
+        return EXTERNAL_PRESETS[preset] + ", RootSIFT (L1-root) descriptors"
     params = PRESETS[preset]
     det = ", ".join(f"{k} {v:g}" for k, v in params.items()) if params else "OpenCV's default detector parameters"
     return det + (", RootSIFT descriptors" if preset in ROOT_PRESETS else ", plain SIFT descriptors")
@@ -120,12 +122,19 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         f"pairs reject are split off (dqm.vision.verify, OpenCV RNG seed {args.seed}). One operating point: no "
         "threshold sweep, so no best-threshold F1 and no PR AUC (\"-\"); its time is clustering plus verification.")
     ] if "quickmatch-verify" in methods else []
+    guided = [
+        (f"- {benchmark.METHODS['quickmatch-guided']}: the QuickMatch clusters verified as above, then per verified "
+         "pair the features without a match in the other image are linked to their mutual nearest descriptor among "
+         "the other image's features that fit the pair's model within 4 px (Lowe ratio 0.8 among those, distance "
+         "<= 1.5 sigma), and clusters join along the links where C2 and every verified pair allow "
+         "(dqm.vision.guided; docs/sfm.md). One operating point; its time is clustering, verification and growth.")
+    ] if "quickmatch-guided" in methods else []
     ours = [
         (f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel; PR curve over "
          f"rho {args.rhos}.")
     ] if "quickmatch" in methods else [
         f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel."
-    ] if "quickmatch-verify" in methods else []
+    ] if any(m.startswith("quickmatch-") for m in methods) else []
     pairwise = ([
         (f"- BF / FLANN: every image pair (i < j, queries from i), Euclidean 2-NN, Lowe ratio {args.ratio:g}"
         f"{default if args.ratio == baselines.DEFAULT_RATIO else ''}; "
@@ -148,12 +157,13 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         "",
         "- Methods (rows, in this order): "
         f"{'; '.join(benchmark.METHODS[m] for m in benchmark.METHODS if m in methods)}.",
-        (f"- SIFT: OpenCV, preset `{args.preset}` ({'the default: ' if args.preset == DEFAULT_PRESET else ''}"
-        f"{_preset_words(args.preset)}), max features per image: {args.max_features or 'no limit'}; "
+        (f"- SIFT: {'pycolmap' if args.preset in EXTERNAL_PRESETS else 'OpenCV'}, preset `{args.preset}` "
+        f"({'the default: ' if args.preset == DEFAULT_PRESET else ''}{_preset_words(args.preset)}), max features per image: {args.max_features or 'no limit'}; "
         "hotel (any preset): OpenCV SIFT described at the 30 labelled landmarks of every frame "
         "(24 px upright patches)."),
         *ours,
         *verify,
+        *guided,
         *pairwise,
         (f"- Truth: Oxford / generated scenes: a pair is correct if the homography maps one keypoint within "
         f"{args.tol:g} px of the other; recall against the greedy one-to-one correspondences within {args.tol:g} px "

@@ -19,7 +19,7 @@ import time
 
 from .. import io, outputs
 from ..progress import ProgressBar
-from ..vision.features import DEFAULT_PRESET, PRESETS
+from ..vision.features import DEFAULT_PRESET, PRESET_NAMES
 
 NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
@@ -33,12 +33,15 @@ def add_image_options(p) -> None:
     p.add_argument("--recursive", action="store_true",
                    help="read the images of the given folders' sub-folders too (natural order of the paths "
                         "below each folder), as COLMAP and hloc read an image folder")
-    p.add_argument("--preset", choices=sorted(PRESETS), default=DEFAULT_PRESET,
-                   help="SIFT settings: rootsift = OpenCV's SIFT with RootSIFT descriptors (Hellinger-normalised, "
-                        "as COLMAP stores them; better F1 on every dataset we measured, docs/sfm.md), opencv = "
+    p.add_argument("--preset", choices=sorted(PRESET_NAMES), default=DEFAULT_PRESET,
+                   help="SIFT settings: rootsift (default) = OpenCV's SIFT with RootSIFT descriptors "
+                        "(Hellinger-normalised, as COLMAP stores them; better F1 on every dataset we measured, "
+                        "docs/sfm.md), colmap = pycolmap's own SIFT with COLMAP's defaults (needs pycolmap; more "
+                        "features, the longer SfM tracks in docs/sfm.md, about 4x the extraction time), opencv = "
                         "OpenCV's plain SIFT, paper = the seed paper's settings "
                         "(nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, sigma=1.0)")
-    p.add_argument("--max-features", type=int, default=0, help="SIFT features per image, 0 = no limit")
+    p.add_argument("--max-features", type=int, default=0,
+                   help="SIFT features per image, 0 = no limit (colmap: COLMAP's 8192)")
     p.add_argument("--skip-bad-images", action="store_true",
                    help="leave out unreadable image files (listed in a warning) instead of refusing the run")
 

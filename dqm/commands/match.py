@@ -62,6 +62,13 @@ def add_arguments(p) -> None:
                    help="geometric verification: per image pair, RANSAC (OpenCV USAC) on the matches the clusters "
                         "imply, homography or fundamental matrix chosen as COLMAP does; members that the verified "
                         "pairs reject are split off (C1 and C2 still hold; needs keypoints)")
+    p.add_argument("--guided", action=argparse.BooleanOptionalAction, default=None,
+                   help="geometry-guided growth, the default when matching images (FEATURES files: off unless "
+                        "given): the clusters are verified as with --verify, then each verified image pair links "
+                        "features that fit its model within 2 px and are mutual nearest descriptors among those "
+                        "(ratio 0.8, <= 1.5 sigma); clusters join along the links where C2 and every verified pair "
+                        "allow (docs/sfm.md; needs keypoints). --no-guided: plain QuickMatch; --verify alone: "
+                        "verification without growth")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -109,22 +116,36 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
-    if args.verify and fs.keypoints is None:
-        raise InputError("--verify needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
+    from_images = not any(io.is_npz(p) or Path(p).suffix.lower() == ".npz" for p in args.inputs)
+    guided = args.guided if args.guided is not None else (from_images and not args.verify)
+    for flag, on in (("verify", args.verify), ("guided", guided)):
+        if on and fs.keypoints is None:
+            raise InputError(f"--{flag} needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
     bar = ProgressBar("quickmatch", force=False if args.quiet else None, unit="features")
     result = quickmatch(fs.descriptors, fs.image_ids, rho=args.rho, ratio_density=args.ratio_density,
                         kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar,
                         max_memory=args.max_memory, approximate=args.approximate, n_neighbors=args.neighbors)
     extra = None
-    if args.verify:
+    gs = None
+    print(result.summary())
+    if guided:
+        from ..vision.guided import guided_labels
+
+        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors)
+        result = dataclasses.replace(result, labels=labels)
+        extra = {"verify": True, "guided": True}
+    elif args.verify:
         from ..vision.verify import verify_clusters
 
         labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True}
     io.save_clusters(args.out, fs, result, extra)
-    print(result.summary())
-    if args.verify:
+    if gs is not None:
+        multi = np.bincount(result.labels)
+        print(f"{gs.summary()}: {len(multi)} clusters, {int((multi >= 2).sum())} of them span 2+ images "
+              f"(--no-guided: QuickMatch's own)")
+    elif args.verify:
         print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} by homography): "
               f"{vs.n_inliers} of {vs.n_matches} implied matches are inliers; {vs.n_split} features split off")
     if args.tracks_csv:

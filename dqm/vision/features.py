@@ -26,6 +26,14 @@ PRESETS: dict[str, dict[str, float]] = {
     "paper": {"nOctaveLayers": 6, "contrastThreshold": 0.10, "edgeThreshold": 15, "sigma": 1.0},
     "rootsift": {},
 }
+#: presets made by another library: pycolmap's SIFT with COLMAP's default options (L1-root
+#: normalised, i.e. RootSIFT, stored x512 as uint8; peak threshold 0.02/3, up-sampled first
+#: octave, 8192 features per image unless --max-features says otherwise)
+EXTERNAL_PRESETS = {"colmap": "pycolmap's SIFT, COLMAP's default extraction options"}
+#: every preset name
+PRESET_NAMES = tuple(PRESETS) + tuple(EXTERNAL_PRESETS)
+#: COLMAP's SiftExtractionOptions.max_num_features, used by the colmap preset when no limit is given
+COLMAP_MAX_FEATURES = 8192
 #: the default: RootSIFT won against plain SIFT on every dataset in dqm evaluate (docs/sfm.md)
 DEFAULT_PRESET = "rootsift"
 #: presets whose descriptors are RootSIFT (:func:`root_sift`) rather than plain SIFT
@@ -203,14 +211,84 @@ def as_gray(image) -> np.ndarray:
     return img
 
 
+def check_preset(preset: str, max_features: int = 0) -> None:
+    """One line naming a bad preset or feature limit (a missing pycolmap for the colmap preset)."""
+    if preset not in PRESET_NAMES:
+        raise InputError(f"unknown SIFT preset {preset!r}; choose from {sorted(PRESET_NAMES)}")
+    if int(max_features) != max_features or max_features < 0:
+        raise InputError(f"max_features must be >= 0 (0 = no limit), got {max_features}")
+    if preset == "colmap":
+        from .colmap import require_pycolmap
+
+        require_pycolmap()
+
+
 def create_sift(preset: str = "opencv", max_features: int = 0):
     import cv2
 
+    check_preset(preset, max_features)
     if preset not in PRESETS:
-        raise InputError(f"unknown SIFT preset {preset!r}; choose from {sorted(PRESETS)}")
-    if int(max_features) != max_features or max_features < 0:
-        raise InputError(f"max_features must be >= 0 (0 = no limit), got {max_features}")
+        raise InputError(f"preset {preset!r} is not OpenCV's SIFT; it detects its own points (use an OpenCV preset: "
+                         f"{', '.join(sorted(PRESETS))})")
     return cv2.SIFT_create(nfeatures=int(max_features), **PRESETS[preset])
+
+
+def extract_colmap(images: Sequence, max_features: int = 0, progress=None,
+                   failed: list[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """pycolmap's SIFT (COLMAP's default options, its threads) of images: as :func:`extract_many`.
+
+    COLMAP's extractor reads files: paths are read where they are (one temporary database,
+    deleted after), arrays are written as PNG files first. Keypoints come back in OpenCV's pixel
+    convention with COLMAP's scale and orientation (:func:`dqm.vision.colmap.import_database`).
+    ``max_features`` 0 means COLMAP's default, 8192 per image.
+    """
+    import tempfile
+
+    from .colmap import import_database, require_pycolmap
+
+    pycolmap = require_pycolmap()
+    images = list(images)
+    with tempfile.TemporaryDirectory(prefix="dqm-colmap-sift-") as tmp:
+        files = []
+        for k, im in enumerate(images):
+            if isinstance(im, (str, Path)):
+                files.append(Path(os.path.abspath(im)))
+            else:
+                import cv2
+
+                files.append(Path(tmp) / f"image{k}.png")
+                cv2.imwrite(str(files[-1]), as_gray(im))
+        root = Path(os.path.commonpath([str(f.parent) for f in files]))
+        names = [f.relative_to(root).as_posix() for f in files]
+        options = pycolmap.FeatureExtractionOptions()
+        options.sift.max_num_features = int(max_features) or COLMAP_MAX_FEATURES
+        db = Path(tmp) / "features.db"
+        level = pycolmap.logging.minloglevel  # COLMAP warns that it uses every core; it is asked to
+        pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
+        try:
+            pycolmap.extract_features(str(db), str(root), image_names=names,
+                                      camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
+                                      device=pycolmap.Device.cpu)
+        finally:
+            pycolmap.logging.minloglevel = level
+        fs = import_database(db)
+    where = {str(nm): k for k, nm in enumerate(fs.image_names)}
+    descs, ids, kps = [], [], []
+    for k, nm in enumerate(names):
+        if nm not in where:  # COLMAP could not read it
+            if failed is None:
+                raise InputError(f"COLMAP's extractor could not read image {files[k]}")
+            failed.append(k)
+            continue
+        rows = fs.image_ids == where[nm]
+        descs.append(fs.descriptors[rows])
+        kps.append(fs.keypoints[rows])
+        ids.append(np.full(int(rows.sum()), k - (0 if failed is None else len(failed)), np.int64))
+        if progress is not None:
+            progress(k + 1, len(images))
+    if not descs:
+        return np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.zeros((0, 4), np.float32)
+    return np.vstack(descs).astype(np.uint8), np.concatenate(ids), np.vstack(kps).astype(np.float32)
 
 
 def _kp_array(kps) -> np.ndarray:
@@ -219,6 +297,10 @@ def _kp_array(kps) -> np.ndarray:
 
 def extract(image, preset: str = DEFAULT_PRESET, max_features: int = 0) -> ImageFeatures:
     """Detect and describe SIFT features of an image (path or array)."""
+    if preset in EXTERNAL_PRESETS:
+        check_preset(preset, max_features)
+        D, _, kp = extract_colmap([image], max_features)
+        return ImageFeatures(kp, D)
     img = as_gray(image)
     kps, desc = create_sift(preset, max_features).detectAndCompute(img, None)
     if desc is None:
@@ -288,7 +370,9 @@ def extract_many(images: Sequence, preset: str = DEFAULT_PRESET, max_features: i
     """
     descs, ids, kps = [], [], []
     images = list(images)
-    create_sift(preset, max_features)  # validate the settings before any work
+    check_preset(preset, max_features)  # validate the settings before any work
+    if preset in EXTERNAL_PRESETS:
+        return extract_colmap(images, max_features, progress, failed)
     for k, im in enumerate(images):
         try:
             f = extract(im, preset, max_features)
