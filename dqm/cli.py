@@ -24,6 +24,7 @@ COMMANDS = [
     "dqm.commands.match",
     "dqm.commands.split",
     "dqm.commands.export",
+    "dqm.commands.sfm",
     "dqm.commands.importer",
     "dqm.commands.demo",
     "dqm.commands.evaluate",

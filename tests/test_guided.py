@@ -200,3 +200,22 @@ def test_a_link_is_refused_when_another_member_pair_contradicts_a_verified_model
     out, merged, c2, geo = _merge(np.array([0, 1, 1]), np.array([0, 0, 1]), kp, {}, np.array([0]), np.array([2]),
                                   np.array([1.0]), 16.0)
     assert merged == 0 and c2 == 1
+
+
+def test_dqm_sfm_images_to_model_and_refuses_a_non_empty_folder(tmp_path, capsys):
+    pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
+    from dqm import io
+    from dqm.vision.scenes3d import generate_scene3d
+
+    generate_scene3d(seed=1, n_images=5).save(tmp_path / "img")
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    assert main(["sfm", str(tmp_path / "img"), "--out", str(tmp_path / "full"), "--quiet"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert (tmp_path / "full" / "keep.txt").read_text() == "mine"
+    assert main(["sfm", str(tmp_path / "img"), "--out", str(tmp_path / "model"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "guided growth:" in out and "5 of 5 images registered" in out
+    for name in ("clusters.npz", "database.db", "model.png", "tracks.csv", "sparse/0"):
+        assert (tmp_path / "model" / name).exists(), name
+    assert io.load_clusters(tmp_path / "model" / "clusters.npz")["params"]["guided"] is True

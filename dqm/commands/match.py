@@ -2,7 +2,10 @@
 
 INPUT is either a FEATURES .npz file (format: see dqm/io.py or docs/formats.md)
 or images: a folder, a glob pattern, or several image files, from which SIFT
-features are extracted first (OpenCV; --preset, --max-features).
+features are extracted first (OpenCV; --preset, --max-features). Images are
+matched with geometry-guided growth after QuickMatch (verified image pairs add
+the links their geometry supports; --no-guided: QuickMatch alone; FEATURES
+files: --guided turns it on; docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
@@ -36,6 +39,15 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="INPUT",
                    help="FEATURES.npz file(s), or image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="CLUSTERS.npz to write")
+    add_cluster_options(p)
+    add_image_options(p)
+    p.add_argument("--tracks-csv", default=None, metavar="CSV",
+                   help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_cluster_options(p) -> None:
+    """QuickMatch's options and the geometric steps after it (shared with dqm sfm)."""
     p.add_argument("--rho", type=float, default=DEFAULT_RHO, help=f"merge ratio (default {DEFAULT_RHO})")
     p.add_argument("--ratio-density", type=float, default=DEFAULT_RATIO_DENSITY,
                    help=f"Gaussian bandwidth / sigma (default {DEFAULT_RATIO_DENSITY})")
@@ -45,9 +57,6 @@ def add_arguments(p) -> None:
     p.add_argument("--parent", choices=PARENT_MODES, default="any",
                    help="'other-image': a feature's tree parent must come from another image")
     p.add_argument("--threads", type=positive_int_arg, default=None, help="worker threads (default: all cores)")
-    add_image_options(p)
-    p.add_argument("--tracks-csv", default=None, metavar="CSV",
-                   help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
     p.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
                    help="memory budget, e.g. 8G or 512M (default: 70%% of the available memory); an exact run "
                         "whose candidate edges would not fit streams its parents instead (same clusters), and "
@@ -69,7 +78,6 @@ def add_arguments(p) -> None:
                         "(ratio 0.8, <= 1.5 sigma); clusters join along the links where C2 and every verified pair "
                         "allow (docs/sfm.md; needs keypoints). --no-guided: plain QuickMatch; --verify alone: "
                         "verification without growth")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def memory_size(text: str) -> int:
@@ -116,7 +124,19 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
-    from_images = not any(io.is_npz(p) or Path(p).suffix.lower() == ".npz" for p in args.inputs)
+    result, extra = cluster(args, fs, from_images=not any(io.is_npz(p) or Path(p).suffix.lower() == ".npz"
+                                                          for p in args.inputs))
+    io.save_clusters(args.out, fs, result, extra)
+    if args.tracks_csv:
+        n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+        print(f"wrote {n} tracks to {args.tracks_csv}")
+    print(f"wrote {args.out} ({time.perf_counter() - t0:.2f} s in all)")
+    return 0
+
+
+def cluster(args, fs: io.FeatureSet, from_images: bool):
+    """QuickMatch on the features with the command's options, then guided growth (the default for
+    images) or verification; prints what each step did. Returns the result and its extra params."""
     guided = args.guided if args.guided is not None else (from_images and not args.verify)
     for flag, on in (("verify", args.verify), ("guided", guided)):
         if on and fs.keypoints is None:
@@ -125,31 +145,23 @@ def run(args) -> int:
     result = quickmatch(fs.descriptors, fs.image_ids, rho=args.rho, ratio_density=args.ratio_density,
                         kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar,
                         max_memory=args.max_memory, approximate=args.approximate, n_neighbors=args.neighbors)
-    extra = None
-    gs = None
     print(result.summary())
+    extra = None
     if guided:
         from ..vision.guided import guided_labels
 
-        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors)
+        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors, n_threads=args.threads)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True, "guided": True}
+        sizes = np.bincount(labels)
+        print(f"{gs.summary()}: {len(sizes)} clusters, {int((sizes >= 2).sum())} of them span 2+ images "
+              f"(--no-guided: QuickMatch's own)")
     elif args.verify:
         from ..vision.verify import verify_clusters
 
         labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True}
-    io.save_clusters(args.out, fs, result, extra)
-    if gs is not None:
-        multi = np.bincount(result.labels)
-        print(f"{gs.summary()}: {len(multi)} clusters, {int((multi >= 2).sum())} of them span 2+ images "
-              f"(--no-guided: QuickMatch's own)")
-    elif args.verify:
         print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} by homography): "
               f"{vs.n_inliers} of {vs.n_matches} implied matches are inliers; {vs.n_split} features split off")
-    if args.tracks_csv:
-        n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
-        print(f"wrote {n} tracks to {args.tracks_csv}")
-    print(f"wrote {args.out} ({time.perf_counter() - t0:.2f} s in all)")
-    return 0
+    return result, extra
