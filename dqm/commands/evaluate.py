@@ -158,7 +158,8 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         "- Methods (rows, in this order): "
         f"{'; '.join(benchmark.METHODS[m] for m in benchmark.METHODS if m in methods)}.",
         (f"- SIFT: {'pycolmap' if args.preset in EXTERNAL_PRESETS else 'OpenCV'}, preset `{args.preset}` "
-        f"({'the default: ' if args.preset == DEFAULT_PRESET else ''}{_preset_words(args.preset)}), max features per image: {args.max_features or 'no limit'}; "
+        f"({'the default: ' if args.preset == DEFAULT_PRESET else ''}{_preset_words(args.preset)}), "
+        f"max features per image: {args.max_features or 'no limit'}; "
         "hotel (any preset): OpenCV SIFT described at the 30 labelled landmarks of every frame "
         "(24 px upright patches)."),
         *ours,

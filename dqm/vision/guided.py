@@ -25,8 +25,8 @@ those near misses are real. :func:`grow_clusters` does, deterministically:
    pair of an image pair with a verified model contradicts it (residual above the 4 px).
 
 The settings were chosen on sacre_coeur's SfM and the homography sets together (docs/sfm.md):
-links at 4 px gave the best F1 on the homography sets but a reprojection error 0.12 px above
-COLMAP's; 1 px the reverse; 2 px sits between. Two variants were measured and left out: a
+links at 4 px gave the best F1 on the homography sets but a reprojection error more than
+0.1 px above COLMAP's; 1 px the reverse; 2 px meets both. Two variants were measured and left out: a
 second round (re-fit, propose, merge again) and completing clusters in the images they lack
 from the meeting point of their members' epipolar lines. Both added 3-D points but shortened
 the mean track and raised the reprojection error on sacre_coeur.
