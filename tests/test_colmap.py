@@ -169,24 +169,6 @@ def test_cli_match_verify_export_and_import(scene, tmp_path):
     assert p.returncode == 0, p.stderr
 
 
-def test_reconstruction_from_dqm_tracks_registers_every_image(tmp_path):
-    """A generated 3-D scene (planes at several depths, known cameras): dqm clusters -> database -> mapper."""
-    from dqm.vision.scenes3d import generate_scene3d
-
-    sc = generate_scene3d(seed=0, n_images=6)
-    sc.save(tmp_path / "img")
-    paths = sorted((tmp_path / "img").glob("*.png"))
-    D, ids, kp = features.extract_many(paths)
-    r = dqm.quickmatch(D, ids)
-    colmap.export_database(tmp_path / "db.db", kp, ids, paths, r.labels, descriptors=D)
-    (tmp_path / "sparse").mkdir()
-    recs = pycolmap.incremental_mapping(str(tmp_path / "db.db"), str(tmp_path / "img"), str(tmp_path / "sparse"))
-    assert recs, "no reconstruction"
-    best = max(recs.values(), key=lambda rec: rec.num_reg_images())
-    assert best.num_reg_images() == len(paths)
-    assert best.compute_mean_reprojection_error() < 1.0
-
-
 def test_bench_sfm_registers_every_image(tmp_path):
     """scripts/bench_sfm.py on the 10 sacre_coeur photos, dqm's default pipeline (a) beside COLMAP's
     own pipeline (c): both register every image (all six rows take 4 minutes: the script alone)."""
