@@ -220,3 +220,24 @@ def test_dqm_sfm_images_to_model_and_refuses_a_non_empty_folder(tmp_path, capsys
     for name in ("clusters.npz", "database.db", "model.png", "tracks.csv", "sparse/0"):
         assert (tmp_path / "model" / name).exists(), name
     assert io.load_clusters(tmp_path / "model" / "clusters.npz")["params"]["guided"] is True
+
+
+def test_the_merge_residual_test_agrees_with_the_models_residuals():
+    """_merge checks member pairs one at a time with scalar code; it must accept exactly the pairs
+    that PairModel.sq_residuals (the vectorised residuals) puts within the threshold."""
+    from dqm.vision.guided import _residual_ok
+
+    rng = np.random.default_rng(2)
+    K = np.array([[500, 0, 300], [0, 500, 200], [0, 0, 1.0]])
+    tx = np.array([[0, -0.1, 0.2], [0.1, 0, -1.0], [-0.2, 1.0, 0]])
+    F = np.linalg.inv(K).T @ tx @ np.linalg.inv(K)
+    H = np.array([[1.02, 0.01, 5.0], [-0.02, 0.98, -3.0], [1e-5, -2e-5, 1.0]])
+    xa = rng.uniform(0, 600, (2000, 2))
+    for kind, M in (("F", F), ("H", H)):
+        model = PairModel(0, 1, kind, M, np.zeros((0, 2), int), np.zeros((0, 2), int))
+        near = xa @ M[:2, :2].T + M[:2, 2] if kind == "H" else None
+        xb = (near if near is not None else xa) + rng.normal(0, 3, xa.shape)
+        res = model.sq_residuals(xa, xb)
+        scalar = np.array([_residual_ok(kind, tuple(M.ravel()), tuple(p), tuple(q), 16.0) for p, q in zip(xa, xb)])
+        assert 0 < scalar.sum() < len(xa), kind  # both sides of the threshold are exercised
+        assert np.array_equal(scalar, res <= 16.0), kind

@@ -122,12 +122,15 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         f"pairs reject are split off (dqm.vision.verify, OpenCV RNG seed {args.seed}). One operating point: no "
         "threshold sweep, so no best-threshold F1 and no PR AUC (\"-\"); its time is clustering plus verification.")
     ] if "quickmatch-verify" in methods else []
+    from ..vision import guided as g
+
     guided = [
         (f"- {benchmark.METHODS['quickmatch-guided']}: the QuickMatch clusters verified as above, then per verified "
          "pair the features without a match in the other image are linked to their mutual nearest descriptor among "
-         "the other image's features that fit the pair's model within 4 px (Lowe ratio 0.8 among those, distance "
-         "<= 1.5 sigma), and clusters join along the links where C2 and every verified pair allow "
-         "(dqm.vision.guided; docs/sfm.md). One operating point; its time is clustering, verification and growth.")
+         f"the other image's features that fit the pair's model within {g.DEFAULT_LINK_THRESHOLD:g} px (Lowe ratio "
+         f"{g.DEFAULT_RATIO:g} among those, distance <= {g.DEFAULT_MAX_SIGMA:g} sigma), and clusters join along the "
+         "links where C2 and every verified pair allow (dqm.vision.guided; docs/sfm.md). One operating point; its "
+         "time is clustering, verification and growth.")
     ] if "quickmatch-guided" in methods else []
     ours = [
         (f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel; PR curve over "

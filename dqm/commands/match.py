@@ -88,11 +88,15 @@ def memory_size(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def is_features_file(path) -> bool:
+    """A FEATURES file is known by its content (a zip archive) or its .npz suffix, in any case."""
+    return io.is_npz(path) or Path(path).suffix.lower() == ".npz"
+
+
 def load_input(args) -> io.FeatureSet:
     """FEATURES .npz file(s), combined (each file numbers its own images: :func:`dqm.io.merge_features`),
-    or SIFT of the images named by the inputs (progress bar per image). A FEATURES file is known by
-    its content (a zip archive) or its .npz suffix, in any case."""
-    features = [p for p in args.inputs if io.is_npz(p) or Path(p).suffix.lower() == ".npz"]
+    or SIFT of the images named by the inputs (progress bar per image); :func:`is_features_file` tells them apart."""
+    features = [p for p in args.inputs if is_features_file(p)]
     if not features:
         if not args.inputs and not getattr(args, "image_list", None):
             raise InputError("no input: give FEATURES.npz file(s), images (folders, globs, files) or --image-list")
@@ -124,8 +128,7 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
-    result, extra = cluster(args, fs, from_images=not any(io.is_npz(p) or Path(p).suffix.lower() == ".npz"
-                                                          for p in args.inputs))
+    result, extra = cluster(args, fs, from_images=not any(is_features_file(p) for p in args.inputs))
     io.save_clusters(args.out, fs, result, extra)
     if args.tracks_csv:
         n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .. import io
+from .. import io, outputs
 from ..validation import InputError
 from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
@@ -44,11 +44,7 @@ def _out_dir(path: str) -> Path:
         raise InputError(f"--out {out} is a file; dqm sfm writes a folder")
     if out.is_dir() and any(out.iterdir()):
         raise InputError(f"--out {out} is not empty; dqm sfm writes into a new or empty folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--out {out}: cannot create the folder ({exc.strerror})") from None
-    return out
+    return outputs.check_dir(out, "--out")  # created, and probed for writing
 
 
 def run(args) -> int:

@@ -50,8 +50,7 @@ import numpy as np
 from ..core.pairs import default_threads, exact_sq_distances
 from ..validation import InputError
 from .baselines import canonical
-from .verify import (MIN_INLIERS, PairModel, VerifyStats, check_geometry_inputs, fit_pairs, split_contradicted,
-                     verify_stats)
+from .verify import MIN_INLIERS, PairModel, VerifyStats, check_geometry_inputs, fit_and_split
 
 #: a proposed link fits the pair's model within this many pixels (half the verification's 4 px)
 DEFAULT_LINK_THRESHOLD = 2.0
@@ -285,10 +284,8 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
     sigma = np.where(np.isfinite(sigma), sigma, np.inf)  # a feature alone in its image: no bound from it
 
     t0 = time.perf_counter()
-    models, n_pairs, n_matches = fit_pairs(labels, ids, kp, threshold=threshold, confidence=confidence,
+    labels, models, vstats = fit_and_split(labels, ids, kp, threshold=threshold, confidence=confidence,
                                            min_inliers=min_inliers, seed=seed)
-    labels, n_split = split_contradicted(labels, models)
-    vstats = verify_stats(models, n_pairs, n_matches, n_split)
     t1 = time.perf_counter()
     by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
     workers = max(1, default_threads() if n_threads is None else int(n_threads))

@@ -187,6 +187,16 @@ def verify_stats(models: dict, n_pairs: int, n_matches: int, n_split: int) -> Ve
                        n_split)
 
 
+def fit_and_split(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
+                  min_inliers: int = MIN_INLIERS, seed: int = 0) -> Tuple[np.ndarray, dict, VerifyStats]:
+    """:func:`fit_pairs` then :func:`split_contradicted` on checked arrays: the split labels, the
+    verified pairs' models and the counts (what :func:`verify_clusters` and guided growth share)."""
+    models, n_pairs, n_matches = fit_pairs(labels, image_ids, keypoints, threshold=threshold, confidence=confidence,
+                                           min_inliers=min_inliers, seed=seed)
+    out, n_split = split_contradicted(labels, models)
+    return out, models, verify_stats(models, n_pairs, n_matches, n_split)
+
+
 def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
                     min_inliers: int = MIN_INLIERS, seed: int = 0) -> Tuple[np.ndarray, VerifyStats]:
     """Labels with geometrically unsupported members split off, and what was done (module docstring).
@@ -195,7 +205,6 @@ def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, con
     (COLMAP's ``max_error`` is 4 px); ``seed`` seeds OpenCV's RNG so the result repeats.
     """
     labels, ids, kp = check_geometry_inputs(labels, image_ids, keypoints, threshold, confidence, min_inliers)
-    models, n_pairs, n_matches = fit_pairs(labels, ids, kp, threshold=threshold, confidence=confidence,
-                                           min_inliers=min_inliers, seed=seed)
-    out, n_split = split_contradicted(labels, models)
-    return out, verify_stats(models, n_pairs, n_matches, n_split)
+    out, _, stats = fit_and_split(labels, ids, kp, threshold=threshold, confidence=confidence,
+                                  min_inliers=min_inliers, seed=seed)
+    return out, stats
