@@ -37,6 +37,7 @@ def _checks(data_dir: Path):
 
     yield "dqm", True, True, __version__
     yield "tile kernel", native.native_available(), False, native.kernel_description()
+    yield "BLAS (the pass's GEMMs)", True, False, native.blas_description()
     for name, module, required in (("numpy", "numpy", True), ("scipy", "scipy", True),
                                    ("OpenCV", "cv2", True), ("eclipse-zenoh", "zenoh", True),
                                    ("msgpack", "msgpack", True), ("matplotlib", "matplotlib", True),

@@ -14,8 +14,8 @@
  * computation in numpy lives beside it and the tests check they agree.
  *
  * exp(-t) is a Cephes-style polynomial (error ~2 ulp in float32). On x86-64
- * CPUs with AVX2+FMA (checked at run time) the row loops use AVX2 intrinsics;
- * elsewhere the portable scalar loops run.
+ * CPUs with AVX-512 (F, DQ) or AVX2+FMA (checked at run time) the row loops use
+ * those intrinsics; elsewhere the portable scalar loops run.
  */
 #include <stdint.h>
 #include <math.h>
@@ -60,26 +60,50 @@ static inline float exp_neg(float t)
 }
 
 /* Row sums over columns [0, k): kernel terms, error weights, and the number of
-   columns with g < lim. */
+   columns with g < lim, or, when rad2c is given, with g < lim or g < rad2c[c]
+   (the candidate test of a symmetric tile, so that only rows that hold a
+   candidate are scanned again). */
 typedef struct { float acc, err; int64_t hits; } RowOut;
 
-static RowOut row_scalar(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim)
+/* Every float32 sum of kernel terms runs in partial sums of at most
+   SUM_CHAIN sequential additions (16 lanes or accumulators over a row of at
+   most 1024 columns; column sums flushed to float64 every SUM_CHAIN rows), and
+   the partials are combined in at most 16 more: a term is rounded at most
+   SUM_ROUNDINGS times before it reaches float64. The caller's error bound
+   (dqm/core/pairs.py) reads this number. */
+#define SUM_CHAIN 64
+#define SUM_ROUNDINGS (SUM_CHAIN + 16 + 2)
+#define MAX_ROW 1024
+
+int32_t dqm_sum_roundings(void)
 {
+    return SUM_ROUNDINGS;
+}
+
+static RowOut row_scalar(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim,
+                         const float *rad2c)
+{
+    float acc[16] = {0}, err[16] = {0};
     RowOut o = {0.0f, 0.0f, 0};
     for (int64_t c = 0; c < k; ++c) {
         float d2 = g[c] < 0.0f ? 0.0f : g[c];
         float t = d2 * w[c];
+        int l = (int)(c & 15);
         if (kernel == KERNEL_GAUSSIAN) {
             if (t > 87.0f) t = 87.0f;
             float e = exp_neg(t) * s[c];
-            o.acc += e;
-            o.err += e * w[c];
+            acc[l] += e;
+            err[l] += e * w[c];
         } else {
             float q = 1.0f - t;
-            if (q > 0.0f) o.acc += q * s[c];
-            if (q > -0.01f) o.err += w[c] * s[c];
+            if (q > 0.0f) acc[l] += q * s[c];
+            if (q > -0.01f) err[l] += w[c] * s[c];
         }
-        o.hits += g[c] < lim;
+        o.hits += g[c] < lim || (rad2c && g[c] < rad2c[c]);
+    }
+    for (int l = 0; l < 16; ++l) {
+        o.acc += acc[l];
+        o.err += err[l];
     }
     return o;
 }
@@ -116,59 +140,192 @@ static inline __m256 exp_neg8(__m256 t)
 }
 
 __attribute__((target("avx2,fma")))
-static RowOut row_avx2(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim)
+static RowOut row_avx2(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim,
+                       const float *rad2c)
 {
-    __m256 acc = _mm256_setzero_ps(), err = _mm256_setzero_ps();
+    /* two accumulators (columns c..c+7 and c+8..c+15): chains of k / 16 */
+    __m256 acc[2] = {_mm256_setzero_ps(), _mm256_setzero_ps()}, err[2] = {_mm256_setzero_ps(), _mm256_setzero_ps()};
     __m256 zero = _mm256_setzero_ps(), vmax = _mm256_set1_ps(87.0f), one = _mm256_set1_ps(1.0f);
     __m256 edge = _mm256_set1_ps(-0.01f), vlim = _mm256_set1_ps(lim);
     int64_t hits = 0;
     int64_t c = 0;
     for (; c + 8 <= k; c += 8) {
+        int l = (int)((c >> 3) & 1);
         __m256 gv = _mm256_loadu_ps(g + c);
         __m256 wv = _mm256_loadu_ps(w + c);
         __m256 sv = _mm256_loadu_ps(s + c);
         __m256 t = _mm256_mul_ps(_mm256_max_ps(gv, zero), wv);
         if (kernel == KERNEL_GAUSSIAN) {
             __m256 e = _mm256_mul_ps(exp_neg8(_mm256_min_ps(t, vmax)), sv);
-            acc = _mm256_add_ps(acc, e);
-            err = _mm256_fmadd_ps(e, wv, err);
+            acc[l] = _mm256_add_ps(acc[l], e);
+            err[l] = _mm256_fmadd_ps(e, wv, err[l]);
         } else {
             __m256 q = _mm256_sub_ps(one, t);
-            acc = _mm256_add_ps(acc, _mm256_mul_ps(_mm256_max_ps(q, zero), sv));
+            acc[l] = _mm256_add_ps(acc[l], _mm256_mul_ps(_mm256_max_ps(q, zero), sv));
             __m256 near = _mm256_and_ps(_mm256_cmp_ps(q, edge, _CMP_GT_OQ), _mm256_mul_ps(wv, sv));
-            err = _mm256_add_ps(err, near);
+            err[l] = _mm256_add_ps(err[l], near);
         }
-        hits += __builtin_popcount(_mm256_movemask_ps(_mm256_cmp_ps(gv, vlim, _CMP_LT_OQ)));
+        __m256 in = _mm256_cmp_ps(gv, vlim, _CMP_LT_OQ);
+        if (rad2c)
+            in = _mm256_or_ps(in, _mm256_cmp_ps(gv, _mm256_loadu_ps(rad2c + c), _CMP_LT_OQ));
+        hits += __builtin_popcount(_mm256_movemask_ps(in));
     }
-    RowOut tail = row_scalar(kernel, g + c, w + c, s + c, k - c, lim);
+    RowOut tail = row_scalar(kernel, g + c, w + c, s + c, k - c, lim, rad2c ? rad2c + c : 0);
     RowOut o;
-    o.acc = hsum8(acc) + tail.acc;
-    o.err = hsum8(err) + tail.err;
+    o.acc = hsum8(_mm256_add_ps(acc[0], acc[1])) + tail.acc;
+    o.err = hsum8(_mm256_add_ps(err[0], err[1])) + tail.err;
     o.hits = hits + tail.hits;
     return o;
 }
 #endif
 
-static int use_avx2 = -1;
-
-static RowOut row_terms(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim)
-{
 #ifdef DQM_HAVE_AVX2_PATH
-    if (use_avx2 < 0) {
-        __builtin_cpu_init();
-        use_avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-    }
-    if (use_avx2)
-        return row_avx2(kernel, g, w, s, k, lim);
-#endif
-    return row_scalar(kernel, g, w, s, k, lim);
+/* AVX-512: 16 lanes, masked tails, and the row and column directions of a
+   symmetric tile in one loop (each distance is loaded once). exp_neg16 is
+   exp_neg8 lane for lane (scalef multiplies by 2^rn exactly, as the exponent
+   trick does for rn >= -126, which the clamp at 87 guarantees), so both paths
+   compute the same terms; only the order of the float32 sums differs. */
+#define AVX512_TARGET __attribute__((target("avx512f,avx512dq,avx2,fma")))
+
+AVX512_TARGET
+static inline __m512 exp_neg16(__m512 t)
+{
+    __m512 x = _mm512_sub_ps(_mm512_setzero_ps(), t);
+    __m512 rn = _mm512_roundscale_ps(_mm512_mul_ps(x, _mm512_set1_ps(LOG2E)),
+                                     _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    __m512 r = _mm512_fnmadd_ps(rn, _mm512_set1_ps(LN2_HI), x);
+    r = _mm512_fnmadd_ps(rn, _mm512_set1_ps(LN2_LO), r);
+    __m512 p = _mm512_set1_ps(EXP_C0);
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(EXP_C1));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(EXP_C2));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(EXP_C3));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(EXP_C4));
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(EXP_C5));
+    p = _mm512_fmadd_ps(_mm512_mul_ps(p, r), r, _mm512_add_ps(r, _mm512_set1_ps(1.0f)));
+    return _mm512_scalef_ps(p, rn);
 }
 
-/* Which row loop runs: 1 for AVX2, 0 for the portable one. */
+static inline __mmask16 tail_mask(int64_t left)
+{
+    return left >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << left) - 1u);
+}
+
+/* Kernel terms of the squared distances d2 (>= 0) scaled by w, times s, and the
+   error weights; the tail lanes have s == 0 (masked loads), so they add 0. */
+AVX512_TARGET
+static inline void terms16(int kernel, __m512 d2, __m512 w, __m512 s, __m512 *acc, __m512 *err)
+{
+    __m512 t = _mm512_mul_ps(d2, w);
+    if (kernel == KERNEL_GAUSSIAN) {
+        __m512 e = _mm512_mul_ps(exp_neg16(_mm512_min_ps(t, _mm512_set1_ps(87.0f))), s);
+        *acc = _mm512_add_ps(*acc, e);
+        *err = _mm512_fmadd_ps(e, w, *err);
+    } else {
+        __m512 q = _mm512_sub_ps(_mm512_set1_ps(1.0f), t);
+        *acc = _mm512_fmadd_ps(_mm512_max_ps(q, _mm512_setzero_ps()), s, *acc);
+        __mmask16 near = _mm512_cmp_ps_mask(q, _mm512_set1_ps(-0.01f), _CMP_GT_OQ);
+        *err = _mm512_mask_add_ps(*err, near, *err, _mm512_mul_ps(w, s));
+    }
+}
+
+AVX512_TARGET
+static RowOut row_avx512(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim)
+{
+    /* the diagonal tile's rows only: hits count g < lim */
+    __m512 acc = _mm512_setzero_ps(), err = _mm512_setzero_ps();
+    __m512 vlim = _mm512_set1_ps(lim);
+    int64_t hits = 0;
+    for (int64_t c = 0; c < k; c += 16) {
+        __mmask16 m = tail_mask(k - c);
+        __m512 gv = _mm512_maskz_loadu_ps(m, g + c);
+        terms16(kernel, _mm512_max_ps(gv, _mm512_setzero_ps()), _mm512_maskz_loadu_ps(m, w + c),
+                _mm512_maskz_loadu_ps(m, s + c), &acc, &err);
+        hits += __builtin_popcount(_mm512_mask_cmp_ps_mask(m, gv, vlim, _CMP_LT_OQ));
+    }
+    RowOut o = {_mm512_reduce_add_ps(acc), _mm512_reduce_add_ps(err), hits};
+    return o;
+}
+
+/* One row r of a symmetric tile, both directions: the row's sums over the
+   columns (weights wc, sc) and every column's sums over this row (weight wr,
+   on/off sr) added to cacc / cerr; hits counts the candidates, g < lim or
+   g < rad2c[c]. */
+AVX512_TARGET
+static RowOut rowcol_avx512(int kernel, const float *g, const float *wc, const float *sc, float wr, float sr,
+                            int64_t k, float lim, const float *rad2c, float *cacc, float *cerr)
+{
+    __m512 acc = _mm512_setzero_ps(), err = _mm512_setzero_ps();
+    __m512 vlim = _mm512_set1_ps(lim), wrv = _mm512_set1_ps(wr), srv = _mm512_set1_ps(sr);
+    int64_t hits = 0;
+    for (int64_t c = 0; c < k; c += 16) {
+        __mmask16 m = tail_mask(k - c);
+        __m512 gv = _mm512_maskz_loadu_ps(m, g + c);
+        __m512 d2 = _mm512_max_ps(gv, _mm512_setzero_ps());
+        terms16(kernel, d2, _mm512_maskz_loadu_ps(m, wc + c), _mm512_maskz_loadu_ps(m, sc + c), &acc, &err);
+        __m512 ca = _mm512_maskz_loadu_ps(m, cacc + c), ce = _mm512_maskz_loadu_ps(m, cerr + c);
+        terms16(kernel, d2, wrv, srv, &ca, &ce);
+        _mm512_mask_storeu_ps(cacc + c, m, ca);
+        _mm512_mask_storeu_ps(cerr + c, m, ce);
+        __mmask16 in = _mm512_mask_cmp_ps_mask(m, gv, vlim, _CMP_LT_OQ)
+                     | _mm512_mask_cmp_ps_mask(m, gv, _mm512_maskz_loadu_ps(m, rad2c + c), _CMP_LT_OQ);
+        hits += __builtin_popcount(in);
+    }
+    RowOut o = {_mm512_reduce_add_ps(acc), _mm512_reduce_add_ps(err), hits};
+    return o;
+}
+#endif
+
+/* Which loops run: 2 AVX-512, 1 AVX2, 0 portable C; resolved once from the CPU,
+   and capped by dqm_set_simd_level (tests run every level the CPU has). */
+static int simd_level = -1;
+static int use_avx2 = -1;
+
+static void resolve_simd(void)
+{
+    if (simd_level >= 0)
+        return;
+    int level = 0;
+#ifdef DQM_HAVE_AVX2_PATH
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) {
+        level = 1;
+        if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq"))
+            level = 2;
+    }
+#endif
+    simd_level = level;
+    use_avx2 = level >= 1;
+}
+
+static RowOut row_terms(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim,
+                        const float *rad2c)
+{
+    resolve_simd();
+#ifdef DQM_HAVE_AVX2_PATH
+    if (simd_level >= 2 && !rad2c)
+        return row_avx512(kernel, g, w, s, k, lim);
+    if (use_avx2)
+        return row_avx2(kernel, g, w, s, k, lim, rad2c);
+#endif
+    return row_scalar(kernel, g, w, s, k, lim, rad2c);
+}
+
+/* Which loops run: 2 for AVX-512, 1 for AVX2, 0 for the portable ones. */
 int32_t dqm_simd_level(void)
 {
-    row_terms(KERNEL_GAUSSIAN, 0, 0, 0, 0, 0.0f);
-    return use_avx2 > 0;
+    resolve_simd();
+    return simd_level;
+}
+
+/* Use at most the given level (never more than the CPU has); returns the level now in use. */
+int32_t dqm_set_simd_level(int32_t cap)
+{
+    simd_level = -1;
+    resolve_simd();
+    if (cap < simd_level)
+        simd_level = cap < 0 ? 0 : cap;
+    use_avx2 = simd_level >= 1;
+    return simd_level;
 }
 
 /* Column direction of a symmetric tile: for one row r (contributor with weight
@@ -236,7 +393,7 @@ static void col_terms(int kernel, const float *g, float wr, float sr, int64_t k,
  * the columns (weights wc, sc); column c's density gets the terms of the rows
  * (weights wr, sr). Candidate pairs: g < max(rad2r[r], rad2c[c]) (either end
  * as the child). cacc/cerr are float scratch of length k. Returns the count of
- * pairs written or -1 if more than cap.
+ * pairs written, -1 if more than cap, or -2 if k > MAX_ROW.
  */
 int64_t dqm_tile_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
                      const float *wc, const float *sc, const float *wr, const float *sr,
@@ -246,20 +403,36 @@ int64_t dqm_tile_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
                      int32_t *cand_r, int32_t *cand_c, int64_t cap)
 {
     int64_t count = 0;
-    float cmax = 0.0f;
-    row_terms(kernel, 0, 0, 0, 0, 0.0f); /* resolves use_avx2 */
+    if (k > MAX_ROW)
+        return -2; /* the sums' error bound assumes rows of at most MAX_ROW columns */
+    resolve_simd();
     for (int64_t c = 0; c < k; ++c) {
         cacc[c] = 0.0f;
         cerr[c] = 0.0f;
-        cmax = rad2c[c] > cmax ? rad2c[c] : cmax;
     }
     for (int64_t r = 0; r < m; ++r) {
         const float *g = G + r * ldg;
-        float lim = rad2r[r] > cmax ? rad2r[r] : cmax;
-        RowOut a = row_terms(kernel, g, wc, sc, k, lim);
+        float lim = rad2r[r];
+        RowOut a;
+#ifdef DQM_HAVE_AVX2_PATH
+        if (simd_level >= 2) {
+            a = rowcol_avx512(kernel, g, wc, sc, wr[r], sr[r], k, lim, rad2c, cacc, cerr);
+        } else
+#endif
+        {
+            a = row_terms(kernel, g, wc, sc, k, lim, rad2c);
+            col_terms(kernel, g, wr[r], sr[r], k, cacc, cerr);
+        }
         dens_r[r] += (double)a.acc;
         err_r[r] += (double)a.err;
-        col_terms(kernel, g, wr[r], sr[r], k, cacc, cerr);
+        if ((r + 1) % SUM_CHAIN == 0 || r + 1 == m) {
+            for (int64_t c = 0; c < k; ++c) {
+                dens_c[c] += (double)cacc[c];
+                err_c[c] += (double)cerr[c];
+                cacc[c] = 0.0f;
+                cerr[c] = 0.0f;
+            }
+        }
         if (a.hits > 0) {
             float lr = rad2r[r];
             for (int64_t c = 0; c < k; ++c) {
@@ -272,10 +445,6 @@ int64_t dqm_tile_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
                 }
             }
         }
-    }
-    for (int64_t c = 0; c < k; ++c) {
-        dens_c[c] += (double)cacc[c];
-        err_c[c] += (double)cerr[c];
     }
     return count;
 }
@@ -326,7 +495,7 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
                         float *rmin, float *cmin,
                         int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t cap)
 {
-    row_terms(KERNEL_GAUSSIAN, 0, 0, 0, 0, 0.0f); /* resolves use_avx2 */
+    resolve_simd();
     for (int64_t c = 0; c < k; ++c)
         cmin[c] = FLT_MAX;
     for (int64_t r = 0; r < m; ++r) {
@@ -361,8 +530,9 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
 /*
  * self_col: for row r the column holding the same feature is r + self_col when
  * 0 <= r + self_col < k (pass a value <= -m or >= k when the tile holds no
- * self pair). Returns the number of candidate pairs written, or -1 when more
- * than cap were found (the caller retries the tile with a larger buffer).
+ * self pair). Returns the number of candidate pairs written, -1 when more
+ * than cap were found (the caller retries the tile with a larger buffer), or
+ * -2 if k > MAX_ROW.
  */
 int64_t dqm_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
                  const float *w, const float *s, int32_t kernel, const float *rad2,
@@ -370,6 +540,8 @@ int64_t dqm_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
                  int32_t *cand_r, int32_t *cand_c, int64_t cap)
 {
     int64_t count = 0;
+    if (k > MAX_ROW)
+        return -2;
     for (int64_t r = 0; r < m; ++r) {
         const float *g = G + r * ldg;
         float lim = rad2[r];
@@ -377,9 +549,9 @@ int64_t dqm_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
         int has_self = (sc >= 0 && sc < k);
         /* the self column is skipped, not subtracted: subtracting ~1 from a
            float sum would lose the small terms of isolated features */
-        RowOut a = row_terms(kernel, g, w, s, has_self ? sc : k, lim);
+        RowOut a = row_terms(kernel, g, w, s, has_self ? sc : k, lim, 0);
         if (has_self) {
-            RowOut b = row_terms(kernel, g + sc + 1, w + sc + 1, s + sc + 1, k - sc - 1, lim);
+            RowOut b = row_terms(kernel, g + sc + 1, w + sc + 1, s + sc + 1, k - sc - 1, lim, 0);
             a.acc += b.acc;
             a.err += b.err;
             a.hits += b.hits;

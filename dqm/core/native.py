@@ -72,11 +72,21 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, f32, f32, f32, f32, f32, f32, i64, i64, f32, ctypes.c_int64,
         ]
         pt.restype = ctypes.c_int64
+        lib.dqm_sum_roundings.restype = ctypes.c_int32
+        lib.dqm_simd_level.restype = ctypes.c_int32
+        lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
+        lib.dqm_set_simd_level.restype = ctypes.c_int32
         return lib
     return None
 
 
 _LIB = _load()
+
+#: most columns of one tile row the native kernel takes (its sums' error bound assumes it)
+MAX_ROW = 1024
+#: how many times the native kernel rounds a kernel term in float32 before it reaches a
+#: float64 sum (the numpy version rounds it fewer times): the tile kernel's contract
+SUM_ROUNDINGS = int(_LIB.dqm_sum_roundings()) if _LIB is not None else 1
 
 
 def native_available() -> bool:
@@ -89,9 +99,27 @@ def kernel_description() -> str:
     if _LIB is None:
         why = "disabled by DQM_NATIVE=0" if os.environ.get("DQM_NATIVE", "1") == "0" else "not built"
         return f"numpy fallback (native kernel {why}; about 12x slower on large inputs)"
-    fn = getattr(_LIB, "dqm_simd_level", None)
-    simd = "AVX2" if fn is not None and fn() else "portable C"
-    return f"native C ({simd})"
+    return f"native C ({SIMD_NAMES[simd_level()]})"
+
+
+#: the tile kernel's loops by level (:func:`simd_level`)
+SIMD_NAMES = {0: "portable C", 1: "AVX2", 2: "AVX-512"}
+
+
+def simd_level() -> int:
+    """Which loops the native kernel runs: 2 AVX-512, 1 AVX2, 0 portable C (-1: no native kernel)."""
+    if _LIB is None:
+        return -1
+    return int(_LIB.dqm_simd_level())
+
+
+def set_simd_level(cap: int) -> int:
+    """Run at most the loops of level ``cap`` (never more than the CPU has); returns the level in use.
+
+    For tests and benchmarks that compare the levels on one machine."""
+    if _LIB is None:
+        return -1
+    return int(_LIB.dqm_set_simd_level(int(cap)))
 
 
 _WARNED_FALLBACK = False
@@ -107,6 +135,11 @@ def warn_if_fallback(n: int, threshold: int = 20_000) -> None:
         warnings.warn(f"quickmatch: the native tile kernel is not in use ({kernel_description()}); "
                       "reinstall with a C compiler present (pip install -e .) and check with 'dqm doctor'",
                       stacklevel=3)
+
+
+def _check_row(code: int, k: int) -> None:
+    if code == -2:
+        raise ValueError(f"tile rows of {k} columns: the native kernel takes at most {MAX_ROW}")
 
 
 def tile_numpy(
@@ -164,6 +197,7 @@ def tile(
             dens += d_add
             err += e_add
             return cr[:got], cc[:got]
+        _check_row(got, k)
         cap *= 4
 
 
@@ -219,6 +253,7 @@ def tile_sym(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err
             dens_c += dc
             err_c += ec
             return cr[:got], cc[:got]
+        _check_row(got, k)
         cap *= 4
 
 
@@ -340,14 +375,35 @@ def parent_tile(G, ra, cb, diag, lo, hi, img, rad2r, rad2c, limr, limc, slackr, 
         cap *= 4
 
 
-def _blas_local_threads():
-    """``openblas_set_num_threads_local`` of the OpenBLAS numpy uses, if any (else None)."""
+def _openblas_paths():
+    """Paths of the OpenBLAS libraries loaded in this process (Linux; empty elsewhere)."""
+    np.ones((2, 2)) @ np.ones((2, 2))  # make sure BLAS is loaded
     try:
         with open("/proc/self/maps") as fh:
-            paths = {line.split()[-1] for line in fh if "openblas" in line.split()[-1].lower()}
+            return sorted({line.split()[-1] for line in fh if "openblas" in line.split()[-1].lower()})
     except OSError:
-        return None
-    for path in sorted(paths):
+        return []
+
+
+def blas_description() -> str:
+    """Which BLAS kernels numpy's GEMMs run, in words (for ``dqm doctor``)."""
+    forced = os.environ.get("OPENBLAS_CORETYPE")
+    note = f" (OPENBLAS_CORETYPE={forced} in the environment)" if forced else ""
+    for path in _openblas_paths():
+        lib = ctypes.CDLL(path)
+        for name in ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename", "openblas_get_corename64_",
+                     "openblas_get_corename"):
+            fn = getattr(lib, name, None)
+            if fn is not None:
+                fn.restype = ctypes.c_char_p
+                core = fn().decode()
+                return f"OpenBLAS, {core} kernels{note}"
+    return "not OpenBLAS (or not found): " + ", ".join(_openblas_paths()) if _openblas_paths() else "unknown"
+
+
+def _blas_local_threads():
+    """``openblas_set_num_threads_local`` of the OpenBLAS numpy uses, if any (else None)."""
+    for path in _openblas_paths():
         try:
             fn = ctypes.CDLL(path).openblas_set_num_threads_local
         except (OSError, AttributeError):
@@ -371,7 +427,6 @@ def single_threaded_blas_in_this_thread() -> bool:
     """
     global _BLAS_LOCAL, _BLAS_CHECKED
     if not _BLAS_CHECKED:
-        np.ones((2, 2)) @ np.ones((2, 2))  # make sure BLAS is loaded
         _BLAS_LOCAL = _blas_local_threads()
         _BLAS_CHECKED = True
     if _BLAS_LOCAL is None:
