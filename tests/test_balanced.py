@@ -352,3 +352,14 @@ def test_hostile_round_messages_are_refused(kind, fields, pattern):
     bad_part = messages.encode(kind, "j", 1, seq=0, part=3, parts=2, **fields)
     with pytest.raises(messages.MessageError):
         messages.decode(bad_part, job="j", n_agents=3)
+
+
+def test_an_agent_over_its_memory_budget_refuses_in_one_line(sift, monkeypatch):
+    """The agents' pass streams its edges tile by tile and keeps only parent candidates; when those
+    would pass the budget, the agent says so instead of exhausting the machine."""
+    from dqm.core import memory
+
+    X, ids = sift
+    monkeypatch.setattr(memory, "resolve_budget", lambda _: 1 << 20)  # below any agent's base arrays
+    with pytest.raises(memory.MemoryBudgetError, match=r"agent \d+: the parent candidates .*\(rho 3\)"):
+        simulate(X, ids, DQMConfig(agents=3, rho=3.0))

@@ -40,7 +40,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from ..core import density as exact
-from ..core import pairs, tree
+from ..core import memory, pairs, tree
 from ..core.clustering import duplicate_groups, equalize_duplicates, zero_sigma_counts
 from . import boundary, forest, ghosts, partition, sketch
 from .config import DQMConfig
@@ -277,26 +277,43 @@ class BalancedCore:
         sums = exact.ExactSums(n_held)
         self.cand = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
         if n_held:
-            aug = pairs.Augmented(held.descriptors.astype(np.float64))
+            aug = pairs.Augmented(held.descriptors)
             zero = np.zeros(n_held)
-            _, _, cr, cc = pairs.kernel_pass(aug, zero, zero, "quadratic", R, rows_limit=self.n_own)
-            lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
-            key = np.unique(lo * n_held + hi)
-            i, j = key // n_held, key % n_held
-            if self.rule == "two-way":  # a pair both of whose features travelled is counted at the lower agent
-                i, j = self._dedupe_two_way(i, j)
-            d2 = pairs.exact_sq_distances(aug.exact, i, j)
             active = sig > 0
             w = np.where(active, 1.0 / np.where(active, sig, 1.0) ** 2, 0.0)
-            t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
-            t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
-            sums.add_terms(np.concatenate([j, i]), np.concatenate([t_ij, t_ji]))
-            d = np.sqrt(d2)
             radius = self.cfg.rho * sig
-            c1 = d < radius[i]  # i child, j candidate parent
-            c2 = d < radius[j]
-            self.cand = (np.concatenate([i[c1], j[c2]]), np.concatenate([j[c1], i[c2]]),
-                         np.concatenate([d[c1], d[c2]]))
+            kept: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+            budget = memory.resolve_budget(None)
+            cap = max(0, budget - memory.base_bytes(n_held, aug.dim, pairs.default_threads())) // memory.BYTES_PER_EDGE
+            held_edges = [0]
+
+            def tile_edges(cr: np.ndarray, cc: np.ndarray) -> None:
+                # one tile's pairs within reach: their exact kernel terms now, and only the
+                # parent candidates kept, so memory does not grow with the kernel's reach
+                lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
+                key = np.unique(lo * n_held + hi)
+                i, j = key // n_held, key % n_held
+                if self.rule == "two-way":  # a pair both of whose features travelled is counted at the lower agent
+                    i, j = self._dedupe_two_way(i, j)
+                d2 = pairs.exact_sq_distances(aug.exact, i, j)
+                t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
+                t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
+                sums.add_terms(np.concatenate([j, i]), np.concatenate([t_ij, t_ji]))
+                d = np.sqrt(d2)
+                c1 = d < radius[i]  # i child, j candidate parent
+                c2 = d < radius[j]
+                kept.append((np.concatenate([i[c1], j[c2]]), np.concatenate([j[c1], i[c2]]),
+                             np.concatenate([d[c1], d[c2]])))
+                held_edges[0] += len(kept[-1][0])
+                if held_edges[0] > cap:
+                    raise memory.MemoryBudgetError(
+                        f"agent {self.me}: the parent candidates within rho * sigma (rho {self.cfg.rho:g}) of its "
+                        f"{n_held:,} features would pass its memory budget of {memory.format_bytes(budget)}; "
+                        "use a smaller rho or more agents")
+
+            pairs.kernel_pass(aug, zero, zero, "quadratic", R, rows_limit=self.n_own, on_edges=tile_edges)
+            if kept:
+                self.cand = tuple(np.concatenate(part) for part in zip(*kept))
         self.sums = sums
         out = {}
         for a in senders:
