@@ -152,6 +152,19 @@ def _umask() -> int:
     return mask
 
 
+#: zlib level of the npz files dqm writes: level 1 packs descriptors and labels nearly as tightly as
+#: numpy's default (6) at about a quarter of the time (90k COLMAP features: 0.42 s -> ~0.1 s)
+NPZ_LEVEL = 1
+
+
+def _savez_fast(path: str, arrays: dict) -> None:
+    """``np.savez_compressed`` with zlib level :data:`NPZ_LEVEL`; ``np.load`` reads it as any npz."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=NPZ_LEVEL) as zf:
+        for name, value in arrays.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+
+
 def _atomic_savez(path: Path, arrays: dict) -> None:
     """Write an npz next to ``path`` and rename it in place: no half-written file."""
     path = Path(path)
@@ -159,7 +172,7 @@ def _atomic_savez(path: Path, arrays: dict) -> None:
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
     os.close(fd)
     try:
-        np.savez_compressed(tmp, **arrays)
+        _savez_fast(tmp, arrays)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a result file follows the umask like any other
         os.replace(tmp, path)
     except BaseException:

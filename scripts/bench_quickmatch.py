@@ -35,6 +35,7 @@ import multiprocessing as mp
 import os
 import tempfile
 import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -56,6 +57,9 @@ def load(name):
         parts = [load(p) for p in name.split("+")]
         offsets = np.cumsum([0] + [int(ids.max()) + 1 for _, ids in parts[:-1]])
         return np.vstack([D for D, _ in parts]), np.concatenate([ids + o for (_, ids), o in zip(parts, offsets)])
+    if name.endswith(".npz"):  # a FEATURES file
+        z = np.load(name)
+        return z["descriptors"], z["image_ids"]
     if name in REAL:
         cache = CACHE / f"{name}.npz"
         if cache.exists():
@@ -252,6 +256,117 @@ def approximate_section(names, million):
                   f"100k run, {ex100 * 100 / big['wall']:.1f}x the approximate time")
 
 
+def gemm_schedule(name, q):
+    """The pass's own GEMMs (every unordered block pair, the same threads), nothing else: the
+    float32 GEMM rate this machine's BLAS gives the pass."""
+    X, _ = load(name)
+    from dqm.core import pairs
+
+    aug = pairs.Augmented(X)
+    n, starts = aug.n, list(range(0, aug.n, pairs.BLOCK))
+    tasks = [(a, b) for i, a in enumerate(starts) for b in starts[i:]]
+
+    def gemm(task):
+        a, b = task
+        aug.left[a:a + pairs.BLOCK] @ aug.right[b:b + pairs.BLOCK].T
+        return None
+
+    t, cpu = time.perf_counter(), time.process_time()
+    with pairs.tile_pool() as pool:
+        for _ in pool(gemm, tasks):
+            pass
+    wall = time.perf_counter() - t
+    flops = sum(2.0 * min(pairs.BLOCK, n - a) * min(pairs.BLOCK, n - b) * aug.left.shape[1] for a, b in tasks)
+    q.put({"wall": wall, "cpu": time.process_time() - cpu, "flops": flops, "n": n})
+
+
+def run_gemm(name):
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=gemm_schedule, args=(name, q))
+    p.start()
+    res = q.get()
+    p.join()
+    return res
+
+
+def colmap_database(images, workdir, max_features):
+    """pycolmap's SIFT of ``images`` into a new database (COLMAP's defaults but max_num_features)."""
+    import pycolmap
+
+    db = Path(workdir) / f"features-{max_features}.db"
+    if not db.exists():
+        opts = pycolmap.FeatureExtractionOptions()
+        opts.sift.max_num_features = max_features
+        pycolmap.extract_features(str(db), str(images), extraction_options=opts)
+    return db
+
+
+def timed(cmd):
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+def real_section(images, max_features, brute_images):
+    """dqm's pipeline against COLMAP's matcher on the same COLMAP features, and the pass's rate."""
+    import shutil
+
+    import pycolmap
+
+    work = Path(tempfile.mkdtemp(prefix="dqm-bench-real-"))
+    print(f"\n### Real photo SIFT: {images} (COLMAP's features, pycolmap {pycolmap.__version__})\n")
+    print("| max features / image | n | COLMAP exhaustive s | dqm import s | dqm match s | dqm export s | "
+          "dqm pipeline / COLMAP | pass GFLOP/s | GEMM GFLOP/s (same tiles) | pass / GEMM | cores busy |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    dqm_cli = [sys.executable, "-m", "dqm"]
+    for mf in max_features:
+        db = colmap_database(images, work, mf)
+        cm = work / f"colmap-{mf}.db"
+        shutil.copy(db, cm)
+        t = time.perf_counter()
+        pycolmap.match_exhaustive(str(cm))
+        t_colmap = time.perf_counter() - t
+        feats, clusters, exported = work / f"f-{mf}.npz", work / f"c-{mf}.npz", work / f"e-{mf}.db"
+        t_imp = timed(dqm_cli + ["import", "colmap", str(db), "--out", str(feats), "--image-dir", str(images)])
+        t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet"])
+        t_exp = timed(dqm_cli + ["export", "colmap", str(clusters), "--database", str(exported)])
+        name = str(feats)
+        qm = run((name, "quickmatch"))
+        gm = run_gemm(name)
+        rate_pass = gm["flops"] / qm["time_pass"] / 1e9  # the same tiles' flops, in the pass's own time
+        rate_gemm = gm["flops"] / gm["wall"] / 1e9
+        busy = qm["cpu_pass"] / qm["time_pass"]
+        total = t_imp + t_match + t_exp
+        print(f"| {mf} | {qm['n']:,} | {t_colmap:.2f} | {t_imp:.2f} | {t_match:.2f} | {t_exp:.2f} | "
+              f"{total / t_colmap:.2f} | {rate_pass:.0f} | {rate_gemm:.0f} | {rate_pass / rate_gemm:.2f} | "
+              f"{busy:.2f} of {os.cpu_count()} |", flush=True)
+        print(f"  phases of quickmatch (s): sigma {qm['time_sigma']:.2f}, pass {qm['time_pass']:.2f}, refine "
+              f"{qm['time_refine']:.2f} ({int(qm['n_refined'])} refined), tree {qm['time_tree']:.2f}; "
+              f"wall {qm['wall']:.2f}", flush=True)
+    if brute_images:
+        sub = work / "subset"
+        sub.mkdir()
+        for p in sorted(Path(images).iterdir())[:brute_images]:
+            (sub / p.name).symlink_to(p.resolve())
+        db = colmap_database(sub, work, 8192)
+        bf = work / "bf.db"
+        shutil.copy(db, bf)
+        opts = pycolmap.FeatureMatchingOptions()
+        opts.sift.cpu_brute_force_matcher = True
+        t = time.perf_counter()
+        pycolmap.match_exhaustive(str(bf), matching_options=opts)
+        t_bf = time.perf_counter() - t
+        feats, clusters = work / "f-sub.npz", work / "c-sub.npz"
+        timed(dqm_cli + ["import", "colmap", str(db), "--out", str(feats)])
+        t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet"])
+        n = len(np.load(feats)["descriptors"])
+        print(f"\nExact against exact, {brute_images} images ({n:,} features): COLMAP's brute-force matcher "
+              f"(cpu_brute_force_matcher, with its verification) {t_bf:.2f} s, dqm match {t_match:.2f} s: "
+              f"dqm / COLMAP {t_match / t_bf:.2f}")
+    shutil.rmtree(work, ignore_errors=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="6254,25000,100000")
@@ -263,7 +378,16 @@ def main(argv=None):
     ap.add_argument("--approx-sets", default="25000,100000,graf,wall,graf+wall",
                     help="data sets of --approximate (numbers are generated sizes)")
     ap.add_argument("--million", action="store_true", help="with --approximate: also 1M generated features")
+    ap.add_argument("--real", nargs="?", const=str(ROOT.parent / "shared" / "data" / "sacre_coeur"), default=None,
+                    metavar="IMAGES", help="real photos (default sacre_coeur): dqm import + match + export against "
+                    "COLMAP's exhaustive matcher on COLMAP's features, and the pass against the GEMM rate")
+    ap.add_argument("--real-max-features", default="8192,16384",
+                    help="COLMAP's max_num_features per image, one row each (8192 is COLMAP's default)")
+    ap.add_argument("--brute-images", type=int, default=2,
+                    help="with --real: COLMAP's brute-force matcher against dqm on this many images (0: skip)")
     args = ap.parse_args(argv)
+    if args.real:
+        real_section(Path(args.real), [int(x) for x in args.real_max_features.split(",") if x], args.brute_images)
     if args.memory:
         memory_section()
     if args.approximate:

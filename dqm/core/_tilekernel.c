@@ -449,6 +449,36 @@ int64_t dqm_tile_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
     return count;
 }
 
+#ifdef DQM_HAVE_AVX2_PATH
+/* The vector part of near_row: blocks of 8 columns; returns the first column left for the
+   scalar loop (*count = -1 when past cap). */
+__attribute__((target("avx2,fma")))
+static int64_t near_row_avx2(const float *g, int64_t k, float lr, const float *climit, int32_t r,
+                             int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t *count, int64_t cap)
+{
+    __m256 vl = _mm256_set1_ps(lr), vmax = _mm256_set1_ps(FLT_MAX);
+    int64_t c = 0;
+    for (; c + 8 <= k; c += 8) {
+        __m256 v = _mm256_loadu_ps(g + c);
+        __m256 in = _mm256_or_ps(_mm256_cmp_ps(v, vl, _CMP_LE_OQ), _mm256_cmp_ps(v, _mm256_loadu_ps(climit + c), _CMP_LE_OQ));
+        int mask = _mm256_movemask_ps(_mm256_and_ps(in, _mm256_cmp_ps(v, vmax, _CMP_LT_OQ)));
+        while (mask) {
+            int l = __builtin_ctz(mask);
+            mask &= mask - 1;
+            if (*count >= cap) {
+                *count = -1;
+                return k;
+            }
+            cand_r[*count] = r;
+            cand_c[*count] = (int32_t)(c + l);
+            cand_g[*count] = g[c + l];
+            ++*count;
+        }
+    }
+    return c;
+}
+#endif
+
 /* Row minimum of g[0..k) and running column minima cmin[0..k). */
 static float minrow_scalar(const float *g, int64_t k, float *cmin)
 {
@@ -481,6 +511,32 @@ static float minrow_avx2(const float *g, int64_t k, float *cmin)
 }
 #endif
 
+/* Appends the columns c of row r with g[c] < FLT_MAX and (g[c] <= lr or g[c] <= climit[c]), in
+   column order; vector compares skip the blocks with none. Returns the new count, -1 past cap. */
+static int64_t near_row(const float *g, int64_t k, float lr, const float *climit, int32_t r,
+                        int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t count, int64_t cap)
+{
+    int64_t c = 0;
+#ifdef DQM_HAVE_AVX2_PATH
+    if (use_avx2)
+        c = near_row_avx2(g, k, lr, climit, r, cand_r, cand_c, cand_g, &count, cap);
+    if (count < 0)
+        return -1;
+#endif
+    for (; c < k; ++c) {
+        float v = g[c];
+        if (v < FLT_MAX && (v <= lr || v <= climit[c])) {
+            if (count >= cap)
+                return -1;
+            cand_r[count] = r;
+            cand_c[count] = (int32_t)c;
+            cand_g[count] = v;
+            ++count;
+        }
+    }
+    return count;
+}
+
 /*
  * Nearest-neighbour tile of the distinctiveness pass: rows and columns are
  * features of one image (pass a tile whose self pairs are set to FLT_MAX;
@@ -488,13 +544,15 @@ static float minrow_avx2(const float *g, int64_t k, float *cmin)
  * Writes every row's and column's minimum over the tile and every (r, c) with
  * g <= rmin[r] + slack_r[r] or g <= cmin[c] + slack_c[c] (with its value), so
  * that the caller, knowing the global minima, can recompute those exactly.
- * Returns the count or -1 if more than cap.
+ * Returns the count, -1 if more than cap, or -2 if k > MAX_ROW.
  */
 int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
                         const float *slack_r, const float *slack_c,
                         float *rmin, float *cmin,
                         int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t cap)
 {
+    if (k > MAX_ROW)
+        return -2;
     resolve_simd();
     for (int64_t c = 0; c < k; ++c)
         cmin[c] = FLT_MAX;
@@ -507,22 +565,15 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
 #endif
         rmin[r] = minrow_scalar(G + r * ldg, k, cmin);
     }
-    /* column limits once */
+    float climit[MAX_ROW]; /* column limits once */
+    for (int64_t c = 0; c < k; ++c)
+        climit[c] = cmin[c] + slack_c[c];
     int64_t count = 0;
     for (int64_t r = 0; r < m; ++r) {
-        const float *g = G + r * ldg;
-        float lr = rmin[r] + slack_r[r];
-        for (int64_t c = 0; c < k; ++c) {
-            float v = g[c];
-            if (v < FLT_MAX && (v <= lr || v <= cmin[c] + slack_c[c])) {
-                if (count >= cap)
-                    return -1;
-                cand_r[count] = (int32_t)r;
-                cand_c[count] = (int32_t)c;
-                cand_g[count] = v;
-                ++count;
-            }
-        }
+        count = near_row(G + r * ldg, k, rmin[r] + slack_r[r], climit, (int32_t)r, cand_r, cand_c, cand_g,
+                         count, cap);
+        if (count < 0)
+            return -1;
     }
     return count;
 }

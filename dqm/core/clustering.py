@@ -304,6 +304,7 @@ def quickmatch(
     stats["time_sigma"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    cpu = time.process_time()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
     max_edges = memory.max_dense_edges(n, base, budget)
@@ -314,6 +315,7 @@ def quickmatch(
     streaming = cr is None
     stats["streaming"] = float(streaming)
     stats["time_pass"] = time.perf_counter() - t
+    stats["cpu_pass"] = time.process_time() - cpu  # CPU seconds of all threads: how busy the cores were
 
     t = time.perf_counter()
     # zero-sigma features contribute only to their exact duplicates (kernel limit)
@@ -397,6 +399,7 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     stats["time_knn"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    cpu = time.process_time()
     w, active = kernel_weights(sig, kernel, ratio_density)
     dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
     gsize = np.bincount(groups)

@@ -282,6 +282,7 @@ def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_nat
         got = _LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, sr, sc, rmin, cmin, cr, cc, cg, cap)
         if got >= 0:
             return rmin, cmin, cr[:got], cc[:got], cg[:got]
+        _check_row(got, k)
         cap *= 4
 
 
