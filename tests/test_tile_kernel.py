@@ -138,3 +138,44 @@ def test_edges_handed_over_tile_by_tile_are_the_collected_ones(monkeypatch):
         r = np.concatenate([g[0] for g in got])
         c = np.concatenate([g[1] for g in got])
         assert sorted(zip(r.tolist(), c.tolist())) == sorted(zip(cr.tolist(), cc.tolist()))
+
+
+needs_vnni = pytest.mark.skipif(native.simd_level() < 3, reason="the CPU has no AVX-512 VNNI (integer distance kernel)")
+
+
+@needs_vnni
+def test_vnni_distances_are_exact_for_every_tile_shape():
+    rng = np.random.default_rng(1)
+    X = rng.integers(0, 256, size=(300, 130), dtype=np.uint8)  # any bytes, a dimension not a multiple of 4
+    ops = native.U8Operands(X)
+    exact = ((X[:, None, :].astype(np.int64) - X[None, :, :]) ** 2).sum(-1)
+    for a, a1, b, b1 in [(0, 300, 0, 300), (5, 17, 32, 33), (288, 300, 256, 300), (0, 1, 64, 127)]:
+        np.testing.assert_array_equal(ops.d2(a, a1, b, b1).astype(np.int64), exact[a:a1, b:b1])
+    other = native.U8Operands(X[::7])  # rows packed apart, columns from the full set
+    np.testing.assert_array_equal(other.d2(0, len(X[::7]), 0, 300, cols=ops).astype(np.int64), exact[::7])
+    with pytest.raises(ValueError, match="multiples of 32"):
+        ops.d2(0, 5, 16, 40)
+
+
+@needs_vnni
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
+    monkeypatch.setattr(pairs, "BLOCK", 256)  # diagonal, off-diagonal and ragged tiles
+    ds = sift_like(n_images=5, n_points=300, clutter_per_image=100, seed=6)
+    aug = pairs.Augmented(ds.descriptors)
+    assert aug.u8 is not None
+    _, img = np.unique(ds.image_ids, return_inverse=True)
+    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
+    w, active = clustering.kernel_weights(sig, kernel, 0.25)
+    fused = pairs.kernel_pass(aug, w, active, kernel, 1.1 * sig)
+    monkeypatch.setattr(aug, "u8", None)
+    plain = pairs.kernel_pass(aug, w, active, kernel, 1.1 * sig)
+    assert sorted(zip(fused[2].tolist(), fused[3].tolist())) == sorted(zip(plain[2].tolist(), plain[3].tolist()))
+    np.testing.assert_allclose(fused[0], plain[0], rtol=1e-6, atol=1e-30)
+    # the float64 densities from the integer distances equal those from the float32 GEMM's
+    idx = np.arange(0, aug.n, 7)
+    monkeypatch.undo()
+    a = pairs.exact_density_others(aug, idx, w, active, kernel)
+    monkeypatch.setattr(aug, "u8", None)
+    b = pairs.exact_density_others(aug, idx, w, active, kernel)
+    np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)

@@ -399,7 +399,6 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     stats["time_knn"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    cpu = time.process_time()
     w, active = kernel_weights(sig, kernel, ratio_density)
     dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
     gsize = np.bincount(groups)

@@ -72,6 +72,17 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, f32, f32, f32, f32, f32, f32, i64, i64, f32, ctypes.c_int64,
         ]
         pt.restype = ctypes.c_int64
+        i8 = np.ctypeslib.ndpointer(np.int8, flags="C_CONTIGUOUS")
+        lib.dqm_gemm_d2_u8.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64,
+                                       ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
+                                       f32, ctypes.c_int64]
+        lib.dqm_gemm_d2_u8.restype = ctypes.c_int32
+        lib.dqm_pass_tile_u8.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f32, f32, f32, f32, f32, ctypes.c_int32, f32, f32,
+            f64, f64, f64, f64, f32, f32, i32, i32, ctypes.c_int64]
+        lib.dqm_pass_tile_u8.restype = ctypes.c_int64
+        del i8
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
@@ -103,11 +114,12 @@ def kernel_description() -> str:
 
 
 #: the tile kernel's loops by level (:func:`simd_level`)
-SIMD_NAMES = {0: "portable C", 1: "AVX2", 2: "AVX-512"}
+SIMD_NAMES = {0: "portable C", 1: "AVX2", 2: "AVX-512", 3: "AVX-512, VNNI uint8 distances"}
 
 
 def simd_level() -> int:
-    """Which loops the native kernel runs: 2 AVX-512, 1 AVX2, 0 portable C (-1: no native kernel)."""
+    """Which loops the native kernel runs: 3 AVX-512 with VNNI (uint8 descriptors' distances by integer
+    dot products, :class:`U8Operands`), 2 AVX-512, 1 AVX2, 0 portable C (-1: no native kernel)."""
     if _LIB is None:
         return -1
     return int(_LIB.dqm_simd_level())
@@ -434,3 +446,90 @@ def single_threaded_blas_in_this_thread() -> bool:
         return False
     _BLAS_LOCAL(1)
     return True
+
+
+#: rows of the VNNI kernel's register block (its operands hold this many rows of padding)
+_VNNI_ROWS = 12
+
+
+class U8Operands:
+    """uint8 descriptors packed for the VNNI distance kernel (``simd_level() == 3``).
+
+    Rows: ``x - 128`` as int8 (row-major, padded to a multiple of 4 bytes and by
+    12 rows); columns: the raw bytes in groups of 16 features, 4 bytes of each
+    at a time. With ``na = |x|^2`` and ``nb = |y|^2 - 256 sum(y)``, the kernel's
+    int32 ``na + nb - 2 (x - 128) . y`` is the exact squared distance. 256 bytes
+    a feature. Tiles start at multiples of 32 features.
+    """
+
+    def __init__(self, X: np.ndarray):
+        n, dim = X.shape
+        self.n, self.nq = n, -(-dim // 4)
+        width = 4 * self.nq
+        groups = -(-n // 32) * 2
+        self.rows = np.zeros((n + _VNNI_ROWS, width), np.int8)
+        self.rows[:n, :dim] = (X.astype(np.int16) - 128).astype(np.int8)
+        cols = np.zeros((groups * 16, width), np.uint8)
+        cols[:n, :dim] = X
+        self.cols = np.ascontiguousarray(cols.reshape(groups, 16, self.nq, 4).transpose(0, 2, 1, 3))
+        Xi = X.astype(np.int32)
+        norm = np.einsum("ij,ij->i", Xi, Xi)
+        self.na = np.zeros(n + _VNNI_ROWS, np.int32)
+        self.na[:n] = norm
+        self.nb = np.zeros(groups * 16, np.int32)
+        self.nb[:n] = norm - 256 * Xi.sum(axis=1)
+
+    def _args(self, a: int, b: int):
+        if b % 32:
+            raise ValueError(f"VNNI tiles start at multiples of 32 features, not {b}")
+        return (self.rows[a:].ctypes.data, self.rows.shape[1], self.na[a:].ctypes.data,
+                self.cols[b // 16:].ctypes.data, self.nb[b:].ctypes.data)
+
+    def d2(self, a: int, a1: int, b: int, b1: int, cols: Optional["U8Operands"] = None) -> np.ndarray:
+        """Exact squared distances of rows ``a..a1`` to columns ``b..b1`` (float32); the columns
+        are those of ``cols`` when given (packed from other descriptors of the same dimension)."""
+        G = np.empty((a1 - a, b1 - b), np.float32)
+        A, lda, na, B, nb = self._args(a, b)
+        if cols is not None:
+            _, _, _, B, nb = cols._args(a, b)
+        if _LIB.dqm_gemm_d2_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, G, b1 - b) < 0:
+            raise RuntimeError("the VNNI kernel is not available on this CPU")
+        return G
+
+
+def u8_operands(X: np.ndarray) -> Optional[U8Operands]:
+    """:class:`U8Operands` of uint8 descriptors where the CPU has AVX-512 VNNI (else None)."""
+    if _LIB is None or X.dtype != np.uint8 or simd_level() < 3 or len(X) == 0:
+        return None
+    return U8Operands(X)
+
+
+def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel, rad2, dens_r, err_r,
+                 dens_c=None, err_c=None):
+    """One tile of the all-pairs pass on :class:`U8Operands`, distances and kernel fused: as
+    :func:`tile` (``a == b``, the self pairs skipped) or :func:`tile_sym` (disjoint rows and
+    columns). Returns the candidate pairs ``(r, c)`` (tile rows and columns)."""
+    m, k = a1 - a, b1 - b
+    A, lda, na, B, nb = ops._args(a, b)
+    diag = a == b
+    cap = max(1024, 4 * (m + k))
+    scratch = np.empty(64 * k, np.float32)
+    ca, ce = np.empty(k, np.float32), np.empty(k, np.float32)
+    while True:
+        cr, cc = np.empty(cap, np.int32), np.empty(cap, np.int32)
+        dr, er = np.zeros(m), np.zeros(m)
+        dc, ec = np.zeros(k), np.zeros(k)
+        got = _LIB.dqm_pass_tile_u8(A, lda, na, m, B, nb, k, ops.nq, int(diag), scratch, w[b:b1], s[b:b1],
+                                    w[a:a1], s[a:a1], KERNEL_CODES[kernel], rad2[a:a1], rad2[b:b1],
+                                    dr, er, dc, ec, ca, ce, cr, cc, cap)
+        if got >= 0:
+            dens_r += dr
+            err_r += er
+            if not diag:
+                dens_c += dc
+                err_c += ec
+            return cr[:got], cc[:got]
+        _check_row(got, k)
+        if got == -3:
+            raise RuntimeError("the VNNI kernel is not available on this CPU")
+        cap *= 4

@@ -145,6 +145,18 @@ class Augmented:
                 if info.min <= lo and hi <= info.max:
                     self.exact = X.astype(dt, copy=False)
                     break
+        #: uint8 descriptors packed for the native integer (VNNI) distance kernel, where the CPU has it:
+        #: exact squared distances (at most 258 x 255^2 < 2^24, so float32 holds them) at about 2.6x the
+        #: float32 GEMM's speed here; None elsewhere
+        self.u8 = (native.u8_operands(self.exact)
+                   if self.exact.dtype == np.uint8 and self.dim <= 258 else None)
+
+    def d2_block(self, a: int, a1: int, b: int, b1: int) -> np.ndarray:
+        """float32 squared distances of features ``a..a1`` to ``b..b1`` (within :attr:`gamma`'s bound;
+        exact from the integer kernel or when :attr:`exact_d2`)."""
+        if self.u8 is not None:
+            return self.u8.d2(a, a1, b, b1)
+        return self.left[a:a1] @ self.right[b:b1].T
 
     def d2_slack(self, rows: np.ndarray) -> np.ndarray:
         """Upper bound on the float32 squared-distance error of each row against any column."""
@@ -218,17 +230,25 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     bounds = np.searchsorted(image_index[order], np.arange(n_images + 1))
     slack = 2.0 * aug.d2_slack(np.arange(n))
     tasks = []
+    packed = {}  # image -> its representatives packed for the integer kernel (tiles start at 0 in each)
     for img in range(n_images):
         lo, hi = bounds[img], bounds[img + 1]
         if hi - lo < 2:
             continue
+        if aug.u8 is not None and use_native:
+            packed[img] = (lo, native.U8Operands(aug.exact[order[lo:hi]]))
         starts = list(range(lo, hi, BLOCK))
-        tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK)) for i, a in enumerate(starts) for b in starts[i:]]
+        tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK), img) for i, a in enumerate(starts)
+                  for b in starts[i:]]
 
     def work(task):
-        a, a1, b, b1 = task
+        a, a1, b, b1, img = task
         ra, rb = order[a:a1], order[b:b1]
-        G = aug.left[ra] @ aug.right[rb].T
+        if img in packed:
+            lo, ops = packed[img]
+            G = ops.d2(a - lo, a1 - lo, b - lo, b1 - lo)
+        else:
+            G = aug.left[ra] @ aug.right[rb].T
         if a == b:
             np.fill_diagonal(G, np.finfo(np.float32).max)
         rmin, cmin, r, c, g = native.nearest_sym(G, slack[ra], slack[rb], use_native=use_native)
@@ -335,10 +355,17 @@ def kernel_pass(
     def work(task: Tuple[int, int]):
         a, b = task
         a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
-        G = aug.left[a:a1] @ aug.right[b:b1].T
         rad2 = rad2_all if collecting[0] else no_edges
         dr = np.zeros(a1 - a)
         er = np.zeros(a1 - a)
+        if aug.u8 is not None and use_native:  # distances and kernel fused in one native call
+            if a == b:
+                r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er)
+                return a, b, dr, er, None, None, r, c
+            dc, ec = np.zeros(b1 - b), np.zeros(b1 - b)
+            r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er, dc, ec)
+            return a, b, dr, er, dc, ec, r, c
+        G = aug.left[a:a1] @ aug.right[b:b1].T
         if a == b:
             r, c = native.tile(G, w[b:b1], s[b:b1], kernel, rad2[a:a1], 0, dr, er, use_native=use_native)
             return a, b, dr, er, None, None, r, c
@@ -450,17 +477,24 @@ def exact_density_others(
     cols = slice(None) if every else contrib
     wc = np.asarray(weights, dtype=np.float64)[cols]
     ncon = nrm[cols]
-    if aug.exact_d2:  # float32 GEMM distances are exact integers
+    if aug.u8 is not None:  # exact distances from the integer kernel, no copy of the data
+        right, gamma64 = None, 0.0
+    elif aug.exact_d2:  # float32 GEMM distances are exact integers
         right = aug.right[cols]
         gamma64 = 0.0
     else:
-        Xcon = aug.Xc[cols]
+        right, Xcon = None, aug.Xc[cols]
         # bound on the float64 GEMM error of a squared distance, relative to |x|^2 + |y|^2
         gamma64 = 4.0 * (aug.dim + 2) * float(np.finfo(np.float64).eps)
+    if aug.u8 is not None and kernel == "gaussian":
+        return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active)
     step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
     for s in range(0, len(targets), step):
         t = targets[s:s + step]
-        if aug.exact_d2:
+        if right is None and gamma64 == 0.0:
+            d2 = native.U8Operands(aug.exact[t]).d2(0, len(t), 0, aug.n, cols=aug.u8)
+            d2 = (d2 if every else d2[:, contrib]).astype(np.float64)
+        elif aug.exact_d2:
             d2 = (right @ aug.left[t].T).T.astype(np.float64)  # this orientation: 2-3x faster in OpenBLAS
         else:
             d2 = aug.Xc[t] @ Xcon.T
@@ -486,6 +520,24 @@ def exact_density_others(
         vals = np.exp(d2, out=d2)
         vals[rows, pos[rows]] = 0.0  # the self term
         out[s:s + step] = vals.sum(axis=1)
+    return out
+
+
+def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """:func:`exact_density_others` (Gaussian) from the integer kernel's exact distances: every
+    column's float64 term, summed with the 0/1 ``active`` weights (no gathered copies), in chunks
+    of ~1M terms that the allocator reuses."""
+    on = (np.asarray(active) > 0).astype(np.float64)
+    w = np.where(on > 0, weights, 0.0)
+    out = np.empty(len(targets))
+    step = max(1, (1 << 20) // aug.n)
+    for s in range(0, len(targets), step):
+        t = targets[s:s + step]
+        d2 = native.U8Operands(aug.exact[t]).d2(0, len(t), 0, aug.n, cols=aug.u8).astype(np.float64)
+        d2 *= -w[None, :]
+        vals = np.exp(d2, out=d2)
+        vals[np.arange(len(t)), t] = 0.0  # the self term
+        out[s:s + step] = vals @ on
     return out
 
 
@@ -530,7 +582,7 @@ def parent_pass(
     def work(task):
         a, b = task
         a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
-        G = aug.left[a:a1] @ aug.right[b:b1].T
+        G = aug.d2_block(a, a1, b, b1) if use_native else aug.left[a:a1] @ aug.right[b:b1].T
         # a snapshot of the limits: stale values are larger, so they keep a superset
         limr = np.minimum(best[a:a1] + slack2[a:a1], big)
         limc = np.minimum(best[b:b1] + slack2[b:b1], big)
