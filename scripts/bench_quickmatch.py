@@ -290,14 +290,20 @@ def run_gemm(name):
     return res
 
 
-def colmap_database(images, workdir, max_features):
-    """pycolmap's SIFT of ``images`` into a new database (COLMAP's defaults but max_num_features)."""
+#: COLMAP SIFT settings of the --real rows: its defaults, and denser features (a set of >= 100k
+#: features from ten ~1000-pixel photos: twice the keypoints, half the peak threshold)
+SIFT_ROWS = {"defaults": {}, "dense": {"max_num_features": 16384, "peak_threshold": 0.02 / 6}}
+
+
+def colmap_database(images, workdir, row):
+    """pycolmap's SIFT of ``images`` into a new database (COLMAP's defaults, changed by SIFT_ROWS[row])."""
     import pycolmap
 
-    db = Path(workdir) / f"features-{max_features}.db"
+    db = Path(workdir) / f"{Path(images).name}-{row}.db"
     if not db.exists():
         opts = pycolmap.FeatureExtractionOptions()
-        opts.sift.max_num_features = max_features
+        for key, value in SIFT_ROWS[row].items():
+            setattr(opts.sift, key, value)
         pycolmap.extract_features(str(db), str(images), extraction_options=opts)
     return db
 
@@ -308,7 +314,7 @@ def timed(cmd):
     return time.perf_counter() - t
 
 
-def real_section(images, max_features, brute_images):
+def real_section(images, rows, brute_images):
     """dqm's pipeline against COLMAP's matcher on the same COLMAP features, and the pass's rate."""
     import shutil
 
@@ -316,11 +322,11 @@ def real_section(images, max_features, brute_images):
 
     work = Path(tempfile.mkdtemp(prefix="dqm-bench-real-"))
     print(f"\n### Real photo SIFT: {images} (COLMAP's features, pycolmap {pycolmap.__version__})\n")
-    print("| max features / image | n | COLMAP exhaustive s | dqm import s | dqm match s | dqm export s | "
+    print("| COLMAP SIFT | n | COLMAP exhaustive s | dqm import s | dqm match s | dqm export s | "
           "dqm pipeline / COLMAP | pass GFLOP/s | GEMM GFLOP/s (same tiles) | pass / GEMM | cores busy |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     dqm_cli = [sys.executable, "-m", "dqm"]
-    for mf in max_features:
+    for mf in rows:
         db = colmap_database(images, work, mf)
         cm = work / f"colmap-{mf}.db"
         shutil.copy(db, cm)
@@ -349,7 +355,7 @@ def real_section(images, max_features, brute_images):
         sub.mkdir()
         for p in sorted(Path(images).iterdir())[:brute_images]:
             (sub / p.name).symlink_to(p.resolve())
-        db = colmap_database(sub, work, 8192)
+        db = colmap_database(sub, work, "defaults")
         bf = work / "bf.db"
         shutil.copy(db, bf)
         opts = pycolmap.FeatureMatchingOptions()
@@ -381,13 +387,14 @@ def main(argv=None):
     ap.add_argument("--real", nargs="?", const=str(ROOT.parent / "shared" / "data" / "sacre_coeur"), default=None,
                     metavar="IMAGES", help="real photos (default sacre_coeur): dqm import + match + export against "
                     "COLMAP's exhaustive matcher on COLMAP's features, and the pass against the GEMM rate")
-    ap.add_argument("--real-max-features", default="8192,16384",
-                    help="COLMAP's max_num_features per image, one row each (8192 is COLMAP's default)")
+    ap.add_argument("--real-sift", default="defaults,dense",
+                    help="COLMAP SIFT settings, one row each: " + "; ".join(f"{k}: {v or 'COLMAP defaults'}"
+                                                                             for k, v in SIFT_ROWS.items()))
     ap.add_argument("--brute-images", type=int, default=2,
                     help="with --real: COLMAP's brute-force matcher against dqm on this many images (0: skip)")
     args = ap.parse_args(argv)
     if args.real:
-        real_section(Path(args.real), [int(x) for x in args.real_max_features.split(",") if x], args.brute_images)
+        real_section(Path(args.real), [x for x in args.real_sift.split(",") if x], args.brute_images)
     if args.memory:
         memory_section()
     if args.approximate:
@@ -409,7 +416,8 @@ def main(argv=None):
         print(f"{name}: quickmatch {qm['wall']:.2f}s, floor {floor:.2f}s", file=sys.stderr, flush=True)
     if not rows:
         return
-    print("| data | n | quickmatch s | peak RSS MiB (base) | k-NN numpy s | k-NN faiss s | qm / floor | dense s | dense / qm |")
+    print("| data | n | quickmatch s | peak RSS MiB (base) | k-NN numpy s | k-NN faiss s | qm / floor | dense s | "
+          "dense / qm |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, qm, kn, kf, floor, dense in rows:
         label = "graf (real SIFT)" if name == "graf" else "synthetic"

@@ -261,7 +261,7 @@ def quickmatch(
     holds two features of one image (C2). Deterministic for a given input.
     """
     t0 = time.perf_counter()
-    X = V.check_descriptors(descriptors)
+    X = V.check_descriptors(descriptors, keep_integer=True)  # uint8 SIFT stays uint8 (the integer kernels)
     ids = V.check_image_ids(image_ids, len(X))
     scale = V.magnitude_exponent(X)
     if scale:  # absurd magnitudes: the same clusters on X / 2^scale (exact), distances scaled back
@@ -292,6 +292,7 @@ def quickmatch(
     threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
     budget = memory.resolve_budget(max_memory)
     if approximate and n > 2:
+        X = X.astype(np.float64, copy=False)  # as the approximate mode's measurements were made
         return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
                                        n_neighbors, threads, budget, progress, t0)
     base = memory.check_base(n, X.shape[1], threads, budget)

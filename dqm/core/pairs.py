@@ -123,13 +123,16 @@ class Augmented:
             Xc32 = X.astype(np.float32) - self.center.astype(np.float32)
             norm2 = np.einsum("ij,ij->i", Xc32, Xc32).astype(np.float64)
             max_norm2 = float(norm2.max())
+        self._X = X
         if small and 4.0 * max_norm2 < _F32_EXACT_INT:
             self.Xc = None  # exact mode: float32 GEMMs give exact distances (exact_density_others uses them)
-            self.left, self.right, self.norm2 = augmented_rows(Xc32, norm2)
+            self.norm2 = norm2
+            self._operands = None  # made on first use: the integer kernels, where they run, need none
         else:
             Xc = X - self.center
             self.Xc = Xc
-            self.left, self.right, self.norm2 = augmented_rows(Xc)
+            left, right, self.norm2 = augmented_rows(Xc)
+            self._operands = (left, right)
         self.max_norm2 = float(self.norm2.max()) if self.n else 0.0
         #: the float32 GEMM distances are exact integers (see the class docstring)
         self.exact_d2 = self.Xc is None
@@ -150,6 +153,23 @@ class Augmented:
         #: float32 GEMM's speed here; None elsewhere
         self.u8 = (native.u8_operands(self.exact)
                    if self.exact.dtype == np.uint8 and self.dim <= 258 else None)
+
+    def _float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
+        if self._operands is None:
+            Xc32 = self._X.astype(np.float32) - self.center.astype(np.float32)
+            left, right, _ = augmented_rows(Xc32, self.norm2)
+            self._operands = (left, right)
+        return self._operands
+
+    @property
+    def left(self) -> np.ndarray:
+        """float32 GEMM operand ``[x, |x|^2, 1]`` of the centred rows (made on first use in exact mode)."""
+        return self._float32_operands()[0]
+
+    @property
+    def right(self) -> np.ndarray:
+        """float32 GEMM operand ``[-2x, 1, |x|^2]`` of the centred rows (made on first use in exact mode)."""
+        return self._float32_operands()[1]
 
     def d2_block(self, a: int, a1: int, b: int, b1: int) -> np.ndarray:
         """float32 squared distances of features ``a..a1`` to ``b..b1`` (within :attr:`gamma`'s bound;
