@@ -179,3 +179,20 @@ def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
     monkeypatch.setattr(aug, "u8", None)
     b = pairs.exact_density_others(aug, idx, w, active, kernel)
     np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
+
+
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+def test_uint8_and_the_same_values_as_floats_give_identical_results(kernel):
+    """uint8 input stays uint8 (the integer kernel where the CPU has it); the same values as
+    float64 take the float32 GEMM path: both exact, so every output agrees bit for bit."""
+    from dqm import validation
+
+    ds = sift_like(n_images=6, n_points=300, clutter_per_image=120, seed=9)
+    X, ids = ds.descriptors, ds.image_ids
+    kept = validation.check_descriptors(X, keep_integer=True)
+    assert kept.dtype == np.uint8 and np.shares_memory(kept, X)
+    a = dqm.quickmatch(X, ids, kernel=kernel, rho=1.0)
+    b = dqm.quickmatch(X.astype(np.float64), ids, kernel=kernel, rho=1.0)
+    for field in ("labels", "parent", "sigma", "parent_distance"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_allclose(a.density, b.density, rtol=1e-12)
