@@ -339,7 +339,8 @@ def real_section(images, rows, brute_images):
         t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet"])
         t_exp = timed(dqm_cli + ["export", "colmap", str(clusters), "--database", str(exported)])
         name = str(feats)
-        qm = run((name, "quickmatch"))
+        qm = run((name, "quickmatch", {"save": scratch("real")}))
+        same = bool(np.array_equal(np.load(scratch("real"))["labels"], np.load(clusters)["labels"]))
         gm = run_gemm(name)
         rate_pass = gm["flops"] / qm["time_pass"] / 1e9  # the same tiles' flops, in the pass's own time
         rate_gemm = gm["flops"] / gm["wall"] / 1e9
@@ -350,7 +351,7 @@ def real_section(images, rows, brute_images):
               f"{busy:.2f} of {os.cpu_count()} |", flush=True)
         print(f"  phases of quickmatch (s): sigma {qm['time_sigma']:.2f}, pass {qm['time_pass']:.2f}, refine "
               f"{qm['time_refine']:.2f} ({int(qm['n_refined'])} refined), tree {qm['time_tree']:.2f}; "
-              f"wall {qm['wall']:.2f}", flush=True)
+              f"wall {qm['wall']:.2f}; dqm match's labels identical to quickmatch's: {same}", flush=True)
     if brute_images:
         sub = work / "subset"
         sub.mkdir()

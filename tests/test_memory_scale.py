@@ -247,3 +247,28 @@ def test_benchmark_script_small_approximate_run():
     assert len(row) == 1
     f1 = float(row[0].split("|")[8])
     assert f1 >= 0.99
+
+
+def test_benchmark_script_small_real_run(tmp_path):
+    """The small version of scripts/bench_quickmatch.py --real (the full one: all ten sacre_coeur photos,
+    two COLMAP SIFT settings, COLMAP's brute-force matcher): three photos, one row, read back."""
+    from pathlib import Path
+    from conftest import require_data
+
+    pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
+    images = tmp_path / "images"
+    images.mkdir()
+    for p in sorted(require_data("sacre_coeur").glob("*.jpg"))[:3]:
+        (images / p.name).symlink_to(p.resolve())
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_quickmatch.py"
+    p = subprocess.run([sys.executable, str(script), "--real", str(images), "--real-sift", "defaults",
+                        "--brute-images", "0", "--sizes", "", "--no-graf"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (row,) = [line for line in p.stdout.splitlines() if line.startswith("| defaults |")]
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    n = int(cells[1].replace(",", ""))
+    assert n > 5000  # three photos' COLMAP SIFT
+    colmap_s, ratio, pass_rate, gemm_rate = float(cells[2]), float(cells[6]), float(cells[7]), float(cells[8])
+    assert colmap_s > 0 and ratio > 0 and pass_rate > 0 and gemm_rate > 0
+    assert float(cells[9]) == pytest.approx(pass_rate / gemm_rate, rel=0.05)  # rates printed as integers
+    assert "labels identical to quickmatch's: True" in p.stdout
