@@ -72,7 +72,8 @@ def main(argv=None):
             phases["cpu"] = round(slowest.get("cpu_s", 0.0), 2)
             row = dict(data=name, n=len(X), m=m, central_s=t_central, simulator_s=t_sim, runtime_s=t_run,
                        runtime_job_s=rep["time_run_s"], runtime_startup_s=t_run - rep["time_run_s"],
-                       ratio_vs_sim=t_run / t_sim, bytes=rep["total_bytes"], bytes_per_feature=rep["total_bytes"] / len(X),
+                       ratio_vs_sim=t_run / t_sim, bytes=rep["total_bytes"],
+                       bytes_per_feature=rep["total_bytes"] / len(X),
                        traffic_over_raw=rep["total_bytes"] / raw, wire=rep["wire_bytes_received_by_router"],
                        equal_to_simulator=same, phases_slowest_agent=phases)
             rows.append(row)

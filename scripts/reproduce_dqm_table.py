@@ -79,7 +79,8 @@ def row(X, ids, m, mode, ref_q, ref_g, halo=1.0):
         "bytes_per_link_mean": float(np.mean(agent_links)) if agent_links else 0.0,
         "bytes_per_link_max": float(np.max(agent_links)) if agent_links else 0.0,
         "control_bytes": control, "setup_bytes": setup,
-        "bytes_by_kind": {k: v[0] for k, v in r.traffic.per_kind().items()}, "final_largest_share": float(max(p["features_final"] for p in r.per_agent) / len(X)),
+        "bytes_by_kind": {k: v[0] for k, v in r.traffic.per_kind().items()},
+        "final_largest_share": float(max(p["features_final"] for p in r.per_agent) / len(X)),
         "arrival_check_failures": r.stats["arrival_check_failures"],
     }
 

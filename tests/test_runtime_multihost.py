@@ -92,7 +92,8 @@ def test_namespaces_are_deleted_and_processes_killed_on_failure(netns_ok):
     proc = None
     with pytest.raises(RuntimeError, match="boom"):
         with nss:
-            addrs = subprocess.run(["ip", "-n", nss.host_ns(0), "-4", "-o", "addr"], capture_output=True, text=True).stdout
+            addrs = subprocess.run(["ip", "-n", nss.host_ns(0), "-4", "-o", "addr"], capture_output=True,
+                                   text=True).stdout
             assert f"{nss.host_addr(0)}/24" in addrs
             proc = subprocess.Popen(nss.prefix(nss.host_ns(1)) + ["sleep", "60"])
             raise RuntimeError("boom")
