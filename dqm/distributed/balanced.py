@@ -44,10 +44,10 @@ from ..core import memory, pairs, tree
 from ..core.clustering import duplicate_groups, equalize_duplicates, zero_sigma_counts
 from . import boundary, forest, ghosts, partition, sketch
 from .config import DQMConfig
+from .seeding import LEADER
 from .shard import Shard
 
 Payload = Dict[str, np.ndarray]
-LEADER = 0
 
 #: the balanced rounds after routing, in order; each is one message kind
 ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density", "proposal", "notify", "fragments",

@@ -31,6 +31,7 @@ from . import partition, sketch
 from .config import DQMConfig
 from .shard import Shard, fill_lonely, median_fill, source_sigma, split_by_cell
 
+#: the agent that leads the set-up and the balanced mode's leader rounds (one definition for both)
 LEADER = 0
 #: weight refinement stops once the largest cell holds at most this times n/m
 BALANCE_TOLERANCE = 1.10

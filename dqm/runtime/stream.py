@@ -41,6 +41,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
+from ..core.clustering import DEFAULT_RHO
 from ..distributed import keys, messages
 from ..validation import InputError
 
@@ -86,7 +87,7 @@ class StreamEngine:
     """
 
     job: str
-    rho: float = 0.9
+    rho: float = DEFAULT_RHO
     window: Optional[int] = None
     max_bytes: int = messages.MAX_MESSAGE_BYTES
     log: Callable[[str], None] = lambda text: None
@@ -262,7 +263,7 @@ class _Stop:
         self.signal = signum
 
 
-def main_stream(endpoint: str, job: str, *, rho: float = 0.9, window: Optional[int] = None,
+def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Optional[int] = None,
                 max_images: Optional[int] = None, idle_s: Optional[float] = None, out: Optional[str] = None,
                 lines: bool = False, tls: Optional[dict] = None, connect_timeout_s: float = 5.0,
                 max_bytes: int = messages.MAX_MESSAGE_BYTES) -> int:
