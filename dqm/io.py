@@ -153,7 +153,7 @@ def _umask() -> int:
 
 
 #: zlib level of the npz files dqm writes: level 1 packs descriptors and labels nearly as tightly as
-#: numpy's default (6) at about a quarter of the time (90k COLMAP features: 0.42 s -> ~0.1 s)
+#: numpy's default (6) in less time (90k COLMAP features' CLUSTERS: 0.47 -> 0.28 s, 1.5% larger)
 NPZ_LEVEL = 1
 
 

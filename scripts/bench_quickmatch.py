@@ -159,12 +159,13 @@ def measure(task, q):
     q.put({"wall": wall, "peak_rss_mib": peak / 1024, "base_rss_mib": base / 1024, "n": len(X), **info})
 
 
-def run(task, repeat=1):
+def run(task, repeat=1, target=None):
+    """``target(task, queue)`` (default :func:`measure`) in a fresh process, ``repeat`` times; the fastest result."""
     ctx = mp.get_context("spawn")
     best = None
     for _ in range(repeat):
         q = ctx.Queue()
-        p = ctx.Process(target=measure, args=(task, q))
+        p = ctx.Process(target=target or measure, args=(task, q))
         p.start()
         res = q.get()
         p.join()
@@ -257,38 +258,27 @@ def approximate_section(names, million):
                   f"100k run, {ex100 * 100 / big['wall']:.1f}x the approximate time")
 
 
-def gemm_schedule(name, q):
+def gemm_schedule(task, q):
     """The pass's own GEMMs (every unordered block pair, the same threads), nothing else: the
-    float32 GEMM rate this machine's BLAS gives the pass."""
-    X, _ = load(name)
+    float32 GEMM rate this machine's BLAS gives the pass (``task``: the data's name)."""
+    X, _ = load(task[0])
     from dqm.core import pairs
 
     aug = pairs.Augmented(X)
     n, starts = aug.n, list(range(0, aug.n, pairs.BLOCK))
     tasks = [(a, b) for i, a in enumerate(starts) for b in starts[i:]]
 
-    def gemm(task):
-        a, b = task
+    def gemm(tile):
+        a, b = tile
         aug.left[a:a + pairs.BLOCK] @ aug.right[b:b + pairs.BLOCK].T
-        return None
 
-    t, cpu = time.perf_counter(), time.process_time()
+    t = time.perf_counter()
     with pairs.tile_pool() as pool:
         for _ in pool(gemm, tasks):
             pass
     wall = time.perf_counter() - t
     flops = sum(2.0 * min(pairs.BLOCK, n - a) * min(pairs.BLOCK, n - b) * aug.left.shape[1] for a, b in tasks)
-    q.put({"wall": wall, "cpu": time.process_time() - cpu, "flops": flops, "n": n})
-
-
-def run_gemm(name):
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    p = ctx.Process(target=gemm_schedule, args=(name, q))
-    p.start()
-    res = q.get()
-    p.join()
-    return res
+    q.put({"wall": wall, "flops": flops, "n": n})
 
 
 #: COLMAP SIFT settings of the --real rows: its defaults, and denser features (a set of >= 100k
@@ -341,7 +331,7 @@ def real_section(images, rows, brute_images):
         name = str(feats)
         qm = run((name, "quickmatch", {"save": scratch("real")}))
         same = bool(np.array_equal(np.load(scratch("real"))["labels"], np.load(clusters)["labels"]))
-        gm = run_gemm(name)
+        gm = run((name,), target=gemm_schedule)
         rate_pass = gm["flops"] / qm["time_pass"] / 1e9  # the same tiles' flops, in the pass's own time
         rate_gemm = gm["flops"] / gm["wall"] / 1e9
         busy = qm["cpu_pass"] / qm["time_pass"]

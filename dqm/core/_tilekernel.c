@@ -279,7 +279,6 @@ static RowOut rowcol_avx512(int kernel, const float *g, const float *wc, const f
    1 AVX2, 0 portable C; resolved once from the CPU, and capped by dqm_set_simd_level (tests
    run every level the CPU has). */
 static int simd_level = -1;
-static int use_avx2 = -1;
 
 static void resolve_simd(void)
 {
@@ -298,7 +297,6 @@ static void resolve_simd(void)
     }
 #endif
     simd_level = level;
-    use_avx2 = level >= 1;
 }
 
 static RowOut row_terms(int kernel, const float *g, const float *w, const float *s, int64_t k, float lim,
@@ -308,7 +306,7 @@ static RowOut row_terms(int kernel, const float *g, const float *w, const float 
 #ifdef DQM_HAVE_AVX2_PATH
     if (simd_level >= 2 && !rad2c)
         return row_avx512(kernel, g, w, s, k, lim);
-    if (use_avx2)
+    if (simd_level >= 1)
         return row_avx2(kernel, g, w, s, k, lim, rad2c);
 #endif
     return row_scalar(kernel, g, w, s, k, lim, rad2c);
@@ -328,7 +326,6 @@ int32_t dqm_set_simd_level(int32_t cap)
     resolve_simd();
     if (cap < simd_level)
         simd_level = cap < 0 ? 0 : cap;
-    use_avx2 = simd_level >= 1;
     return simd_level;
 }
 
@@ -385,7 +382,7 @@ static void col_avx2(int kernel, const float *g, float wr, float sr, int64_t k,
 static void col_terms(int kernel, const float *g, float wr, float sr, int64_t k, float *cacc, float *cerr)
 {
 #ifdef DQM_HAVE_AVX2_PATH
-    if (use_avx2)
+    if (simd_level >= 1)
         return col_avx2(kernel, g, wr, sr, k, cacc, cerr);
 #endif
     col_scalar(kernel, g, wr, sr, k, cacc, cerr);
@@ -522,7 +519,7 @@ static int64_t near_row(const float *g, int64_t k, float lr, const float *climit
 {
     int64_t c = 0;
 #ifdef DQM_HAVE_AVX2_PATH
-    if (use_avx2)
+    if (simd_level >= 1)
         c = near_row_avx2(g, k, lr, climit, r, cand_r, cand_c, cand_g, &count, cap);
     if (count < 0)
         return -1;
@@ -562,7 +559,7 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
         cmin[c] = FLT_MAX;
     for (int64_t r = 0; r < m; ++r) {
 #ifdef DQM_HAVE_AVX2_PATH
-        if (use_avx2) {
+        if (simd_level >= 1) {
             rmin[r] = minrow_avx2(G + r * ldg, k, cmin);
             continue;
         }

@@ -72,7 +72,6 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, f32, f32, f32, f32, f32, f32, i64, i64, f32, ctypes.c_int64,
         ]
         pt.restype = ctypes.c_int64
-        i8 = np.ctypeslib.ndpointer(np.int8, flags="C_CONTIGUOUS")
         lib.dqm_gemm_d2_u8.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64,
                                        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
                                        f32, ctypes.c_int64]
@@ -82,7 +81,6 @@ def _load() -> Optional[ctypes.CDLL]:
             ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f32, f32, f32, f32, f32, ctypes.c_int32, f32, f32,
             f64, f64, f64, f64, f32, f32, i32, i32, ctypes.c_int64]
         lib.dqm_pass_tile_u8.restype = ctypes.c_int64
-        del i8
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
@@ -149,9 +147,12 @@ def warn_if_fallback(n: int, threshold: int = 20_000) -> None:
                       stacklevel=3)
 
 
-def _check_row(code: int, k: int) -> None:
+def _check_code(code: int, k: int) -> None:
+    """Raise for the native kernel's error codes (-1, the caller's buffer being full, is not one)."""
     if code == -2:
         raise ValueError(f"tile rows of {k} columns: the native kernel takes at most {MAX_ROW}")
+    if code == -3:
+        raise RuntimeError("the VNNI kernel is not available on this CPU")
 
 
 def tile_numpy(
@@ -209,7 +210,7 @@ def tile(
             dens += d_add
             err += e_add
             return cr[:got], cc[:got]
-        _check_row(got, k)
+        _check_code(got, k)
         cap *= 4
 
 
@@ -265,7 +266,7 @@ def tile_sym(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err
             dens_c += dc
             err_c += ec
             return cr[:got], cc[:got]
-        _check_row(got, k)
+        _check_code(got, k)
         cap *= 4
 
 
@@ -294,7 +295,7 @@ def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_nat
         got = _LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, sr, sc, rmin, cmin, cr, cc, cg, cap)
         if got >= 0:
             return rmin, cmin, cr[:got], cc[:got], cg[:got]
-        _check_row(got, k)
+        _check_code(got, k)
         cap *= 4
 
 
@@ -402,7 +403,8 @@ def blas_description() -> str:
     """Which BLAS kernels numpy's GEMMs run, in words (for ``dqm doctor``)."""
     forced = os.environ.get("OPENBLAS_CORETYPE")
     note = f" (OPENBLAS_CORETYPE={forced} in the environment)" if forced else ""
-    for path in _openblas_paths():
+    paths = _openblas_paths()
+    for path in paths:
         lib = ctypes.CDLL(path)
         for name in ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename", "openblas_get_corename64_",
                      "openblas_get_corename"):
@@ -411,7 +413,7 @@ def blas_description() -> str:
                 fn.restype = ctypes.c_char_p
                 core = fn().decode()
                 return f"OpenBLAS, {core} kernels{note}"
-    return "not OpenBLAS (or not found): " + ", ".join(_openblas_paths()) if _openblas_paths() else "unknown"
+    return f"an OpenBLAS without a core name: {', '.join(paths)}" if paths else "not OpenBLAS, or not found"
 
 
 def _blas_local_threads():
@@ -492,8 +494,7 @@ class U8Operands:
         A, lda, na, B, nb = self._args(a, b)
         if cols is not None:
             _, _, _, B, nb = cols._args(a, b)
-        if _LIB.dqm_gemm_d2_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, G, b1 - b) < 0:
-            raise RuntimeError("the VNNI kernel is not available on this CPU")
+        _check_code(_LIB.dqm_gemm_d2_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, G, b1 - b), b1 - b)
         return G
 
 
@@ -529,7 +530,5 @@ def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel
                 dens_c += dc
                 err_c += ec
             return cr[:got], cc[:got]
-        _check_row(got, k)
-        if got == -3:
-            raise RuntimeError("the VNNI kernel is not available on this CPU")
+        _check_code(got, k)
         cap *= 4

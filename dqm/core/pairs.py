@@ -171,6 +171,11 @@ class Augmented:
         """float32 GEMM operand ``[-2x, 1, |x|^2]`` of the centred rows (made on first use in exact mode)."""
         return self._float32_operands()[1]
 
+    def d2_rows(self, rows: np.ndarray) -> np.ndarray:
+        """Exact float32 squared distances of the features ``rows`` to every feature, from the integer
+        kernel (only where :attr:`u8` is set)."""
+        return native.U8Operands(self.exact[rows]).d2(0, len(rows), 0, self.n, cols=self.u8)
+
     def d2_block(self, a: int, a1: int, b: int, b1: int) -> np.ndarray:
         """float32 squared distances of features ``a..a1`` to ``b..b1`` (within :attr:`gamma`'s bound;
         exact from the integer kernel or when :attr:`exact_d2`)."""
@@ -395,6 +400,12 @@ def kernel_pass(
                                dr, er, dc, ec, use_native=use_native)
         return a, b, dr, er, dc, ec, r, c
 
+    def within_limit(ch: np.ndarray, ca: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        if limit >= n:
+            return ch, ca
+        keep = (ch < limit) | (ca < limit)  # blocks straddling the limit also met pairs beyond it
+        return ch[keep], ca[keep]
+
     child: List[np.ndarray] = []
     cand: List[np.ndarray] = []
     held = 0
@@ -409,21 +420,18 @@ def kernel_pass(
                 progress(done, len(tasks))
             if not collecting[0]:
                 continue
-            held += len(r) * (1 if dc is None else 2) * (on_edges is None)
-            if max_edges is not None and held > max_edges:
-                collecting[0] = False  # tiles in flight may still bring edges: ignored
-                child.clear()
-                cand.clear()
-                continue
             r = r.astype(np.int64) + a
             c = c.astype(np.int64) + b
             if on_edges is not None:
                 if dc is not None:
                     r, c = np.concatenate([r, c]), np.concatenate([c, r])
-                if limit < n:
-                    keep = (r < limit) | (c < limit)
-                    r, c = r[keep], c[keep]
-                on_edges(r, c)
+                on_edges(*within_limit(r, c))
+                continue
+            held += len(r) * (1 if dc is None else 2)
+            if max_edges is not None and held > max_edges:
+                collecting[0] = False  # tiles in flight may still bring edges: ignored
+                child.clear()
+                cand.clear()
                 continue
             child.append(r)
             cand.append(c)
@@ -436,10 +444,7 @@ def kernel_pass(
         return dens, err, None, None
     if not child:
         return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    child_a, cand_a = np.concatenate(child), np.concatenate(cand)
-    if limit < n:  # blocks straddling the limit also met pairs beyond it: drop those
-        keep = (child_a < limit) | (cand_a < limit)
-        child_a, cand_a = child_a[keep], cand_a[keep]
+    child_a, cand_a = within_limit(np.concatenate(child), np.concatenate(cand))
     return dens, err, child_a, cand_a
 
 
@@ -493,34 +498,37 @@ def exact_density_others(
     contrib = np.flatnonzero(active > 0)
     if len(contrib) == 0:  # every sigma is 0: no kernel contributes (duplicates are counted by the caller)
         return out
+    if aug.u8 is not None and kernel == "gaussian":
+        return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active)
     every = len(contrib) == aug.n  # no gathered copy of the data when every feature contributes
     cols = slice(None) if every else contrib
     wc = np.asarray(weights, dtype=np.float64)[cols]
     ncon = nrm[cols]
+    gamma64 = 0.0  # the distance error the quadratic selection allows for: none where they are exact
     if aug.u8 is not None:  # exact distances from the integer kernel, no copy of the data
-        right, gamma64 = None, 0.0
+        def squared(t):
+            d2 = aug.d2_rows(t)
+            return (d2 if every else d2[:, contrib]).astype(np.float64)
     elif aug.exact_d2:  # float32 GEMM distances are exact integers
         right = aug.right[cols]
-        gamma64 = 0.0
+
+        def squared(t):
+            return (right @ aug.left[t].T).T.astype(np.float64)  # this orientation: 2-3x faster in OpenBLAS
     else:
-        right, Xcon = None, aug.Xc[cols]
+        Xcon = aug.Xc[cols]
         # bound on the float64 GEMM error of a squared distance, relative to |x|^2 + |y|^2
         gamma64 = 4.0 * (aug.dim + 2) * float(np.finfo(np.float64).eps)
-    if aug.u8 is not None and kernel == "gaussian":
-        return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active)
-    step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
-    for s in range(0, len(targets), step):
-        t = targets[s:s + step]
-        if right is None and gamma64 == 0.0:
-            d2 = native.U8Operands(aug.exact[t]).d2(0, len(t), 0, aug.n, cols=aug.u8)
-            d2 = (d2 if every else d2[:, contrib]).astype(np.float64)
-        elif aug.exact_d2:
-            d2 = (right @ aug.left[t].T).T.astype(np.float64)  # this orientation: 2-3x faster in OpenBLAS
-        else:
+
+        def squared(t):
             d2 = aug.Xc[t] @ Xcon.T
             d2 *= -2.0
             d2 += nrm[t][:, None]
             d2 += ncon[None, :]
+            return d2
+    step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
+    for s in range(0, len(targets), step):
+        t = targets[s:s + step]
+        d2 = squared(t)
         np.maximum(d2, 0.0, out=d2)
         pos = np.searchsorted(contrib, t)
         hit = (pos < len(contrib)) & (contrib[np.minimum(pos, len(contrib) - 1)] == t)
@@ -553,7 +561,7 @@ def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarra
     step = max(1, (1 << 20) // aug.n)
     for s in range(0, len(targets), step):
         t = targets[s:s + step]
-        d2 = native.U8Operands(aug.exact[t]).d2(0, len(t), 0, aug.n, cols=aug.u8).astype(np.float64)
+        d2 = aug.d2_rows(t).astype(np.float64)
         d2 *= -w[None, :]
         vals = np.exp(d2, out=d2)
         vals[np.arange(len(t)), t] = 0.0  # the self term
