@@ -120,7 +120,7 @@ def test_sketches_travel_only_where_they_pay(graf_sift):
 
 def test_gaussian_kernel_is_refused_clearly(sift):
     X, ids = sift
-    with pytest.raises(InputError, match="balanced mode needs the finite quadratic kernel"):
+    with pytest.raises(InputError, match="a balanced-mode distributed job needs the finite kernel"):
         simulate(X, ids, DQMConfig(agents=2, kernel="gaussian"))
 
 

@@ -8,7 +8,9 @@ from __future__ import annotations
 import warnings
 
 from .. import evaluation, synthetic
-from ..core import DEFAULT_RHO, quickmatch
+from ..core import quickmatch
+from ..core.params import DEFAULT_KERNEL
+from .param_options import add_quickmatch_params
 
 NAME = "demo"
 HELP = "QuickMatch on generated data with known ground truth"
@@ -20,7 +22,7 @@ def add_arguments(p) -> None:
     p.add_argument("--clutter", type=int, default=150, help="unmatched features per image")
     p.add_argument("--noise", type=float, default=0.35,
                    help="per-view descriptor noise relative to a typical component (0.25: about real SIFT)")
-    p.add_argument("--rho", type=float, default=DEFAULT_RHO, help="merge ratio (Gaussian kernel, as dqm match)")
+    add_quickmatch_params(p, ("rho",), notes={"rho": f" ({DEFAULT_KERNEL} kernel, as dqm match)"})
     p.add_argument("--seed", type=int, default=0, help="generator seed")
 
 

@@ -26,8 +26,10 @@ import numpy as np
 
 from .. import io, outputs
 from .extract import add_image_options, extract
-from ..core import DEFAULT_NEIGHBORS, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES, quickmatch
+from .param_options import add_quickmatch_params
+from ..core import DEFAULT_NEIGHBORS, quickmatch
 from ..core.memory import parse_size
+from ..core.params import DEFAULT_KERNEL, QuickMatchParams
 from ..progress import ProgressBar
 from ..validation import InputError, positive_int_arg
 
@@ -48,14 +50,9 @@ def add_arguments(p) -> None:
 
 def add_cluster_options(p) -> None:
     """QuickMatch's options and the geometric steps after it (shared with dqm sfm)."""
-    p.add_argument("--rho", type=float, default=DEFAULT_RHO, help=f"merge ratio (default {DEFAULT_RHO})")
-    p.add_argument("--ratio-density", type=float, default=DEFAULT_RATIO_DENSITY,
-                   help=f"Gaussian bandwidth / sigma (default {DEFAULT_RATIO_DENSITY})")
-    p.add_argument("--kernel", choices=KERNELS, default="gaussian",
-                   help="density kernel: the reference code's Gaussian, or the finite quadratic one that dqm run "
-                        "uses (docs/quickmatch.md)")
-    p.add_argument("--parent", choices=PARENT_MODES, default="any",
-                   help="'other-image': a feature's tree parent must come from another image")
+    add_quickmatch_params(p, ("rho", "ratio_density", "kernel", "parent"), kernel_default=DEFAULT_KERNEL,
+                          notes={"kernel": ": the reference code's Gaussian, or the finite quadratic one that dqm "
+                                           "run and dqm stream use (docs/quickmatch.md)"})
     p.add_argument("--threads", type=positive_int_arg, default=None, help="worker threads (default: all cores)")
     p.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
                    help="memory budget, e.g. 8G or 512M (default: 70%% of the available memory); an exact run "
@@ -78,6 +75,11 @@ def add_cluster_options(p) -> None:
                         "(ratio 0.8, <= 1.5 sigma); clusters join along the links where C2 and every verified pair "
                         "allow (docs/sfm.md; needs keypoints). --no-guided: plain QuickMatch; --verify alone: "
                         "verification without growth")
+
+
+def params_from(args) -> QuickMatchParams:
+    """The QuickMatch parameters of the parsed options (:func:`add_cluster_options`)."""
+    return QuickMatchParams(**{k: getattr(args, k) for k in QuickMatchParams.names()})
 
 
 def memory_size(text: str) -> int:
@@ -145,9 +147,9 @@ def cluster(args, fs: io.FeatureSet, from_images: bool):
         if on and fs.keypoints is None:
             raise InputError(f"--{flag} needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
     bar = ProgressBar("quickmatch", force=False if args.quiet else None, unit="features")
-    result = quickmatch(fs.descriptors, fs.image_ids, rho=args.rho, ratio_density=args.ratio_density,
-                        kernel=args.kernel, parent=args.parent, n_threads=args.threads, progress=bar,
-                        max_memory=args.max_memory, approximate=args.approximate, n_neighbors=args.neighbors)
+    result = quickmatch(fs.descriptors, fs.image_ids, params=params_from(args), n_threads=args.threads,
+                        progress=bar, max_memory=args.max_memory, approximate=args.approximate,
+                        n_neighbors=args.neighbors)
     print(result.summary())
     extra = None
     if guided:

@@ -1,46 +1,44 @@
 """Options shared by the runtime commands (algorithm parameters, TLS)."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, get_type_hints
 
-from ..core.clustering import DEFAULT_RHO, KERNELS
-from ..distributed.config import DEFAULT_MODE, DEFAULT_SKETCH_DIMS, GHOST_RULES, MODES, DQMConfig
-from ..distributed.partition import PARTITION_MODES
+from ..distributed.config import DQMConfig, algorithm_fields, config_args
+
+__all__ = ["add_algorithm", "add_tls", "algorithm_fields", "check_pem", "config_args", "config_from", "tls_from"]
+
+
+def _metavar(flag: str) -> str:
+    return flag.lstrip("-").upper().replace("-", "_")
 
 
 def add_algorithm(p) -> None:
+    """The algorithm options, one per :class:`DQMConfig` field (:func:`algorithm_fields`): flag, help,
+    choices and default from the field's metadata and default, the type from its annotation; a tri-state
+    flag (``cell_weights``) gets a ``--x`` / ``--no-x`` pair whose default None leaves it to the mode."""
     g = p.add_argument_group("algorithm (must be the same for every agent of a job)")
-    g.add_argument("--mode", choices=MODES, default=DEFAULT_MODE,
-                   help="balanced (clusters identical to centralized, work spread evenly), lean (the hand-down "
-                        "cascade: fewer bytes, work gathers at agent 0) or paper (the seed paper's literal "
-                        "procedure); docs/distributed.md")
-    g.add_argument("--partition", choices=PARTITION_MODES, default="kmeans",
-                   help="how the cell seeds are drawn from the seed integer")
-    g.add_argument("--rho", type=float, default=DEFAULT_RHO, help="merge ratio")
-    g.add_argument("--kernel", choices=KERNELS, default="quadratic",
-                   help="density kernel. Quadratic here (finite support, so a density never needs features "
-                        "beyond a cell's halo), while dqm match and dqm demo default to the reference code's "
-                        "Gaussian; with the same kernel the clusters equal dqm.quickmatch's")
-    g.add_argument("--halo", type=float, default=1.0, help="lean/paper: contested-test width factor (1 = safe)")
-    g.add_argument("--samples", type=int, default=64, help="set-up sample descriptors per agent")
-    g.add_argument("--seed-norm", type=float, default=512.0, help="descriptor norm for seeded seeds (SIFT: 512)")
-    g.add_argument("--cell-weights", dest="cell_weights", action="store_true", default=None,
-                   help="balance the cells with power-diagram weights (default: on in balanced mode)")
-    g.add_argument("--no-cell-weights", dest="cell_weights", action="store_false", default=None,
-                   help="plain Voronoi cells")
-    g.add_argument("--ghost-rule", choices=GHOST_RULES, default="one-way",
-                   help="balanced: one-way (default) or two-way (the plain bisector halo, for comparison)")
-    g.add_argument("--sketch-dims", type=int, default=DEFAULT_SKETCH_DIMS,
-                   help="balanced: dimension of the lower-bound sketch pre-filter (0 = off)")
-    g.add_argument("--balance-rounds", type=int, default=12, help="most rounds of cell-weight refinement")
-    g.add_argument("--job", default="job", help="job id; keeps concurrent jobs on one router apart")
+    types = get_type_hints(DQMConfig)
+    for f in algorithm_fields():
+        m = f.metadata
+        if "negation" in m:
+            g.add_argument(m["flag"], dest=f.name, action="store_true", default=f.default, help=m["help"])
+            g.add_argument(m["negation"], dest=f.name, action="store_false", default=f.default,
+                           help=m["negation_help"])
+            continue
+        kw = {"dest": f.name, "default": f.default, "help": m["help"]}
+        if m.get("choices"):
+            kw["choices"] = m["choices"]
+        else:
+            kw["metavar"] = _metavar(m["flag"])
+        if types[f.name] in (int, float):
+            kw["type"] = types[f.name]
+        g.add_argument(m["flag"], *m.get("aliases", ()), **kw)
 
 
 def config_from(args, agents: int, seed: int = 0) -> DQMConfig:
-    return DQMConfig(agents=agents, seed=seed, partition=args.partition, mode=args.mode, rho=args.rho,
-                     kernel=args.kernel, samples_per_agent=args.samples, halo=args.halo,
-                     seed_norm=args.seed_norm, job=args.job, cell_weights=args.cell_weights,
-                     ghost_rule=args.ghost_rule, sketch_dims=args.sketch_dims, balance_rounds=args.balance_rounds)
+    """The :class:`DQMConfig` of parsed :func:`add_algorithm` options, with the command's own ``agents`` and
+    ``seed`` (an agent process has no seed: the coordinator broadcasts it)."""
+    return DQMConfig(agents=agents, seed=seed, **{f.name: getattr(args, f.name) for f in algorithm_fields()})
 
 
 def add_tls(p) -> None:

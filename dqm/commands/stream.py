@@ -24,8 +24,9 @@ Exit codes: 0 done, 2 bad input or no router, 130 interrupted, 143 terminated
 """
 import argparse
 
-from ..core import DEFAULT_RHO
+from ..core.params import FINITE_KERNEL
 from ..validation import positive_int_arg
+from .param_options import add_quickmatch_params
 from .runtime_options import add_tls, tls_from
 
 NAME = "stream"
@@ -45,8 +46,8 @@ def _positive_float(text: str) -> float:
 def add_arguments(p) -> None:
     p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--job", default="stream", help="job id: the keys live under dqm/<job>/ (default: stream)")
-    p.add_argument("--rho", type=_positive_float, default=DEFAULT_RHO,
-                   help=f"merge ratio (default {DEFAULT_RHO}); the kernel is the quadratic one")
+    add_quickmatch_params(p, ("rho",), kernel_default=FINITE_KERNEL, number_type=_positive_float,
+                          notes={"rho": f"; the kernel is the finite {FINITE_KERNEL} one"})
     p.add_argument("--window", type=positive_int_arg, default=None, metavar="N",
                    help="keep at most N images: before adding an image beyond N, remove the oldest (its change "
                         "set is published too)")

@@ -47,12 +47,13 @@ from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
 from . import approximate, memory, native, pairs, tree
 from .pairs import duplicate_groups
+from .params import (DEFAULT_KERNEL, DEFAULT_PARENT, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES,
+                     QuickMatchParams)
 
-KERNELS = ("gaussian", "quadratic")
-PARENT_MODES = ("any", "other-image")
-#: default merge ratio, chosen by the sweep in scripts/sweep_rho.py (docs/quickmatch.md)
-DEFAULT_RHO = 0.9
-DEFAULT_RATIO_DENSITY = 0.25
+# the parameter vocabulary lives in dqm.core.params; these names stay importable from here
+__all__ = ["DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES", "QuickMatch",
+           "QuickMatchParams", "QuickMatchResult", "quickmatch"]
+
 #: neighbours per feature in the approximate mode (scripts/bench_quickmatch.py --approximate)
 DEFAULT_NEIGHBORS = 32
 
@@ -78,6 +79,13 @@ class QuickMatchResult:
     kernel: str
     parent_mode: str
     stats: Dict[str, float] = field(default_factory=dict, compare=False)
+
+    @property
+    def params(self) -> QuickMatchParams:
+        """The parameters this result was computed with: ``quickmatch(X, ids, params=result.params)``
+        reproduces its labels."""
+        return QuickMatchParams(rho=self.rho, kernel=self.kernel, parent=self.parent_mode,
+                                ratio_density=self.ratio_density)
 
     @property
     def n_features(self) -> int:
@@ -214,14 +222,33 @@ def feature_progress(progress: ProgressArg, label: str, n: int):
     return lambda done, total: bar(n if done >= total else int(n * done / max(1, total)), n)
 
 
+def resolve_params(params: Optional[QuickMatchParams] = None, **given) -> QuickMatchParams:
+    """The validated :class:`QuickMatchParams` of a call that takes them as ``params`` or one by one
+    (``given``: name -> value, None where not given); both at once is an error. The numbers come back
+    as Python floats."""
+    named = {k: v for k, v in given.items() if v is not None}
+    if params is not None:
+        if not isinstance(params, QuickMatchParams):
+            raise V.InputError(f"params must be a QuickMatchParams, got {type(params).__name__}")
+        if named:
+            raise V.InputError(f"give the QuickMatch parameters either as params= or one by one, not both "
+                               f"(params= and {', '.join(f'{k}=' for k in named)})")
+        p = params
+    else:
+        p = QuickMatchParams(**named)
+    p = p.validated()
+    return p.but(rho=float(p.rho), ratio_density=float(p.ratio_density))
+
+
 def quickmatch(
     descriptors,
     image_ids,
     *,
-    rho: float = DEFAULT_RHO,
-    ratio_density: float = DEFAULT_RATIO_DENSITY,
-    kernel: str = "gaussian",
-    parent: str = "any",
+    params: Optional[QuickMatchParams] = None,
+    rho: Optional[float] = None,
+    ratio_density: Optional[float] = None,
+    kernel: Optional[str] = None,
+    parent: Optional[str] = None,
     sigma: Optional[np.ndarray] = None,
     n_threads: Optional[int] = None,
     progress: ProgressArg = None,
@@ -235,10 +262,14 @@ def quickmatch(
     ----------
     descriptors : (n, dim) float or integer array (uint8 SIFT is fine).
     image_ids : (n,) integer array, the image of every feature.
-    rho : merge ratio; an edge merges iff shorter than ``rho * min(scale)``.
+    params : the four QuickMatch parameters as one
+        :class:`~dqm.core.params.QuickMatchParams` (default: its defaults), or
+        give them one by one (below), not both.
+    rho : merge ratio; an edge merges iff shorter than ``rho * min(scale)``
+        (default :data:`~dqm.core.params.DEFAULT_RHO`).
     ratio_density : Gaussian bandwidth as a fraction of sigma (reference: 0.25).
-    kernel : ``"gaussian"`` or ``"quadratic"`` (finite support, see module doc).
-    parent : ``"any"`` or ``"other-image"`` (parent must come from another image).
+    kernel : ``"gaussian"`` (default) or ``"quadratic"`` (finite support, see module doc).
+    parent : ``"any"`` (default) or ``"other-image"`` (parent must come from another image).
     sigma : optional precomputed per-feature distinctiveness (>= 0), e.g. an
         agent's own in the distributed algorithm; computed when None.
     n_threads : worker threads for the all-pairs pass (default: CPU count).
@@ -263,19 +294,17 @@ def quickmatch(
     t0 = time.perf_counter()
     X = V.check_descriptors(descriptors, keep_integer=True)  # uint8 SIFT stays uint8 (the integer kernels)
     ids = V.check_image_ids(image_ids, len(X))
+    p = resolve_params(params, rho=rho, ratio_density=ratio_density, kernel=kernel, parent=parent)
+    rho, ratio_density, kernel, parent = p.rho, p.ratio_density, p.kernel, p.parent
     scale = V.magnitude_exponent(X)
     if scale:  # absurd magnitudes: the same clusters on X / 2^scale (exact), distances scaled back
-        r = quickmatch(np.ldexp(X, -scale), ids, rho=rho, ratio_density=ratio_density, kernel=kernel, parent=parent,
+        r = quickmatch(np.ldexp(X, -scale), ids, params=p,
                        sigma=None if sigma is None else np.ldexp(np.asarray(sigma, np.float64), -scale),
                        n_threads=n_threads, progress=progress, max_memory=max_memory, approximate=approximate,
                        n_neighbors=n_neighbors)
         r.stats["descriptor_scale_exponent"] = float(scale)
         return dataclasses.replace(r, sigma=np.ldexp(r.sigma, scale),
                                    parent_distance=np.ldexp(r.parent_distance, scale))
-    rho = V.check_positive(rho, "rho")
-    ratio_density = V.check_positive(ratio_density, "ratio_density")
-    V.check_choice(kernel, "kernel", KERNELS)
-    V.check_choice(parent, "parent", PARENT_MODES)
     n = len(X)
     if n == 0:
         return _empty_result(ids, rho, ratio_density, kernel, parent)
@@ -423,12 +452,18 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
 class QuickMatch:
     """scikit-learn style estimator around :func:`quickmatch`.
 
+    The constructor's arguments are attributes (scikit-learn's convention, so
+    :meth:`get_params` / :meth:`set_params` and cloning work); :attr:`params`
+    gathers the four QuickMatch parameters as a
+    :class:`~dqm.core.params.QuickMatchParams`, and ``params_`` (after
+    :meth:`fit`) holds the validated ones the fit ran with.
+
     >>> qm = QuickMatch(rho=0.75).fit(X, image_ids)   # doctest: +SKIP
     >>> qm.labels_                                     # doctest: +SKIP
     """
 
     def __init__(self, rho: float = DEFAULT_RHO, ratio_density: float = DEFAULT_RATIO_DENSITY,
-                 kernel: str = "gaussian", parent: str = "any", n_threads: Optional[int] = None,
+                 kernel: str = DEFAULT_KERNEL, parent: str = DEFAULT_PARENT, n_threads: Optional[int] = None,
                  max_memory: Union[None, str, int, float] = None, approximate: bool = False,
                  n_neighbors: int = DEFAULT_NEIGHBORS):
         self.rho = rho
@@ -439,6 +474,11 @@ class QuickMatch:
         self.max_memory = max_memory
         self.approximate = approximate
         self.n_neighbors = n_neighbors
+
+    @property
+    def params(self) -> QuickMatchParams:
+        """The four QuickMatch parameters as set now (not validated: :meth:`fit` does that)."""
+        return QuickMatchParams(**{k: getattr(self, k) for k in QuickMatchParams.names()})
 
     def get_params(self, deep: bool = True) -> Dict[str, object]:
         return {"rho": self.rho, "ratio_density": self.ratio_density, "kernel": self.kernel,
@@ -453,8 +493,10 @@ class QuickMatch:
         return self
 
     def fit(self, descriptors, image_ids, progress: ProgressArg = None) -> "QuickMatch":
-        r = quickmatch(descriptors, image_ids, progress=progress, **self.get_params())
+        r = quickmatch(descriptors, image_ids, params=self.params, progress=progress, n_threads=self.n_threads,
+                       max_memory=self.max_memory, approximate=self.approximate, n_neighbors=self.n_neighbors)
         self.result_ = r
+        self.params_ = r.params
         self.labels_ = r.labels
         self.sigma_ = r.sigma
         self.density_ = r.density

@@ -19,11 +19,12 @@ Modes (``mode=``):
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-from dataclasses import dataclass, replace
-from typing import Dict, Optional, Tuple
+from dataclasses import dataclass, field, fields, replace
+from typing import Dict, List, Optional, Tuple, get_type_hints
 
-from ..core.clustering import DEFAULT_RHO, KERNELS
+from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
 from ..validation import InputError, check_choice, check_positive
 from . import partition
 
@@ -34,10 +35,6 @@ GHOST_RULES = ("one-way", "two-way")
 DEFAULT_SEED = 1
 #: the default dimension of the lower-bound sketches (docs/distributed.md, frontier table)
 DEFAULT_SKETCH_DIMS = 48
-#: the parameters every process of a job must share (they change the result or the protocol); the
-#: seed integer is not among them (the coordinator broadcasts it) nor the job id (it names the key space)
-SHARED_PARAMS = ("agents", "mode", "partition", "kernel", "rho", "halo", "samples_per_agent", "seed_norm",
-                 "cell_weights", "ghost_rule", "sketch_dims", "balance_rounds")
 
 
 def _check_int(value, name: str, low: int) -> int:
@@ -46,13 +43,28 @@ def _check_int(value, name: str, low: int) -> int:
     return value
 
 
+def _meta(help: str, flag: str, shared: Optional[int], **more) -> Dict[str, object]:
+    """A field's metadata: ``help`` (its command-line help), ``flag`` (its command-line option),
+    ``shared`` (its place in :meth:`DQMConfig.params_text`, 1 first; None: not a shared parameter)
+    and optionally ``choices``, ``aliases`` (more option names), ``negation`` and ``negation_help``
+    (the option that sets a tri-state flag False), ``own_option`` (each command defines the option
+    itself, with its own default or none)."""
+    return {"help": help, "flag": flag, "shared": shared, **more}
+
+
+def _qm_help(name: str) -> str:
+    """The help text of a QuickMatch parameter, as :class:`QuickMatchParams` defines it."""
+    return next(f.metadata["help"] for f in fields(QuickMatchParams) if f.name == name)
+
+
 @dataclass(frozen=True)
 class DQMConfig:
     """Parameters of a distributed job.
 
     ``agents``, ``seed`` (the one partition integer), ``partition`` (``kmeans``:
     k-means on a sample pooled at agent 0; ``seeded``: seeds from the integer
-    alone), ``mode`` (see the module doc), ``rho``, ``kernel``,
+    alone), ``mode`` (see the module doc), ``rho``, ``kernel`` (the QuickMatch
+    parameters, :attr:`params`: only the finite quadratic kernel),
     ``samples_per_agent`` (descriptors each agent sends to agent 0 for the
     seeds, the cell weights and the sketch basis), ``halo`` (lean/paper:
     contested-test width, 1 = safe), ``seed_norm`` (seeded seeds' norm),
@@ -62,22 +74,52 @@ class DQMConfig:
     ``two-way`` is the plain bisector halo, for comparison), ``sketch_dims``
     (balanced: dimension of the lower-bound sketch pre-filter, 0 = off) and
     ``balance_rounds`` (most weight-refinement rounds on the full counts).
+
+    Every field's ``metadata`` says its command-line option and help (the
+    runtime commands' options are generated from it:
+    :mod:`dqm.commands.runtime_options`) and whether every process of a job
+    must agree on it (:data:`SHARED_PARAMS`).
     """
 
-    agents: int
-    seed: int = DEFAULT_SEED
-    partition: str = "kmeans"
-    mode: str = DEFAULT_MODE
-    rho: float = DEFAULT_RHO
-    kernel: str = "quadratic"
-    samples_per_agent: int = 64
-    halo: float = 1.0
-    seed_norm: float = 512.0
-    job: str = "job"
-    cell_weights: Optional[bool] = None
-    ghost_rule: str = "one-way"
-    sketch_dims: int = DEFAULT_SKETCH_DIMS
-    balance_rounds: int = 12
+    agents: int = field(metadata=_meta("number of agents M", "--agents", 1, own_option=True))
+    seed: int = field(default=DEFAULT_SEED, metadata=_meta(
+        "partition seed integer (not shared: the coordinator broadcasts it)", "--seed", None, own_option=True))
+    partition: str = field(default="kmeans", metadata=_meta(
+        "how the cell seeds are drawn from the seed integer", "--partition", 3,
+        choices=partition.PARTITION_MODES))
+    mode: str = field(default=DEFAULT_MODE, metadata=_meta(
+        "balanced (clusters identical to centralized, work spread evenly), lean (the hand-down cascade: fewer "
+        "bytes, work gathers at agent 0) or paper (the seed paper's literal procedure); docs/distributed.md",
+        "--mode", 2, choices=MODES))
+    rho: float = field(default=DEFAULT_RHO, metadata=_meta(_qm_help("rho"), "--rho", 5))
+    kernel: str = field(default=FINITE_KERNEL, metadata=_meta(
+        "density kernel: a distributed job takes only the finite quadratic one (a density never needs features "
+        "beyond a cell's halo), while dqm match and dqm demo default to the reference code's Gaussian; with the "
+        "same kernel the clusters equal dqm.quickmatch's", "--kernel", 4, choices=KERNELS))
+    samples_per_agent: int = field(default=64, metadata=_meta(
+        "set-up sample descriptors per agent", "--samples", 7, aliases=("--samples-per-agent",)))
+    halo: float = field(default=1.0, metadata=_meta(
+        "lean/paper: contested-test width factor (1 = safe)", "--halo", 6))
+    seed_norm: float = field(default=512.0, metadata=_meta(
+        "descriptor norm for seeded seeds (SIFT: 512)", "--seed-norm", 8))
+    job: str = field(default="job", metadata=_meta(
+        "job id; keeps concurrent jobs on one router apart (not shared: it names the key space)", "--job", None))
+    cell_weights: Optional[bool] = field(default=None, metadata=_meta(
+        "balance the cells with power-diagram weights (default: on in balanced mode)", "--cell-weights", 9,
+        negation="--no-cell-weights", negation_help="plain Voronoi cells"))
+    ghost_rule: str = field(default="one-way", metadata=_meta(
+        "balanced: one-way (default) or two-way (the plain bisector halo, for comparison)", "--ghost-rule", 10,
+        choices=GHOST_RULES))
+    sketch_dims: int = field(default=DEFAULT_SKETCH_DIMS, metadata=_meta(
+        "balanced: dimension of the lower-bound sketch pre-filter (0 = off)", "--sketch-dims", 11))
+    balance_rounds: int = field(default=12, metadata=_meta(
+        "most rounds of cell-weight refinement", "--balance-rounds", 12))
+
+    @property
+    def params(self) -> QuickMatchParams:
+        """The QuickMatch parameters of the job: ``quickmatch(X, ids, params=cfg.params)`` gives the labels a
+        balanced job gives (parent ``any``, the default ratio_density, which the quadratic kernel ignores)."""
+        return QuickMatchParams(rho=self.rho, kernel=self.kernel, parent="any", ratio_density=DEFAULT_RATIO_DENSITY)
 
     @property
     def weighted(self) -> bool:
@@ -99,9 +141,9 @@ class DQMConfig:
         partition.check_seed(self.seed)
         check_choice(self.partition, "partition", partition.PARTITION_MODES)
         check_choice(self.mode, "mode", MODES)
-        check_choice(self.kernel, "kernel", KERNELS)
+        # balanced mode is exact only with a finite kernel; lean and paper are approximate and take either
+        self.params.validated(finite=self.mode == "balanced", engine=f"a {self.mode}-mode distributed job")
         check_choice(self.ghost_rule, "ghost_rule", GHOST_RULES)
-        check_positive(self.rho, "rho")
         check_positive(self.halo, "halo")
         check_positive(self.seed_norm, "seed_norm")
         _check_int(self.samples_per_agent, "samples_per_agent", 1)
@@ -109,9 +151,6 @@ class DQMConfig:
         _check_int(self.balance_rounds, "balance_rounds", 0)
         if self.cell_weights is not None and not isinstance(self.cell_weights, bool):
             raise InputError(f"cell_weights must be True, False or None, got {self.cell_weights!r}")
-        if self.mode == "balanced" and self.kernel != "quadratic":
-            raise InputError("balanced mode needs the finite quadratic kernel (kernel='quadratic'): the Gaussian "
-                             "kernel has unbounded support, so no cell could finish a density on its own")
         return self
 
     def but(self, **changes) -> "DQMConfig":
@@ -121,6 +160,17 @@ class DQMConfig:
     def params_text(self) -> str:
         """The shared parameters as ``name=value;...`` (the start message carries it and its hash)."""
         return ";".join(f"{k}={getattr(self, k)!r}" for k in SHARED_PARAMS)
+
+
+def is_shared(f) -> bool:
+    """Whether a :class:`DQMConfig` field is a shared parameter (every process of a job must agree on it)."""
+    return f.metadata.get("shared") is not None
+
+
+#: the parameters every process of a job must share (they change the result or the protocol), in the order
+#: of :meth:`DQMConfig.params_text` (the fields' ``shared`` metadata); the seed integer is not among them (the
+#: coordinator broadcasts it) nor the job id (it names the key space)
+SHARED_PARAMS = tuple(f.name for f in sorted(filter(is_shared, fields(DQMConfig)), key=lambda f: f.metadata["shared"]))
 
 
 def params_hash(text: str) -> str:
@@ -139,3 +189,28 @@ def differing_param(mine: str, theirs: str) -> Optional[Tuple[str, str, str]]:
         if a.get(k) != b.get(k):
             return k, a.get(k, "(absent)"), b.get(k, "(absent)")
     return None
+
+
+def algorithm_fields() -> List[dataclasses.Field]:
+    """The :class:`DQMConfig` fields that :func:`add_algorithm` makes options of: the shared parameters in
+    the order of the parameter text, then the others; not ``agents`` and ``seed``, which each command
+    defines itself (``own_option`` metadata)."""
+    fs = [f for f in dataclasses.fields(DQMConfig) if not f.metadata.get("own_option")]
+    return sorted(fs, key=lambda f: (f.metadata["shared"] is None, f.metadata["shared"] or 0))
+
+
+def config_args(cfg: DQMConfig) -> List[str]:
+    """The command-line options that give a process ``cfg``'s configuration: the inverse of
+    :func:`config_from` (``agents`` and ``seed``, each command's own options, are not among them).
+    Values are written as ``--flag=VALUE`` (a job id may start with '-') and floats in full precision."""
+    types = get_type_hints(DQMConfig)
+    out = []
+    for f in algorithm_fields():
+        m, v = f.metadata, getattr(cfg, f.name)
+        if "negation" in m:
+            if v is not None:
+                out.append(m["flag"] if v else m["negation"])
+            continue
+        text = repr(float(v)) if types[f.name] is float else str(v)
+        out.append(f"{m['flag']}={text}")
+    return out
