@@ -34,6 +34,7 @@ set's truth at its keypoints. Data-set names become file names through
 """
 from __future__ import annotations
 
+import logging
 import re
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -47,6 +48,8 @@ from .core import DEFAULT_RHO, quickmatch
 from .core.tree import merge_clusters
 from .validation import InputError
 from .vision import baselines, datasets, features
+
+LOG = logging.getLogger("dqm.benchmark")
 
 OXFORD = ("graf", "wall", "boat", "bikes")
 DATASETS = OXFORD + ("hotel",)
@@ -407,7 +410,7 @@ def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: flo
         raise InputError(f"unknown method(s) {unknown}; choose from {list(METHODS)}")
     rhos = sorted({float(r) for r in rhos} | {float(rho)}) if curves else [float(rho)]
     ratios = sorted({float(r) for r in ratios} | {float(ratio)}) if curves else [float(ratio)]
-    say = log or (lambda s: None)
+    say = log or LOG.info  # what it is doing: shown with dqm -v
     ids = bench.image_ids
     out: list[MethodResult] = []
     if any(m.startswith("quickmatch") for m in methods):

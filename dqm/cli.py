@@ -5,6 +5,9 @@ Each sub-command lives in its own module under :mod:`dqm.commands` and exposes
 Errors in the user's input print one line naming the problem and exit with 2;
 Ctrl-C exits with 130, SIGTERM with 143; no Python traceback reaches the user
 (an unexpected error prints one line; DQM_TRACEBACK=1 shows the traceback).
+Messages go through the ``dqm`` loggers (:mod:`dqm.logging_config`): warnings by
+default, ``-v`` adds what a command is doing, ``-vv`` debugging detail; ``-v``
+goes before the sub-command or after it (``dqm -v evaluate``, ``dqm evaluate -v``).
 """
 from __future__ import annotations
 
@@ -16,7 +19,7 @@ import sys
 import warnings
 from typing import List, Optional
 
-from . import __version__
+from . import __version__, logging_config
 from .commands import HelpFormatter
 
 COMMANDS = [
@@ -40,6 +43,9 @@ COMMANDS = [
     "dqm.commands.doctor",
 ]
 
+VERBOSE_HELP = ("more messages on standard error: -v what the command is doing, -vv debugging detail "
+                "(default: warnings and errors only)")
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``dqm`` parser with every sub-command (imports the command modules and what they need)."""
@@ -48,14 +54,25 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dqm", description="Consistent multi-image feature matching with QuickMatch.")
     parser.add_argument("--version", action="version", version=f"dqm {__version__}, tile kernel: "
                         f"{kernel_description()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, dest="verbosity", help=VERBOSE_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in COMMANDS:
         mod = importlib.import_module(modname)
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=(mod.__doc__ or mod.HELP).strip(),
                            formatter_class=HelpFormatter)
         mod.add_arguments(p)
+        # -v after the sub-command too; its own --verbose (a line per image in stream and camera) stays its own
+        flags = [f for f in ("-v", "--verbose") if f not in p._option_string_actions]
+        if flags:
+            p.add_argument(*flags, action="count", default=argparse.SUPPRESS, dest="verbosity_after",
+                           help=VERBOSE_HELP)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+def verbosity(args: argparse.Namespace) -> int:
+    """The ``-v`` count, before and after the sub-command together."""
+    return getattr(args, "verbosity", 0) + getattr(args, "verbosity_after", 0)
 
 
 class Terminated(KeyboardInterrupt):
@@ -86,6 +103,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.print_help()
         return 2
     warnings.showwarning = _one_line_warning
+    logging_config.configure(verbosity(args))
     try:
         return int(args._run(args) or 0)
     except InputError as exc:

@@ -36,3 +36,16 @@ def configure(verbosity: int = 0, tag: Optional[str] = None, stream=None) -> log
     root.setLevel(level_for(verbosity))
     root.propagate = False
     return root
+
+
+def tag_lines(tag: str) -> None:
+    """Prefix every line of the ``dqm`` loggers with ``[tag]`` from now on (a runtime process names
+    itself once it knows who it is), keeping the level :func:`configure` chose; configures the
+    default (quiet) set-up first when nothing was configured."""
+    root = logging.getLogger(ROOT)
+    mine = [h for h in root.handlers if h.get_name() == _HANDLER_NAME]
+    if not mine:
+        configure(0, tag)
+        return
+    for h in mine:
+        h.setFormatter(logging.Formatter(f"[{tag}] %(message)s"))

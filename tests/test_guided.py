@@ -136,7 +136,7 @@ def test_images_match_guided_export_colmap_reconstruct_every_image(tmp_path, cap
     (this chain replaced the one from plain QuickMatch clusters when guided growth became the default)."""
     pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
     from dqm import io
-    from dqm.vision.scenes3d import generate_scene3d
+    from generators.scenes3d import generate_scene3d
 
     sc = generate_scene3d(seed=0, n_images=6)
     sc.save(tmp_path / "img")
@@ -206,7 +206,7 @@ def test_a_link_is_refused_when_another_member_pair_contradicts_a_verified_model
 def test_dqm_sfm_images_to_model_and_refuses_a_non_empty_folder(tmp_path, capsys):
     pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
     from dqm import io
-    from dqm.vision.scenes3d import generate_scene3d
+    from generators.scenes3d import generate_scene3d
 
     generate_scene3d(seed=1, n_images=4, width=480, height=360).save(tmp_path / "img")
     (tmp_path / "full").mkdir()

@@ -1,4 +1,4 @@
-"""Generated 3-D scenes (dqm.vision.scenes3d): exact truth, renderer agreement, SIFT and SfM usability."""
+"""Generated 3-D scenes (tests/generators/scenes3d.py): exact truth, renderer agreement, SIFT and SfM usability."""
 import json
 
 import cv2
@@ -7,7 +7,7 @@ import pytest
 
 from dqm import InputError
 from dqm.vision import features
-from dqm.vision.scenes3d import generate_scene3d
+from generators.scenes3d import generate_scene3d
 
 
 @pytest.fixture(scope="module")

@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import platform
 import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -45,6 +45,8 @@ from ..core import DEFAULT_RHO
 from ..validation import InputError
 from ..vision import baselines
 from ..vision.features import DEFAULT_PRESET, EXTERNAL_PRESETS, PRESET_NAMES, PRESETS
+
+LOG = logging.getLogger("dqm.commands")
 
 NAME = "evaluate"
 HELP = "QuickMatch vs BF / FLANN (pairs and tracks) on ground truth: table + PR curves"
@@ -75,7 +77,7 @@ def add_arguments(p) -> None:
                         "against its point_ids (generated data), or with one DATA (Oxford-layout folder, graf ..., "
                         "scene:SEED) against that data set's homographies at its keypoints; prints one table row "
                         "and writes evaluation_<file>[_<data>].json in --out-dir")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.add_argument("--quiet", action="store_true", help="no per-dataset tables, no notes about skipped datasets")
 
 
 def _preset_words(preset: str) -> str:
@@ -321,6 +323,8 @@ def run_clusters(args) -> int:
 def run(args) -> int:
     from .. import plots
 
+    if args.quiet:  # errors only from the dqm loggers (-v narrates the steps)
+        logging.getLogger("dqm").setLevel(logging.ERROR)
     if args.clusters:
         return run_clusters(args)
     t0 = time.perf_counter()
@@ -334,7 +338,6 @@ def run(args) -> int:
     rhos, ratios = _floats(args.rhos, "--rhos"), _floats(args.ratios, "--ratios")
     explicit = bool(args.data)
     specs = args.data or list(benchmark.DATASETS) + ["scene"]
-    say = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
     out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
     results: dict[str, list[benchmark.MethodResult]] = {}
     benches: dict[str, benchmark.Benchmark] = {}
@@ -343,19 +346,19 @@ def run(args) -> int:
     stems: dict[str, str] = {}  # data-set name -> its part of file names, unique in out_dir
     for spec in specs:
         try:
-            say(f"loading {spec}")
+            LOG.info("loading %s", spec)
             bench = benchmark.load_benchmark(spec, args.data_root, preset=args.preset,
                                              max_features=args.max_features, tol=args.tol)
         except InputError as exc:
             if explicit:
                 raise
-            say(f"note: {spec} skipped: {exc}")
+            LOG.warning("note: %s skipped: %s", spec, exc)  # shown by default; also listed in evaluation.md
             skipped.append((spec, str(exc)))
             continue
         name = bench.name if bench.name not in results else f"{bench.name}-{len(results)}"
         stems[name] = benchmark.file_stem(name, stems.values())
         rows = benchmark.evaluate(bench, methods, rho=args.rho, ratio=args.ratio, rhos=rhos, ratios=ratios,
-                                  seed=args.seed, log=say)
+                                  seed=args.seed)
         results[name] = rows
         benches[name] = bench
         fig = plots.pr_figure([r.curve for r in rows],

@@ -16,6 +16,7 @@ Seeded: the same options give the same numbers.
 """
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from typing import List
@@ -26,6 +27,8 @@ from ..camnet.pipeline import DETECTION_RHO, METHODS
 from ..vision.features import PRESETS
 from ..progress import ProgressBar
 from ..validation import InputError
+
+LOG = logging.getLogger("dqm.commands")
 
 NAME = "experiment"
 HELP = "run a seed-paper experiment in simulation (localization: the camera network) and write its report"
@@ -68,7 +71,17 @@ def add_arguments(p) -> None:
     p.add_argument("--no-sweep", action="store_true", help="skip the rho / ratio sweep (faster)")
     p.add_argument("--quick", action="store_true",
                    help="small run: 10 time steps over the same 30 s loop (rate 1/3 Hz), no sweep")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--quiet", action="store_true", help="no progress bars, no per-seed result lines")
+
+
+def _command_line(argv: List[str]) -> str:
+    """``dqm experiment localization`` and the options that followed it in ``argv`` (those before it, such as
+    ``-v``, change only the messages)."""
+    words = list(argv[1:])
+    for i in range(len(words) - 1):
+        if words[i:i + 2] == ["experiment", "localization"]:
+            return " ".join(["dqm experiment localization", *words[i + 2:]])
+    return "dqm experiment localization"
 
 
 def run(args) -> int:
@@ -105,12 +118,13 @@ def run(args) -> int:
         ratios = sorted(ratios + [args.ratio])
     pipe = PipelineConfig(preset=args.preset, rho=args.rho, ratio=args.ratio, min_matches=args.min_matches,
                           ransac_threshold=args.ransac)
-    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    if args.quiet:  # errors only from the dqm loggers
+        logging.getLogger("dqm").setLevel(logging.ERROR)
     results, rows = None, []
     t0 = time.perf_counter()
     for k, seed in enumerate(seeds):
         sim = SimConfig(seed=seed, duration=args.duration, rate=rate, n_cameras=args.cameras)
-        say(f"seed {seed}: {sim.n_steps} time steps x {sim.n_cameras} cameras")
+        LOG.info("seed %d: %d time steps x %d cameras", seed, sim.n_steps, sim.n_cameras)
         bar = None if args.quiet else ProgressBar(f"seed {seed}")
         # other seeds: only the headline numbers (QuickMatch at our rho and the paper's)
         res = run_experiment(sim, pipe, methods, sweep=sweep if k == 0 else True,
@@ -120,10 +134,9 @@ def run(args) -> int:
         if k == 0:
             results = res
         rows.append(seed_row(res))
-        say(f"seed {seed}: " + ", ".join(f"{m} PR AUC {rows[-1]['auc'][m]:.3f}" for m in res.methods)
-            + f" ({res.timings['total']:.0f} s)")
-    cmd = "dqm experiment localization " + " ".join(sys.argv[3:]) if sys.argv[1:3] == ["experiment", "localization"] \
-        else "dqm experiment localization"
-    written = write_report(results, args.out_dir, args.img_dir, command=cmd.strip(), seed_rows=rows)
-    say(f"wrote {', '.join(str(p) for p in written.values())} in {time.perf_counter() - t0:.0f} s")
+        if not args.quiet:  # a result: standard output
+            print(f"seed {seed}: " + ", ".join(f"{m} PR AUC {rows[-1]['auc'][m]:.3f}" for m in res.methods)
+                  + f" ({res.timings['total']:.0f} s)", flush=True)
+    written = write_report(results, args.out_dir, args.img_dir, command=_command_line(sys.argv), seed_rows=rows)
+    print(f"wrote {', '.join(str(p) for p in written.values())} in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -1,4 +1,5 @@
-"""A generated 3-D multi-view scene with exact ground truth, for structure-from-motion tests.
+"""A generated 3-D multi-view scene with exact ground truth, for structure-from-motion tests
+(a test helper: tests import it as ``from generators.scenes3d import generate_scene3d``).
 
 World (metres; x right, y down, z forward, as OpenCV cameras): ``n_planes``
 textured rectangles. The farthest is a large background plane about 10 m away,
@@ -39,8 +40,8 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from ..validation import InputError
-from .scenes import texture
+from dqm.validation import InputError
+from dqm.vision.scenes import texture
 
 #: sensor noise (grey levels) and texture oversampling (texture pixels per image pixel at the plane's depth)
 _NOISE, _OVERSAMPLE, _MAX_TEXTURE = 1.0, 1.3, 2048
