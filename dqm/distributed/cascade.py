@@ -274,3 +274,13 @@ class CascadeCore:
                 cur = cur.take(np.flatnonzero(~out))
                 res = self._cluster(cur) if len(cur) else None
         return CascadeOutcome(sends=sends, moved=moved, final=cur, final_result=res, arrival_failures=failures)
+
+    def outcome_stats(self, out: CascadeOutcome) -> Dict[str, float]:
+        """This agent's statistics after its turn (the same keys in the simulator and the runtime)."""
+        return {
+            "features_routed": float(len(self.shard)), "features_final": float(len(out.final)),
+            "time_cluster": self.time_cluster, "time_boundary": self.time_boundary,
+            "pairs": float(self.pairs_computed), "max_held": float(self.max_held),
+            "arrival_check_failures": float(out.arrival_failures),
+            "handed_down": float(sum(len(v[0]) for v in out.sends.values())),
+        }

@@ -27,6 +27,7 @@ from collections import defaultdict
 from typing import Dict, List, Optional, Tuple
 
 from ..distributed import messages, protocol
+from ..distributed.ledger import Meter
 from ..distributed import keys
 
 ROUTER_RETRY_S = 5.0
@@ -153,42 +154,6 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
                 f"that signed the router's certificate, that the router's certificate names {host} "
                 f"(subjectAltName), and that --tls-cert/--tls-key were issued by the CA the router trusts")
     return f"{base}; something listens at {addr} but refused a {proto} zenoh session (a tls/ router?)"
-
-
-class Meter:
-    """Bytes and messages sent per (src, dst, kind), and received messages rejected per reason.
-
-    Updated from the main thread and from the receiver thread (acks): under a lock.
-    """
-
-    def __init__(self):
-        self.sent: Dict[Tuple[int, int, str], List[int]] = defaultdict(lambda: [0, 0])
-        self.rejected: Dict[str, int] = defaultdict(int)
-        self.duplicates = 0
-        self.resent = 0
-        self.lock = threading.Lock()
-
-    def add(self, src: int, dst: int, kind: str, nbytes: int) -> None:
-        with self.lock:
-            e = self.sent[(src, dst, kind)]
-            e[0] += nbytes
-            e[1] += 1
-
-    def reject(self, reason: str) -> None:
-        """Count a refused message under its reason (numbers in it replaced by N, so that reasons group)."""
-        reason = re.sub(r"\d+", "N", reason)[:80]
-        with self.lock:
-            self.rejected[reason] += 1
-
-    def snapshot(self) -> Tuple[Dict[Tuple[int, int, str], Tuple[int, int]], Dict[str, int], int, int]:
-        """``(sent, rejected, duplicates, resent)`` copied under the lock."""
-        with self.lock:
-            return ({k: (v[0], v[1]) for k, v in self.sent.items()}, dict(self.rejected), self.duplicates,
-                    self.resent)
-
-    def as_dict(self) -> dict:
-        return {"sent": [[s, d, k, b, c] for (s, d, k), (b, c) in sorted(self.sent.items())],
-                "rejected": dict(self.rejected), "duplicates": self.duplicates, "resent": self.resent}
 
 
 class Bus:
@@ -321,8 +286,7 @@ class Bus:
                     continue  # acknowledged meanwhile (or a new epoch)
                 self._pending[(src, dst, seq)] = (now, tries + 1, payload, kind)
             self._put(src, dst, kind, payload)
-            with self.meter.lock:
-                self.meter.resent += 1
+            self.meter.resend()
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
@@ -373,8 +337,7 @@ class Bus:
                 dup = key in self._seen
                 self._seen.add(key)
             if dup:
-                with self.meter.lock:
-                    self.meter.duplicates += 1
+                self.meter.duplicate()
                 return None
         return msg
 

@@ -22,6 +22,7 @@ It also keeps the job alive when agent processes die (docs/runtime.md):
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -34,9 +35,14 @@ import numpy as np
 
 from .. import io
 from ..distributed import keys, protocol, sources
-from ..distributed.config import DQMConfig, params_hash
+from ..distributed.config import DQMConfig
+from ..distributed.driver import start_fields
+from ..distributed.ledger import COORDINATOR, TrafficLedger
+from ..logging_config import tag_lines
 from .agent import Terminated, _on_sigterm
 from .bus import Bus, check_job_free, open_client
+
+log = logging.getLogger("dqm.runtime")
 
 
 def tcp_bytes_received(port: int) -> Optional[int]:
@@ -92,7 +98,7 @@ class _Lost(Exception):
 
 class Coordinator:
     def __init__(self, bus: Bus, cfg: DQMConfig, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
-                 log=None, max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0,
+                 max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0,
                  catalog: bool = False):
         self.bus = bus
         self.cfg = cfg
@@ -111,7 +117,6 @@ class Coordinator:
         self.catalog_parts: Dict[int, Dict[int, dict]] = defaultdict(dict)
         #: the CLUSTERS arrays once the job is done (with ``catalog``)
         self.clusters: Optional[sources.AssembledClusters] = None
-        self.log = log or (lambda text: print(f"[coordinator] {text}", file=sys.stderr, flush=True))
         self.view = view
         self.phase = "ready"
         self.epoch = 0
@@ -131,7 +136,7 @@ class Coordinator:
 
     def _event(self, text: str) -> None:
         if self.view is None or self.view.stream is not sys.stderr:
-            self.log(text)
+            log.warning("%s", text)
         if self.view is not None:
             self.view.event(text)
 
@@ -273,11 +278,10 @@ class Coordinator:
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
         self.phase = "start"
-        text = self.cfg.params_text()
         hosts = self._hosts()
+        start = start_fields(self.cfg, self.owners, self.catalog)
         for p in hosts:
-            self._send(p, "start", seed=self.seed, agents=self.m, owners=self.owners, params=text,
-                       params_hash=params_hash(text), catalog=int(self.catalog))
+            self._send(p, "start", **start)
         t = time.monotonic()
         while len(self.ready) < len(hosts):
             self._poll()
@@ -345,28 +349,15 @@ class Coordinator:
         return dict(out)
 
     def report(self, ids, labels, t_ready, t_run, wire) -> dict:
-        links = defaultdict(lambda: [0, 0])
-        kinds = defaultdict(lambda: [0, 0])
+        ledger = TrafficLedger()  # what every agent said it sent, its stats message, and the coordinator's sends
         for a, st in self.stats.items():
-            for k, v in st.items():
-                if k.startswith("sent:"):
-                    _, dst, kind, what = k.split(":")
-                    i = 0 if what == "bytes" else 1
-                    links[(a, int(dst))][i] += int(v)
-                    kinds[kind][i] += int(v)
+            ledger.add_stats(a, st)
         for a, b in self.stats_bytes.items():
-            links[(a, -1)][0] += b
-            links[(a, -1)][1] += 1
-            kinds["stats"][0] += b
-            kinds["stats"][1] += 1
-        for (src, dst, kind), (b, c) in self.bus.meter.snapshot()[0].items():
-            links[(src, dst)][0] += b
-            links[(src, dst)][1] += c
-            kinds[kind][0] += b
-            kinds[kind][1] += c
-        name = lambda i: "coordinator" if i < 0 else f"agent{i}"  # noqa: E731
-        total = sum(b for b, _ in links.values())
-        agents = {str(a): {k: v for k, v in st.items() if not k.startswith("sent:")} for a, st in self.stats.items()}
+            ledger.add(a, COORDINATOR, "stats", b)
+        for (src, dst, kind), (b, c) in self.bus.meter.entries().items():
+            ledger.add(src, dst, kind, b, c)
+        traffic = ledger.report()
+        agents = {str(a): TrafficLedger.strip_stats(st) for a, st in self.stats.items()}
         return {
             "job": self.job, "agents": self.m, "seed": self.seed, "features": int(len(ids)),
             "clusters": int(labels.max() + 1) if len(labels) else 0,
@@ -374,10 +365,7 @@ class Coordinator:
             "time_ready_s": t_ready, "time_run_s": t_run,
             "epochs": self.epoch + 1, "lost": self.lost, "owners": [int(o) for o in self.owners],
             "images_note": self.clusters.note if self.clusters is not None else "",
-            "links": [{"src": name(s), "dst": name(d), "bytes": b, "messages": c}
-                      for (s, d), (b, c) in sorted(links.items())],
-            "kinds": {k: {"bytes": b, "messages": c} for k, (b, c) in sorted(kinds.items())},
-            "total_bytes": total, "wire_bytes_received_by_router": wire,
+            **traffic, "wire_bytes_received_by_router": wire,
             "rejected": self._rejected(),
             "duplicates": int(sum(st.get("duplicates", 0) for st in self.stats.values())
                               + self.bus.meter.snapshot()[2]),
@@ -420,6 +408,7 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
 
     signal.signal(signal.SIGTERM, _on_sigterm)
     watch_parent()
+    tag_lines("coordinator")
     keys.check_job(cfg.job)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
     check_job_free(session, keys.alive_coordinator(cfg.job), "the coordinator", cfg.job, endpoint)
@@ -434,10 +423,10 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
                               clusters_params(coord.cfg))
             rep["clusters_file"] = str(clusters)
             if coord.clusters.note:
-                coord.log(coord.clusters.note)
+                log.warning("%s", coord.clusters.note)
         if out:
             _write_json(Path(out), rep)
-        coord.log(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered"
+        print(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered"
                   + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else "")
                   + (f"; wrote {clusters}" if clusters else ""))
         time.sleep(0.2)  # let the finish messages leave before closing
@@ -445,13 +434,13 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     except JobFailed as exc:
         if view is not None:
             view.close()
-        coord.log(failure_paragraph(exc.as_dict()))
+        log.error("%s", failure_paragraph(exc.as_dict()))
         if out:
             _write_json(failure_path(out), exc.as_dict())
         time.sleep(0.2)
         return EXIT_REFUSED if exc.refused else EXIT_FAILED
     except (KeyboardInterrupt, Terminated) as exc:
-        coord.log("interrupted, aborting the job")
+        log.warning("interrupted, aborting the job")
         coord._abort_all("coordinator interrupted")
         return EXIT_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else EXIT_TERMINATED
     finally:

@@ -19,12 +19,13 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import List, Optional
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 
 from .. import io
-from ..distributed.config import DQMConfig
+from ..distributed.config import DQMConfig, config_args
 from ..distributed.sources import split_features
 from .coordinator import failure_paragraph, failure_path
 from .bus import LEASE_MS
@@ -173,17 +174,6 @@ def save_agent_files(parts: List[io.FeatureSet], workdir: Path) -> List[Path]:
     return paths
 
 
-def algorithm_args(cfg: DQMConfig) -> List[str]:
-    """Command-line options that give an agent process the same configuration."""
-    args = ["--mode", cfg.mode, "--partition", cfg.partition, "--rho", repr(cfg.rho), "--kernel", cfg.kernel,
-            "--halo", repr(cfg.halo), "--samples", str(cfg.samples_per_agent), "--seed-norm", repr(cfg.seed_norm),
-            "--ghost-rule", cfg.ghost_rule, "--sketch-dims", str(cfg.sketch_dims),
-            "--balance-rounds", str(cfg.balance_rounds), "--job", cfg.job]
-    if cfg.cell_weights is not None:
-        args.append("--cell-weights" if cfg.cell_weights else "--no-cell-weights")
-    return args
-
-
 class Processes:
     """Children started by the launcher; :meth:`stop_all` never leaves one behind."""
 
@@ -228,7 +218,7 @@ def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: 
                      clusters: Optional[str] = None) -> List[str]:
     """Command-line options of the coordinator of ``cfg``'s job (``clusters``: its CLUSTERS file, or none)."""
     args = ["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed), "--connect", connect,
-            "--out", str(report), "--job-timeout", str(job_timeout_s), *algorithm_args(cfg)]
+            "--out", str(report), "--job-timeout", str(job_timeout_s), *config_args(cfg)]
     args += ["--clusters", str(clusters)] if clusters else ["--no-clusters"]
     if ready_timeout_s is not None:
         args += ["--ready-timeout", str(ready_timeout_s)]
@@ -262,6 +252,72 @@ def job_outcome(rc: Optional[int], report_path: Path, workdir: Path) -> dict:
                      f"The processes' logs end with:\n{logs}", rc, logs=logs)
 
 
+@dataclass
+class Job:
+    """The processes of one started job (the router runs apart)."""
+
+    cfg: DQMConfig
+    workdir: Path
+    agents: List[subprocess.Popen]
+    coordinator: subprocess.Popen
+    report_path: Path
+    started: float
+
+
+def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
+              connect: Callable[[int], str], prefix: Callable[[int], Optional[List[str]]] = lambda a: None,
+              client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
+              phase_timeout_s: Optional[float] = 60.0, tag: str = "", clusters: Optional[Path] = None,
+              threads_per_agent: Optional[int] = 1, ready_timeout_s: Optional[float] = None,
+              max_lost: Optional[int] = None, pass_fds: Sequence[int] = ()) -> Job:
+    """Start the agents and the coordinator of one job (the router is already running): the one start
+    path of ``dqm run`` (:func:`run_job`), the multi-host demo and the tests.
+
+    ``connect(a)``, ``prefix(a)`` and ``client_args(a)`` give the endpoint, the command prefix (e.g.
+    ``ip netns exec NS``) and extra options (TLS, test hooks) of agent ``a``; ``a = -1`` is the
+    coordinator. ``clusters``: the CLUSTERS file the coordinator writes (none by default).
+    ``phase_timeout_s``: the agents' phase timeout (None: their default). ``threads_per_agent``:
+    worker threads of each agent unless ``env`` says otherwise (None: all cores).
+    """
+    env = dict(os.environ if env is None else env)
+    if threads_per_agent is not None:
+        for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+            env.setdefault(var, str(threads_per_agent))
+    timeout = [] if phase_timeout_s is None else ["--phase-timeout", str(phase_timeout_s)]
+    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a), *timeout,
+                           *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])],
+                          workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
+              for a in range(cfg.agents)]
+    report_path = workdir / f"{tag}report.json"
+    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s, ready_timeout_s, max_lost,
+                                           None if clusters is None else str(clusters)), *client_args(-1)],
+                        workdir / f"{tag}coordinator.log", env, prefix=prefix(-1), pass_fds=pass_fds)
+    return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
+
+
+def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
+    """Wait for the coordinator's report (``timeout_s`` from the start) and for the agents to exit;
+    :class:`JobFailure` with the operator's paragraph and every log's last lines on failure."""
+    try:
+        rc = job.coordinator.wait(timeout=max(1.0, timeout_s - (time.monotonic() - job.started)))
+    except subprocess.TimeoutExpired:
+        rc = None
+    deadline = time.monotonic() + 10.0  # for all of them together: hundreds of agents, one wait
+    for p in job.agents:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        report = job_outcome(rc, job.report_path, job.workdir)
+    except JobFailure as exc:
+        raise overload_note(exc, [p.returncode for p in job.agents], job.cfg.agents) from None
+    report["agent_exit_codes"] = [p.returncode for p in job.agents]
+    report["workdir"] = str(job.workdir)
+    report["wall_s"] = time.monotonic() - job.started
+    return report
+
+
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
             env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
             ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False,
@@ -284,44 +340,25 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     endpoint = f"tcp/127.0.0.1:{port}"
     procs = Processes()
     env = dict(os.environ if env is None else env)
-    if cfg.mode == "balanced":
-        # all agents compute at once: share this host's cores instead of oversubscribing them
-        share = str(max(1, (os.cpu_count() or 1) // cfg.agents))
-        for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-            env.setdefault(var, share)
-    # lean / paper: every agent may use all cores, the hand-down cascade runs one agent at a
-    # time (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
+    # balanced: all agents compute at once: share this host's cores instead of oversubscribing them.
+    # lean / paper: every agent may use all cores, the hand-down cascade runs one agent at a time
+    # (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
+    share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode == "balanced" else None
     tty = os.dup(2) if progress and sys.stderr.isatty() else None
     try:
         router = procs.start(["router", "--listen", endpoint], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
-        agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", endpoint,
-                               *algorithm_args(cfg), *peer_args(files, a), *(agent_args or []), str(files[a])],
-                              wd / f"agent{a}.log", env)
-                  for a in range(cfg.agents)]
-        report_path = wd / "report.json"
-        cargs = coordinator_args(cfg, endpoint, report_path, timeout_s, ready_timeout_s, max_lost,
-                                 None if clusters is None else str(Path(clusters).resolve()))
-        cargs += ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
-        coord = procs.start(cargs, wd / "coordinator.log", env, pass_fds=[tty] if tty is not None else [])
+        coordinator_extra = ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
+        job = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
+                        client_args=lambda a: coordinator_extra if a < 0 else list(agent_args or []), env=env,
+                        job_timeout_s=timeout_s, phase_timeout_s=None, threads_per_agent=share,
+                        clusters=None if clusters is None else Path(clusters).resolve(),
+                        ready_timeout_s=ready_timeout_s, max_lost=max_lost, pass_fds=[tty] if tty is not None else [])
         if on_started is not None:
-            on_started({"router": router, "agents": agents, "coordinator": coord, "workdir": wd, "port": port})
-        try:
-            rc = coord.wait(timeout=timeout_s + 15)
-        except subprocess.TimeoutExpired:
-            rc = None
-        deadline = time.monotonic() + 10.0  # for all of them together: hundreds of agents, one wait
-        for p in agents:
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
-        try:
-            report = job_outcome(rc, report_path, wd)
-        except JobFailure as exc:
-            raise overload_note(exc, [p.returncode for p in agents], cfg.agents) from None
-        report["agent_exit_codes"] = [p.returncode for p in agents]
-        report["workdir"] = str(wd)
+            on_started({"router": router, "agents": job.agents, "coordinator": job.coordinator, "workdir": wd,
+                        "port": port})
+        report = finish_job(job, timeout_s + 15)
+        del report["wall_s"]
         return report
     finally:
         if tty is not None:

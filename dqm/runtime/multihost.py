@@ -24,11 +24,10 @@ import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
-from .launcher import (Processes, algorithm_args, coordinator_args, job_outcome, peer_args, wait_listening,
-                       write_agent_files)
+from .launcher import Processes, finish_job, start_job, wait_listening, write_agent_files
 
 SUBNET = "10.213"
 ROUTER_PORT = 7447
@@ -177,58 +176,6 @@ class Namespaces:
 
 
 # ---------------------------------------------------------------------- jobs over any endpoint layout
-@dataclass
-class Job:
-    cfg: DQMConfig
-    workdir: Path
-    agents: List[subprocess.Popen]
-    coordinator: subprocess.Popen
-    report_path: Path
-    started: float
-
-
-def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
-              connect: Callable[[int], str], prefix: Callable[[int], Optional[List[str]]] = lambda a: None,
-              client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
-              phase_timeout_s: float = 60.0, tag: str = "", clusters: Optional[Path] = None) -> Job:
-    """Start the agents and the coordinator of one job (the router is already running).
-
-    ``connect(a)``, ``prefix(a)`` and ``client_args(a)`` give the endpoint, the
-    command prefix (e.g. ``ip netns exec NS``) and extra options (TLS) of agent
-    ``a``; ``a = -1`` is the coordinator. ``clusters``: the CLUSTERS file the
-    coordinator writes (none by default).
-    """
-    env = dict(os.environ if env is None else env)
-    env.setdefault("DQM_THREADS", "1")
-    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
-                           "--phase-timeout", str(phase_timeout_s), *algorithm_args(cfg), *client_args(a),
-                           *peer_args(list(files), a), str(files[a])], workdir / f"{tag}agent{a}.log", env,
-                          prefix=prefix(a))
-              for a in range(cfg.agents)]
-    report_path = workdir / f"{tag}report.json"
-    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s, clusters=clusters),
-                         *client_args(-1)],
-                        workdir / f"{tag}coordinator.log", env, prefix=prefix(-1))
-    return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
-
-
-def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
-    """Wait for the coordinator's report and for the agents to exit; RuntimeError with log tails on failure."""
-    try:
-        rc = job.coordinator.wait(timeout=max(1.0, timeout_s - (time.monotonic() - job.started)))
-    except subprocess.TimeoutExpired:
-        rc = None
-    for p in job.agents:
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            pass
-    report = job_outcome(rc, job.report_path, job.workdir)
-    report["agent_exit_codes"] = [p.returncode for p in job.agents]
-    report["wall_s"] = time.monotonic() - job.started
-    return report
-
-
 def start_router(procs: Processes, endpoints: Sequence[str], workdir: Path, wait_addr, *,
                  prefix: Optional[List[str]] = None, tls_args: Sequence[str] = (), env=None,
                  deadline_s: float = 15.0, log_name: str = "router.log") -> subprocess.Popen:
