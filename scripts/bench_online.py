@@ -88,7 +88,7 @@ def run(name: str, X: np.ndarray, img_ids: np.ndarray, check_every: int):
                   f"density changed {row['density_changed']:5.1%}  parents recomputed "
                   f"{row['parents_recomputed']:5.1%} changed {row['parents_changed']:5.1%}  "
                   f"replayed {row['replayed']:5.1%}", flush=True)
-    return rows, len(om._edges)
+    return rows, om.n_stored_pairs
 
 
 #: the target: the mean add at most this fraction of one batch run at the end, judged at the full size only
