@@ -12,7 +12,8 @@ bounding box of a RANSAC homography. Modules:
 * :mod:`~dqm.camnet.pipeline` - matching, detection and localization per time step;
 * :mod:`~dqm.camnet.online` - online QuickMatch fed one camera frame at a time;
 * :mod:`~dqm.camnet.experiment` - the whole run and its scores (PR curves, errors);
-* :mod:`~dqm.camnet.report` - figures, JSON and the markdown summary.
+* :mod:`~dqm.camnet.summary` - every number and finding, computed once (the JSON and the markdown read it).
+* :mod:`~dqm.camnet.report` - figures, and the JSON and markdown rendered from the summary.
 
 Command line: ``dqm experiment localization`` (see ``dqm experiment --help``).
 """

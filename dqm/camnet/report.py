@@ -18,111 +18,47 @@
   images and as patches;
 * ``camnet.json`` (every number) and ``camnet.md`` (the summary, compared with
   the seed paper's numbers).
+
+The numbers and findings come from one :class:`~dqm.camnet.summary.CamnetSummary`
+(:func:`~dqm.camnet.summary.build_summary`): ``camnet.json`` is its
+:meth:`~dqm.camnet.summary.CamnetSummary.as_json` and :func:`markdown` renders
+``camnet.md`` from it, so the two agree; this module only draws and writes.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-import platform
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
 from ..plots import _figure, clusters_figure, pr_figure, save
-from .experiment import ExperimentResult, common_errors, detection_curve, localization_errors, operating_point
+from .experiment import ExperimentResult, detection_curve, localization_errors, operating_point
 from .geometry import fov_wedge
-from .pipeline import KERNEL, LABELS, PAPER_METHODS, PAPER_RHO
+from .pipeline import LABELS, PAPER_RHO
+from .summary import PAPER, QM_VARIANTS, CamnetSummary, SeedsSummary, build_summary, method_label, seed_row
 
-#: the seed paper's results (camera-network experiment)
-PAPER = {
-    "quickmatch": {"auc": 0.64, "mean": 0.21, "std": 0.43},
-    "bf": {"auc": 0.49, "mean": 0.23, "std": 0.40},
-    "flann": {"auc": 0.45, "mean": 0.62, "std": 1.17},
-}
+__all__ = ["PAPER", "QM_VARIANTS", "markdown", "online_markdown", "paper_notes", "seed_row", "seeds_markdown",
+           "summary", "write_report"]
+
 _COLORS = {"quickmatch": "#d73027", "bf": "#4575b4", "flann": "#74add1", "quickmatch-quadratic": "#fdae61",
            "quickmatch-online": "#762a83"}
 #: PR-curve styles of the QuickMatch variants (the paper's methods use dqm.plots' styles)
 _VARIANT_STYLE = {"quickmatch-quadratic": dict(color=_COLORS["quickmatch-quadratic"], lw=1.6, ls="--", marker="s",
                                                ms=4),
                   "quickmatch-online": dict(color=_COLORS["quickmatch-online"], lw=1.6, ls="-.", marker="^", ms=4)}
-#: the QuickMatch variants compared in the online section, in table order
-QM_VARIANTS = ("quickmatch", "quickmatch-quadratic", "quickmatch-online")
 _CAM_COLORS = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
 
 
 def _label(result: ExperimentResult, method: str) -> str:
-    if method == "quickmatch":
-        return f"QuickMatch (rho {result.pipeline.rho:g})"
-    if method == "quickmatch-quadratic":
-        return f"QuickMatch quadratic kernel (rho {result.pipeline.rho:g})"
-    if method == "quickmatch-online":
-        return f"QuickMatch online, quadratic (rho {result.pipeline.rho:g})"
-    return f"{LABELS[method]} (ratio {result.pipeline.ratio:g})"
+    return method_label(result.pipeline, method)
 
 
-def summary(result: ExperimentResult) -> Dict[str, object]:
-    """Every number of the experiment as plain JSON-able data."""
-    out: Dict[str, object] = {
-        "sim": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(result.sim).items()},
-        "pipeline": dict(vars(result.pipeline)),
-        "frames": result.n_frames,
-        "positives": result.n_positive,
-        "calibration": dict(vars(result.calibration)),
-        "features": result.n_features,
-        "timings_s": result.timings,
-        "methods": {},
-    }
-    for m in result.methods:
-        curve = detection_curve(result, m)
-        d = {"label": _label(result, m), "pr_auc": curve.auc(), "curve": curve.as_dict(),
-             "at_rule": operating_point(result, m), "errors": localization_errors(result, m).as_dict(),
-             "paper": PAPER.get(m)}
-        if m in KERNEL:
-            d["kernel"] = KERNEL[m]
-        if m in result.sweeps:
-            sw = result.sweeps[m]
-            d["sweep"] = {"parameter": sw.parameter, "table": sw.table(result.pipeline.min_matches),
-                          "curve": sw.curve(result.pipeline.min_matches).as_dict()}
-        out["methods"][m] = d
-    paper = [m for m in result.methods if m in PAPER_METHODS]
-    if paper:
-        common = common_errors(result, methods=paper)
-        out["common_detections"] = {m: e.as_dict() for m, e in common.items()}
-    qm = [m for m in QM_VARIANTS if m in result.methods]
-    if len(qm) > 1:
-        out["common_detections_quickmatch"] = {m: e.as_dict() for m, e in
-                                               common_errors(result, methods=qm).items()}
-    if "quickmatch-online" in result.methods:
-        out["online"] = online_summary(result)
-    abl = result.sweeps.get("quickmatch-per-camera")
-    if abl is not None:
-        out["quickmatch_per_camera"] = abl.table(result.pipeline.min_matches)[0]
-    return out
-
-
-def online_summary(result: ExperimentResult) -> Dict[str, object]:
-    """Online QuickMatch against batch: update and clustering times, frames where the scores differ."""
-    steps, C = result.world.n_steps, len(result.world.cameras)
-    out: Dict[str, object] = dict(result.online)
-    out["batch_per_step_s"] = {m: result.timings[f"match_{m}"] / steps for m in ("quickmatch", "quickmatch-quadratic")
-                               if f"match_{m}" in result.timings and steps}
-    if "update_mean_s" in out:
-        out["online_per_step_s"] = out["update_mean_s"] * C
-    if "quickmatch-quadratic" in result.methods:
-        on, ba = result.arrays("quickmatch-online"), result.arrays("quickmatch-quadratic")
-        diff = on["score"] - ba["score"]
-        k = result.pipeline.min_matches
-        last = on["camera"] == C - 1
-        out["vs_batch_quadratic"] = {
-            "frames": int(len(diff)), "same_score": int((diff == 0).sum()),
-            "same_score_last_camera": int((diff[last] == 0).sum()), "last_camera_frames": int(last.sum()),
-            "mean_abs_score_difference": float(np.abs(diff).mean()) if len(diff) else 0.0,
-            "max_abs_score_difference": int(np.abs(diff).max()) if len(diff) else 0,
-            "online_higher": int((diff > 0).sum()), "online_lower": int((diff < 0).sum()),
-            "detection_differs": int(((on["score"] >= k) != (ba["score"] >= k)).sum())}
-    return out
+def summary(result: ExperimentResult, seed_rows: Sequence[Dict[str, object]] = ()) -> Dict[str, object]:
+    """Every number of the experiment as plain JSON-able data: :func:`~dqm.camnet.summary.build_summary`'s JSON."""
+    return build_summary(result, seed_rows).as_json()
 
 
 # --- figures ---------------------------------------------------------------------------------
@@ -383,183 +319,136 @@ def clusters_patches_figure(result: ExperimentResult):
                                  f"bottom {len(target_top)} rows = target clusters (reference image first)")
 
 
-def _nanmean(values) -> float:
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    return float(v.mean()) if len(v) else math.nan
+# --- markdown: several seeds and the comparison with the paper ---------------------------------
+def _fmt(x: Optional[float], nd: int = 2) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{nd}f}"
 
 
-# --- several seeds and the comparison with the paper -------------------------------------------
-def seed_row(result: ExperimentResult) -> Dict[str, object]:
-    """One seed's headline numbers (for the robustness table), QuickMatch at the paper's rho if swept."""
-    row: Dict[str, object] = {"seed": result.sim.seed, "frames": result.n_frames, "positives": result.n_positive,
-                              "auc": {}, "error": {}}
-    for m in result.methods:
-        row["auc"][m] = detection_curve(result, m).auc()
-        e = localization_errors(result, m)
-        row["error"][m] = (e.mean, e.std, len(e.errors))
-    sw = result.sweeps.get("quickmatch")
-    if sw is not None and PAPER_RHO in sw.scores:
-        t = {r["rho"]: r for r in sw.table(result.pipeline.min_matches)}
-        row["auc_quickmatch_paper_rho"] = t[PAPER_RHO]["auc"]
-    abl = result.sweeps.get("quickmatch-per-camera")
-    if abl is not None:
-        row["auc_quickmatch_per_camera"] = abl.table(result.pipeline.min_matches)[0]["auc"]
-    return row
-
-
-def seeds_markdown(rows: Sequence[Dict[str, object]], methods: Sequence[str]) -> List[str]:
+def seeds_markdown(seeds: SeedsSummary) -> List[str]:
+    """The robustness table over seeds (with a mean row for 2+ seeds)."""
+    rows, methods = seeds.rows, seeds.methods
     if not rows:
         return []
-    paper_col = all("auc_quickmatch_paper_rho" in r for r in rows)
-    pc_col = all("auc_quickmatch_per_camera" in r for r in rows)
+    paper_col, pc_col = seeds.paper_rho_column, seeds.per_camera_column
     head = "| seed | frames (target visible) | " + " | ".join(f"{LABELS[m]} PR AUC" for m in methods)
     head += f" | QuickMatch rho {PAPER_RHO:g} PR AUC" if paper_col else ""
     head += " | QuickMatch per camera PR AUC" if pc_col else ""
     head += " | " + " | ".join(f"{LABELS[m]} error (m)" for m in methods) + " |"
     L = [head, "|" + "---|" * (2 + len(methods) * 2 + int(paper_col) + int(pc_col))]
     for r in rows:
-        line = f"| {r['seed']} | {r['frames']} ({r['positives']}) | "
-        line += " | ".join(f"{r['auc'][m]:.3f}" for m in methods)
-        line += f" | {r['auc_quickmatch_paper_rho']:.3f}" if paper_col else ""
-        line += f" | {r['auc_quickmatch_per_camera']:.3f}" if pc_col else ""
-        line += " | " + " | ".join(f"{_fmt(r['error'][m][0])} +- {_fmt(r['error'][m][1])} (n={r['error'][m][2]})"
+        line = f"| {r.seed} | {r.frames} ({r.positives}) | "
+        line += " | ".join(f"{r.auc[m]:.3f}" for m in methods)
+        line += f" | {r.auc_quickmatch_paper_rho:.3f}" if paper_col else ""
+        line += f" | {r.auc_quickmatch_per_camera:.3f}" if pc_col else ""
+        line += " | " + " | ".join(f"{_fmt(r.error[m][0])} +- {_fmt(r.error[m][1])} (n={r.error[m][2]})"
                                    for m in methods) + " |"
         L.append(line)
-    if len(rows) > 1:
-        line = "| mean | | " + " | ".join(f"{np.mean([r['auc'][m] for r in rows]):.3f}" for m in methods)
-        line += f" | {np.mean([r['auc_quickmatch_paper_rho'] for r in rows]):.3f}" if paper_col else ""
-        line += f" | {np.mean([r['auc_quickmatch_per_camera'] for r in rows]):.3f}" if pc_col else ""
-        line += " | " + " | ".join(_fmt(_nanmean([r["error"][m][0] for r in rows])) for m in methods) + " |"
+    mean = seeds.means
+    if mean is not None:
+        line = "| mean | | " + " | ".join(f"{mean.auc[m]:.3f}" for m in methods)
+        line += f" | {mean.auc_quickmatch_paper_rho:.3f}" if paper_col else ""
+        line += f" | {mean.auc_quickmatch_per_camera:.3f}" if pc_col else ""
+        line += " | " + " | ".join(_fmt(mean.error[m]) for m in methods) + " |"
         L.append(line)
     return L
 
 
-def paper_notes(result: ExperimentResult, data: Dict[str, object],
-                seed_rows: Sequence[Dict[str, object]] = ()) -> List[str]:
-    """The comparison with the seed paper: computed statements plus the reasons for the differences."""
-    ms = data["methods"]
-    have = [m for m in ("quickmatch", "bf", "flann") if m in ms]
+def paper_notes(s: CamnetSummary) -> List[str]:
+    """The comparison with the seed paper (:attr:`CamnetSummary.comparison`) plus the reasons for the differences."""
+    c = s.comparison
+    if c is None:
+        return []
+    ms, pl, have = s.methods, s.pipeline, c.methods
+    auc = {m: ms[m].pr_auc for m in have}
     L: List[str] = []
-    if len(have) < 2:
-        return L
-    auc = {m: ms[m]["pr_auc"] for m in have}
-    order = sorted(have, key=lambda m: -auc[m])
     if "quickmatch" in have:
         others = [m for m in have if m != "quickmatch"]
-        first = order[0] == "quickmatch"
         line = (f"- **Detection**: QuickMatch's PR AUC {auc['quickmatch']:.3f} is "
-                + ("the highest, as in the paper" if first else "not the highest, unlike in the paper")
+                + ("the highest, as in the paper" if c.quickmatch_highest else "not the highest, unlike in the paper")
                 + " (" + ", ".join(f"{LABELS[m]} {auc[m]:.3f}" for m in others) + "; paper: "
-                + ", ".join(f"{LABELS[m]} {PAPER[m]['auc']:.2f}" for m in have) + ").")
-        if "bf" in have and "flann" in have:
-            diff = np.abs(result.arrays("bf")["score"] - result.arrays("flann")["score"])
+                + ", ".join(f"{LABELS[m]} {PAPER[m].auc:.2f}" for m in have) + ").")
+        if c.bf_vs_flann is not None:
             line += (f" BF vs FLANN: {auc['bf']:.3f} vs {auc['flann']:.3f} here, "
-                     f"{PAPER['bf']['auc']:.2f} vs {PAPER['flann']['auc']:.2f} in the paper; FLANN (5 kd-trees, "
-                     f"50 checks) is approximate, yet its score differs from BF's by {diff.mean():.2f} matches per "
-                     f"frame on average here (at most {int(diff.max())}), so the two rank frames alike.")
+                     f"{PAPER['bf'].auc:.2f} vs {PAPER['flann'].auc:.2f} in the paper; FLANN (5 kd-trees, "
+                     f"50 checks) is approximate, yet its score differs from BF's by {c.bf_vs_flann.mean:.2f} matches "
+                     f"per frame on average here (at most {c.bf_vs_flann.max}), so the two rank frames alike.")
         L.append(line)
-    if seed_rows and len(seed_rows) > 1 and "quickmatch" in have:
-        wins = sum(all(r["auc"]["quickmatch"] >= r["auc"][m] for m in have if m != "quickmatch") for r in seed_rows)
-        L.append(f"  Over {len(seed_rows)} seeds (table below) QuickMatch has the highest AUC in {wins}.")
+    if c.seeds_quickmatch_highest is not None:
+        L.append(f"  Over {c.n_seeds} seeds (table below) QuickMatch has the highest AUC in "
+                 f"{c.seeds_quickmatch_highest}.")
     L.append("- **The absolute AUCs are higher than the paper's** for every method. Reasons: (1) the paper's "
              "exact PR construction (what was swept, what counted as a positive frame, how many frames had the "
              "target in view) could not be retrieved, so the definitions here are our own; a PR curve's area "
-             f"depends on the share of positives ({result.n_positive} of {result.n_frames} frames here); (2) the "
+             f"depends on the share of positives ({s.positives} of {s.frames} frames here); (2) the "
              "simulator is kinder than the paper's real low-quality robot images: a rigid, perfectly planar, "
              "well-textured target; no motion blur, rolling shutter, lens distortion, auto-focus or compression "
              "beyond JPEG; exact camera poses and intrinsics.")
-    if "quickmatch" in have and "sweep" in ms["quickmatch"]:
-        t = {r["rho"]: r for r in ms["quickmatch"]["sweep"]["table"]}
-        if PAPER_RHO in t:
-            p = t[PAPER_RHO]
-            best_base = max(auc[m] for m in have if m != "quickmatch") if len(have) > 1 else float("nan")
-            L.append(f"- **rho.** The paper ran QuickMatch with rho = {PAPER_RHO:g}; here rho = "
-                     f"{result.pipeline.rho:g}, the detection setting (dqm's general default, tuned for "
-                     "multi-image F1 on Oxford and hotel, is 0.9; detection by >= 10 matches rewards precision, "
-                     "see the table above). "
-                     "dqm follows the reference code's merge rule "
-                     "(merge when the edge is shorter than rho x the smaller cluster scale, the scale being the "
-                     "distance to the nearest feature of the same image). With rho > 1 a feature may join a "
-                     "feature of another image that is farther than its own image's nearest neighbour; among "
-                     f"{len(result.world.references)} references and {result.sim.n_cameras} cameras most "
-                     "unrelated features find such a partner, so a camera that does not see the target still "
-                     f"collects {p['mean_score_negative']:.1f} matches on average at rho {PAPER_RHO:g} "
-                     f"(vs {t[result.pipeline.rho]['mean_score_negative']:.1f} at {result.pipeline.rho:g}) and the "
-                     f"10-match rule fires on empty views (precision {p['precision']:.2f}). At rho {PAPER_RHO:g} "
-                     f"QuickMatch's AUC is {p['auc']:.3f}, "
-                     + ("still above" if p["auc"] >= best_base else "below")
-                     + f" the best baseline ({best_base:.3f}) on this seed"
-                     + ("" if not seed_rows or len(seed_rows) < 2 or "auc_quickmatch_paper_rho" not in seed_rows[0]
-                        else "; over the seeds below it is at or above the best baseline in "
-                        + str(sum(r["auc_quickmatch_paper_rho"] >= max(r["auc"][m] for m in have if m != "quickmatch")
-                                  for r in seed_rows)) + f" of {len(seed_rows)}")
-                     + ". The paper's density or scale definitions may differ from the reference code's (its "
-                     "text drops the square in the kernel), in which case its rho is not comparable with ours.")
-            sw = ms["quickmatch"]["sweep"]["curve"]
-            base = [f"{LABELS[m]} {max(ms[m]['sweep']['curve']['recall']):.2f} (ratio "
-                    f"{max(ms[m]['sweep']['curve']['thresholds']):g})"
-                    for m in have if m != "quickmatch" and "sweep" in ms[m]]
-            L.append("- **Over the matching parameter** (second figure, table above) QuickMatch's curve ends at "
-                     f"recall "
-                     f"{max(sw['recall']):.2f} (rho {max(sw['thresholds']):g}; larger rho is slow and merges ever more "
-                     "unrelated features)" + (", the baselines' at " + ", ".join(base) if base else "")
-                     + ". The area credits nothing beyond a curve's last point, so areas over a parameter depend on "
-                     "the range swept; compare the curves where both exist.")
-    if "quickmatch_per_camera" in data and "quickmatch" in have and "bf" in have \
-            and "sweep" in ms["quickmatch"] and "sweep" in ms["bf"]:
-        pc = data["quickmatch_per_camera"]
-        t_q = next(r for r in ms["quickmatch"]["sweep"]["table"] if abs(r["rho"] - result.pipeline.rho) < 1e-9)
-        t_b = next(r for r in ms["bf"]["sweep"]["table"] if abs(r["ratio"] - result.pipeline.ratio) < 1e-9)
+    rho = c.rho
+    if rho is not None:
+        p = rho.paper
+        L.append(f"- **rho.** The paper ran QuickMatch with rho = {PAPER_RHO:g}; here rho = "
+                 f"{pl.rho:g}, the detection setting (dqm's general default, tuned for "
+                 "multi-image F1 on Oxford and hotel, is 0.9; detection by >= 10 matches rewards precision, "
+                 "see the table above). "
+                 "dqm follows the reference code's merge rule "
+                 "(merge when the edge is shorter than rho x the smaller cluster scale, the scale being the "
+                 "distance to the nearest feature of the same image). With rho > 1 a feature may join a "
+                 "feature of another image that is farther than its own image's nearest neighbour; among "
+                 f"{s.world.n_references} references and {s.sim.n_cameras} cameras most "
+                 "unrelated features find such a partner, so a camera that does not see the target still "
+                 f"collects {p.mean_score_negative:.1f} matches on average at rho {PAPER_RHO:g} "
+                 f"(vs {rho.used.mean_score_negative:.1f} at {pl.rho:g}) and the "
+                 f"10-match rule fires on empty views (precision {p.precision:.2f}). At rho {PAPER_RHO:g} "
+                 f"QuickMatch's AUC is {p.auc:.3f}, "
+                 + ("still above" if rho.above_best_baseline else "below")
+                 + f" the best baseline ({rho.best_baseline_auc:.3f}) on this seed"
+                 + ("" if rho.seeds_at_or_above is None
+                    else f"; over the seeds below it is at or above the best baseline in {rho.seeds_at_or_above} "
+                    f"of {c.n_seeds}")
+                 + ". The paper's density or scale definitions may differ from the reference code's (its "
+                 "text drops the square in the kernel), in which case its rho is not comparable with ours.")
+        qm_end, base_ends = c.sweep_ends[0], c.sweep_ends[1:]
+        base = [f"{LABELS[e.method]} {e.recall:.2f} (ratio {e.parameter:g})" for e in base_ends]
+        L.append("- **Over the matching parameter** (second figure, table above) QuickMatch's curve ends at "
+                 f"recall {qm_end.recall:.2f} (rho {qm_end.parameter:g}; larger rho is slow and merges ever more "
+                 "unrelated features)" + (", the baselines' at " + ", ".join(base) if base else "")
+                 + ". The area credits nothing beyond a curve's last point, so areas over a parameter depend on "
+                 "the range swept; compare the curves where both exist.")
+    pc = c.per_camera
+    if pc is not None:
+        effect = {"little": "the other cameras add little here; ", "help": "the other cameras help; ",
+                  "hurt": "the other cameras hurt; "}[pc.effect]
         L.append(f"- **Where QuickMatch's advantage comes from.** Clustering each camera with the references alone "
-                 f"(no other camera) gives a PR AUC of {pc['auc']:.3f}, vs {auc['quickmatch']:.3f} with all cameras "
-                 "at once: "
-                 + ("the other cameras add little here; " if abs(pc["auc"] - auc["quickmatch"]) < 0.02 else
-                    ("the other cameras help; " if auc["quickmatch"] > pc["auc"] else "the other cameras hurt; "))
+                 f"(no other camera) gives a PR AUC of {pc.auc_per_camera:.3f}, vs {pc.auc_all:.3f} with all "
+                 "cameras at once: " + effect
                  + "the gain over BF / FLANN comes from QuickMatch's merge test itself (an edge merges only if "
                  "shorter than rho times the features' distinctiveness, their distance to the nearest feature of "
                  "their own image). It keeps chance matches rarer: frames without the target collect "
-                 f"{t_q['mean_score_negative']:.1f} matches with their best reference on average, vs "
-                 f"{t_b['mean_score_negative']:.1f} for BF, while frames with the target collect "
-                 f"{t_q['mean_score_positive']:.1f} vs {t_b['mean_score_positive']:.1f}.")
+                 f"{pc.quickmatch.mean_score_negative:.1f} matches with their best reference on average, vs "
+                 f"{pc.bf.mean_score_negative:.1f} for BF, while frames with the target collect "
+                 f"{pc.quickmatch.mean_score_positive:.1f} vs {pc.bf.mean_score_positive:.1f}.")
     if "quickmatch" in have:
-        op = ms["quickmatch"]["at_rule"]
-        L.append(f"- **The 10-match rule** suits the paper's looser rho: at rho {result.pipeline.rho:g} QuickMatch "
-                 f"keeps only confident clusters, so at >= {result.pipeline.min_matches} matches its precision is "
-                 f"{op['precision']:.2f} but its recall only {op['recall']:.2f} (BF: "
-                 + (f"{ms['bf']['at_rule']['precision']:.2f} / {ms['bf']['at_rule']['recall']:.2f}"
-                    if "bf" in ms else "n/a")
+        op = ms["quickmatch"].at_rule
+        bf = ms["bf"].at_rule if "bf" in ms else None
+        L.append(f"- **The 10-match rule** suits the paper's looser rho: at rho {pl.rho:g} QuickMatch "
+                 f"keeps only confident clusters, so at >= {pl.min_matches} matches its precision is "
+                 f"{op.precision:.2f} but its recall only {op.recall:.2f} (BF: "
+                 + (f"{bf.precision:.2f} / {bf.recall:.2f}" if bf is not None else "n/a")
                  + "); the PR curve shows the whole trade-off.")
-    fd = []
-    for m in have:
-        a = result.arrays(m)
-        fp = (a["score"] >= result.pipeline.min_matches) & ~a["visible"]
-        decoy = fp & (a["decoy"] > 0)
-        partial = fp & ~decoy & (a["target_px"] > 0)
-        fd.append(f"{LABELS[m]} {int(fp.sum())} ({int(decoy.sum())} with the decoy in view, {int(partial.sum())} "
-                  f"with less than {result.sim.min_visible_px} px of the target in view, "
-                  f"{int((fp & ~decoy & ~partial).sum())} on the scene's own texture)")
-    L.append(f"- **False detections** at >= {result.pipeline.min_matches} matches: " + ", ".join(fd) + ".")
-    errs = {m: ms[m]["errors"] for m in have}
-    common = data.get("common_detections", {})
+    fd = [f"{LABELS[m]} {f.total} ({f.decoy} with the decoy in view, {f.partial} with less than "
+          f"{s.sim.min_visible_px} px of the target in view, {f.scene} on the scene's own texture)"
+          for m, f in c.false_detections.items()]
+    L.append(f"- **False detections** at >= {pl.min_matches} matches: " + ", ".join(fd) + ".")
+    errs = {m: ms[m].errors for m in have}
     L.append("- **Localization**: " + ", ".join(
-        f"{LABELS[m]} {_fmt(errs[m]['mean'])} +- {_fmt(errs[m]['std'])} m (median {_fmt(errs[m]['median'])})"
+        f"{LABELS[m]} {_fmt(errs[m].mean)} +- {_fmt(errs[m].std)} m (median {_fmt(errs[m].median)})"
         for m in have)
-        + " here vs " + ", ".join(f"{PAPER[m]['mean']:.2f} +- {PAPER[m]['std']:.2f} m" for m in have)
+        + " here vs " + ", ".join(f"{PAPER[m].mean:.2f} +- {PAPER[m].std:.2f} m" for m in have)
         + " in the paper.")
-    spread = max(have, key=lambda m: errs[m]["std"] if errs[m]["n"] else -1)
-    big, n_big_all = [], 0
-    for m in have:
-        a = result.arrays(m)
-        det = (a["score"] >= result.pipeline.min_matches) & np.isfinite(a["estimate"]).all(axis=1)
-        e = np.linalg.norm(a["estimate"] - a["truth"], axis=1)
-        n_big = int((det & (e > 1.0)).sum())
-        n_big_fp = int((det & (e > 1.0) & ~a["visible"]).sum())
-        n_big_all += n_big
-        big.append(f"{LABELS[m]} {n_big} ({n_big_fp} of them false detections)")
-    text = (f"  The largest spread is {LABELS[spread]}'s (in the paper: FLANN's). Errors above 1 m: "
+    big = [f"{LABELS[m]} {e.n} ({e.n_false} of them false detections)" for m, e in c.large_errors.items()]
+    text = (f"  The largest spread is {LABELS[c.largest_spread]}'s (in the paper: FLANN's). Errors above 1 m: "
             + ", ".join(big) + ".")
-    if n_big_all:
+    if sum(e.n for e in c.large_errors.values()):
         text += (" They come from false detections (the decoy poster, repeated textures; a position is reported "
                  "anyway) and from true detections whose few correct matches give a wrong homography and so a "
                  "wrong box.")
@@ -567,32 +456,35 @@ def paper_notes(result: ExperimentResult, data: Dict[str, object],
              "side, while a side seen obliquely has its near edge taller than its centre, so the range comes out "
              "short by up to half the side's width.")
     L.append(text)
-    if common and next(iter(common.values()))["n"]:
-        n = next(iter(common.values()))["n"]
+    common = s.common_detections or {}
+    if common and next(iter(common.values())).n:
+        n = next(iter(common.values())).n
         L.append("  Each method is scored on its own detections, so a stricter detector is scored on easier frames; "
                  f"on the {n} frames that all methods detected and localized the errors are "
-                 + ", ".join(f"{LABELS[m]} {_fmt(common[m]['mean'])} +- {_fmt(common[m]['std'])} m"
+                 + ", ".join(f"{LABELS[m]} {_fmt(common[m].mean)} +- {_fmt(common[m].std)} m"
                              for m in have if m in common) + ".")
     L.append("  The paper's errors also include its ground-truth and camera-pose errors and a real calibration; "
-             f"here poses are exact and the range constant is measured within "
-             f"{100 * abs(result.calibration.range_constant / result.calibration.ideal - 1):.1f}% of its ideal value.")
+             f"here poses are exact and the range constant is measured within {c.calibration_error_pct:.1f}% of its "
+             "ideal value.")
     return L
 
 
 # --- markdown --------------------------------------------------------------------------------
-def online_markdown(result: ExperimentResult, data: Dict[str, object]) -> List[str]:
+def online_markdown(s: CamnetSummary) -> List[str]:
     """The online section: batch vs online QuickMatch, the kernel's and the online update's effects."""
-    ms, on = data["methods"], data["online"]
-    pl = result.pipeline
-    R, C = len(result.world.references), len(result.world.cameras)
-    qm = [m for m in QM_VARIANTS if m in result.methods]
+    ms, on, pl = s.methods, s.online, s.pipeline
+    if on is None:
+        return []
+    R, C = s.world.n_references, s.world.n_cameras
+    st = on.stats
+    qm = [m for m in QM_VARIANTS if m in ms]
     L = ["## Online QuickMatch", ""]
     L.append(f"*QuickMatch online* runs one online clustering (`dqm.core.online.OnlineQuickMatch`, quadratic "
              f"kernel, rho {pl.rho:g}) for the whole run instead of one batch clustering per time step. The {R} "
              "references are added once and stay; frames then arrive one camera at a time in time order; a "
              "camera's new frame replaces its previous one (remove, then add) and the camera is scored on the "
              "clusters right then. The set is always the references and one frame per camera "
-             f"({on.get('features_mean', 0):.0f} features on average), but when camera c is scored the cameras "
+             f"({on.features_mean:.0f} features on average), but when camera c is scored the cameras "
              "after it still hold the previous step's frame. Right after the last camera of a step the set is "
              "exactly that step's batch input, so its clusters are batch QuickMatch's with the quadratic kernel "
              "(checked by the tests). Online QuickMatch supports only the quadratic (finite) kernel: *QuickMatch "
@@ -602,89 +494,83 @@ def online_markdown(result: ExperimentResult, data: Dict[str, object]) -> List[s
     L.append("| method | kernel | clustering | detection PR AUC | precision / recall at >= "
              f"{pl.min_matches} | localization error (m), all detections | median | clustering time |")
     L.append("|---|---|---|---|---|---|---|---|")
-    per_step = on.get("batch_per_step_s", {})
+    per_step = on.batch_per_step_s
     for m in qm:
         d = ms[m]
-        e, op = d["errors"], d["at_rule"]
+        e, op = d.errors, d.at_rule
         if m == "quickmatch-online":
             how = "online, per frame"
-            tm = (f"{1e3 * on['update_mean_s']:.1f} ms per frame (median {1e3 * on['update_median_s']:.1f}, "
-                  f"max {1e3 * on['update_max_s']:.1f}) = {1e3 * on['online_per_step_s']:.0f} ms per step"
-                  if "update_mean_s" in on else "-")
+            tm = (f"{1e3 * st['update_mean_s']:.1f} ms per frame (median {1e3 * st['update_median_s']:.1f}, "
+                  f"max {1e3 * st['update_max_s']:.1f}) = {1e3 * on.online_per_step_s:.0f} ms per step"
+                  if on.has_update_times else "-")
         else:
             how = "batch, per step"
             tm = f"{1e3 * per_step[m]:.0f} ms per step" if m in per_step else "-"
-        L.append(f"| {d['label']} | {d['kernel'].capitalize()} | {how} | **{d['pr_auc']:.3f}** | "
-                 f"{op['precision']:.2f} / {op['recall']:.2f} "
-                 f"({op['detections']} det., {op['false_positives']} false) | "
-                 f"**{_fmt(e['mean'])} +- {_fmt(e['std'])}** (n={e['n']}) | {_fmt(e['median'])} | {tm} |")
+        L.append(f"| {d.label} | {d.kernel.capitalize()} | {how} | **{d.pr_auc:.3f}** | "
+                 f"{op.precision:.2f} / {op.recall:.2f} "
+                 f"({op.detections} det., {op.false_positives} false) | "
+                 f"**{_fmt(e.mean)} +- {_fmt(e.std)}** (n={e.n}) | {_fmt(e.median)} | {tm} |")
     L.append("")
     L.append("Clustering time: batch, the QuickMatch run over the references and the step's "
              f"{C} frames (plus reading matches off its clusters); online, a frame's remove + add "
-             f"({C} per step); the references' one-time add took {1e3 * on.get('references_s', 0):.0f} ms. "
+             f"({C} per step); the references' one-time add took {1e3 * on.references_s:.0f} ms. "
              "Same machine and run as the rest of this page.")
     L.append("")
-    if "quickmatch" in ms and "quickmatch-quadratic" in ms:
-        g, q = ms["quickmatch"], ms["quickmatch-quadratic"]
-        L.append(f"- **Kernel** (batch): PR AUC {g['pr_auc']:.3f} with the Gaussian kernel, {q['pr_auc']:.3f} "
-                 f"with the quadratic one; localization error {_fmt(g['errors']['mean'])} vs "
-                 f"{_fmt(q['errors']['mean'])} m.")
-    vs = on.get("vs_batch_quadratic")
-    if vs:
-        o, q = ms["quickmatch-online"], ms["quickmatch-quadratic"]
-        L.append(f"- **Online vs batch** (quadratic kernel): PR AUC {o['pr_auc']:.3f} online, {q['pr_auc']:.3f} "
-                 f"batch; localization error {_fmt(o['errors']['mean'])} vs {_fmt(q['errors']['mean'])} m. "
-                 f"A frame's score (matches with its best reference) is the same in {vs['same_score']} of "
-                 f"{vs['frames']} frames ({vs['same_score_last_camera']} of the {vs['last_camera_frames']} "
+    if on.kernel is not None:
+        k = on.kernel
+        L.append(f"- **Kernel** (batch): PR AUC {k.pr_auc[0]:.3f} with the Gaussian kernel, {k.pr_auc[1]:.3f} "
+                 f"with the quadratic one; localization error {_fmt(k.error_mean[0])} vs "
+                 f"{_fmt(k.error_mean[1])} m.")
+    vs, ob = on.vs_batch_quadratic, on.online_vs_batch
+    if vs is not None and ob is not None:
+        L.append(f"- **Online vs batch** (quadratic kernel): PR AUC {ob.pr_auc[0]:.3f} online, {ob.pr_auc[1]:.3f} "
+                 f"batch; localization error {_fmt(ob.error_mean[0])} vs {_fmt(ob.error_mean[1])} m. "
+                 f"A frame's score (matches with its best reference) is the same in {vs.same_score} of "
+                 f"{vs.frames} frames ({vs.same_score_last_camera} of the {vs.last_camera_frames} "
                  "frames of the last camera, whose set is the batch one); "
-                 f"online is higher in {vs['online_higher']}, lower in {vs['online_lower']} "
-                 f"(mean |difference| {vs['mean_abs_score_difference']:.2f}, at most "
-                 f"{vs['max_abs_score_difference']}); the detection at >= {pl.min_matches} differs in "
-                 f"{vs['detection_differs']} frames. Only the set differs: when camera c is scored, the cameras "
+                 f"online is higher in {vs.online_higher}, lower in {vs.online_lower} "
+                 f"(mean |difference| {vs.mean_abs_score_difference:.2f}, at most "
+                 f"{vs.max_abs_score_difference}); the detection at >= {pl.min_matches} differs in "
+                 f"{vs.detection_differs} frames. Only the set differs: when camera c is scored, the cameras "
                  "after it hold their previous step's frame (none at step 0) instead of this step's.")
-    if "update_mean_s" in on and per_step.get("quickmatch-quadratic"):
+    if on.update_over_batch is not None:
         b = per_step["quickmatch-quadratic"]
-        L.append(f"- **Time**: one online update (a frame's remove + add, {on['features_mean']:.0f} features present "
-                 f"on average) takes {1e3 * on['update_mean_s']:.1f} ms, {on['update_mean_s'] / b:.2f} of a batch "
+        L.append(f"- **Time**: one online update (a frame's remove + add, {st['features_mean']:.0f} features present "
+                 f"on average) takes {1e3 * st['update_mean_s']:.1f} ms, {on.update_over_batch:.2f} of a batch "
                  f"run over the whole step ({1e3 * b:.0f} ms, quadratic kernel); with {C} updates per step the "
-                 f"online clustering costs {on['online_per_step_s'] / b:.1f}x batch per step here, but a camera's "
+                 f"online clustering costs {on.online_over_batch:.1f}x batch per step here, but a camera's "
                  "detection waits for its own frame's update only, not for the whole step's frames.")
-    common = data.get("common_detections_quickmatch", {})
-    if common and next(iter(common.values()))["n"]:
-        n = next(iter(common.values()))["n"]
+    common = s.common_detections_quickmatch or {}
+    if common and next(iter(common.values())).n:
+        n = next(iter(common.values())).n
         L.append(f"- On the {n} frames that all {len(common)} QuickMatch variants detected and localized the errors "
-                 "are " + ", ".join(f"{LABELS[m]} {_fmt(common[m]['mean'])} +- {_fmt(common[m]['std'])} m"
+                 "are " + ", ".join(f"{LABELS[m]} {_fmt(common[m].mean)} +- {_fmt(common[m].std)} m"
                                     for m in qm if m in common) + ".")
     L.append("")
     return L
 
 
-def _fmt(x: float, nd: int = 2) -> str:
-    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{nd}f}"
-
-
-def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str, str], command: str,
-             notes: Sequence[str] = (), seed_rows: Sequence[Dict[str, object]] = ()) -> str:
-    sim, pl = result.sim, result.pipeline
-    ms = data["methods"]
+def markdown(s: CamnetSummary, images: Dict[str, str], command: str) -> str:
+    """``camnet.md``, rendered from the summary; ``images``: figure name -> path relative to the markdown."""
+    sim, pl, ms = s.sim, s.pipeline, s.methods
     L: List[str] = []
     L.append("# Camera-network experiment: detecting and localizing a moving target")
     L.append("")
     L.append("The seed paper's object-matching experiment, reproduced in simulation (`dqm.camnet`): "
              f"{sim.n_cameras} level cameras ({sim.hfov:g} x {sim.vfov:g} degree field of view, "
              f"{sim.image_size[0]} x {sim.image_size[1]} px, {sim.camera_height:g} m high) at known poses watch "
-             f"a box-shaped target with {len(result.world.references)} textured sides drive a closed loop for "
-             f"{sim.duration:g} s, sampled at {sim.rate:.3g} Hz ({result.world.n_steps} time steps, "
-             f"{result.n_frames} camera frames, the target visible in {result.n_positive}). "
+             f"a box-shaped target with {s.world.n_references} textured sides drive a closed loop for "
+             f"{sim.duration:g} s, sampled at {sim.rate:.3g} Hz ({s.world.n_steps} time steps, "
+             f"{s.frames} camera frames, the target visible in {s.positives}). "
              "Features are matched against the sides' reference images; a camera with "
              f">= {pl.min_matches} matches with one reference sees the target; a RANSAC homography "
              f"({pl.ransac_threshold:g} px) maps that reference's corners to a bounding box, whose height "
              "(calibrated on the target at a known distance) gives the depth and whose centre gives the "
              "bearing; with the camera's pose that is a position on the ground, compared with the truth.")
     L.append("")
-    L.append(f"Reproduce: `{command}` (seeded; the run shown here took {data['timings_s']['total']:.0f} s on "
-             f"this machine, {os.cpu_count()} cores, {platform.processor() or platform.machine()}"
-             + (", each further seed less, without the parameter sweep" if len(seed_rows) > 1 else "") + ").")
+    L.append(f"Reproduce: `{command}` (seeded; the run shown here took {s.timings_s['total']:.0f} s on "
+             f"this machine, {s.machine.cores} cores, {s.machine.processor}"
+             + (", each further seed less, without the parameter sweep" if s.several_seeds else "") + ").")
     L.append("")
     L.append("## Results")
     L.append("")
@@ -692,17 +578,16 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
              "localization error (m), all detections | paper | true positives only | median | "
              "detections without a box |")
     L.append("|---|---|---|---|---|---|---|---|---|")
-    for m in result.methods:
-        d = ms[m]
-        e, op, pp = d["errors"], d["at_rule"], d["paper"]
-        p_auc = f"{pp['auc']:.2f}" if pp else "-"
-        p_err = f"{pp['mean']:.2f} +- {pp['std']:.2f}" if pp else "-"
-        L.append(f"| {d['label']} | **{d['pr_auc']:.3f}** | {p_auc} | "
-                 f"{op['precision']:.2f} / {op['recall']:.2f} "
-                 f"({op['detections']} det., {op['false_positives']} false) | "
-                 f"**{_fmt(e['mean'])} +- {_fmt(e['std'])}** (n={e['n']}) | {p_err} | "
-                 f"{_fmt(e['mean_tp'])} +- {_fmt(e['std_tp'])} (n={e['n_tp']}) | {_fmt(e['median'])} | "
-                 f"{e['n_without_estimate']} |")
+    for d in ms.values():
+        e, op, pp = d.errors, d.at_rule, d.paper
+        p_auc = f"{pp.auc:.2f}" if pp else "-"
+        p_err = f"{pp.mean:.2f} +- {pp.std:.2f}" if pp else "-"
+        L.append(f"| {d.label} | **{d.pr_auc:.3f}** | {p_auc} | "
+                 f"{op.precision:.2f} / {op.recall:.2f} "
+                 f"({op.detections} det., {op.false_positives} false) | "
+                 f"**{_fmt(e.mean)} +- {_fmt(e.std)}** (n={e.n}) | {p_err} | "
+                 f"{_fmt(e.mean_tp)} +- {_fmt(e.std_tp)} (n={e.n_tp}) | {_fmt(e.median)} | "
+                 f"{e.n_without_estimate} |")
     L.append("")
     L.append("Detection PR AUC: area under precision vs recall as the minimum number of matches goes "
              "0, 1, 2, ... (a frame is positive when at least "
@@ -711,42 +596,38 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
              f"the detections (>= {pl.min_matches} matches) whose homography gave a box; "
              "\"all detections\" includes false ones (a position is reported either way).")
     L.append("")
-    if "online" in data:
-        L += online_markdown(result, data)
+    L += online_markdown(s)
     for name in ("pr", "pr_parameter", "trajectories", "errors", "views", "discovery", "clusters"):
         if name in images:
             L.append(f"![{name}]({images[name]})")
             L.append("")
-    if any("sweep" in ms[m] for m in result.methods):
+    if any(d.sweep is not None for d in ms.values()):
         L.append("## The matching parameter")
         L.append("")
         L.append("Detection PR AUC (over the match count) and precision / recall at the 10-match rule for each "
                  "value of each method's own parameter (same frames, same features):")
         L.append("")
-        for m in result.methods:
-            if "sweep" not in ms[m]:
+        for m, d in ms.items():
+            if d.sweep is None:
                 continue
-            sw = ms[m]["sweep"]
-            par = sw["parameter"]
+            par = d.sweep.parameter
             L.append(f"| {LABELS[m]} {par} | PR AUC | precision at 10 | recall at 10 | mean score, target visible | "
                      "mean score, not visible |")
             L.append("|---|---|---|---|---|---|")
-            for row in sw["table"]:
-                mark = ""
-                if m == "quickmatch" and abs(row[par] - PAPER_RHO) < 1e-9:
-                    mark = " (paper)"
-                used = pl.rho if m == "quickmatch" else pl.ratio
-                if abs(row[par] - used) < 1e-9:
+            used = pl.rho if m == "quickmatch" else pl.ratio
+            for row in d.sweep.table:
+                mark = " (paper)" if m == "quickmatch" and abs(row.value - PAPER_RHO) < 1e-9 else ""
+                if abs(row.value - used) < 1e-9:
                     mark += " (used above)"
-                L.append(f"| {row[par]:g}{mark} | {row['auc']:.3f} | {row['precision']:.2f} | {row['recall']:.2f} | "
-                         f"{row['mean_score_positive']:.1f} | {row['mean_score_negative']:.1f} |")
+                L.append(f"| {row.value:g}{mark} | {row.auc:.3f} | {row.precision:.2f} | {row.recall:.2f} | "
+                         f"{row.mean_score_positive:.1f} | {row.mean_score_negative:.1f} |")
             L.append("")
-    cal = result.calibration
+    cal = s.calibration
     L.append("## Setup details")
     L.append("")
     L.append(f"- Simulator (seed {sim.seed}): arena {sim.arena[0]:g} x {sim.arena[1]:g} m with a textured floor and "
-             f"walls tiled with one repeated pattern; {len(result.world.clutter)} clutter boxes textured from "
-             f"{max(1, (sim.n_clutter + 1) // 2)} shared textures (repeated objects); "
+             f"walls tiled with one repeated pattern; {s.world.n_clutter} clutter boxes textured from "
+             f"{s.world.n_clutter_textures} shared textures (repeated objects); "
              + ("a decoy poster showing 30% of target side 0 on a wall; " if sim.decoy else "")
              + f"target {sim.target_size[0]:g} x {sim.target_size[1]:g} x {sim.target_size[2]:g} m, "
              f"{sim.target_elevation:g} m off the ground, each side a different texture with a shared logo; "
@@ -754,30 +635,29 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
              f"occlusion); degradations: shading, illumination gain/bias/gamma and vignetting "
              f"(x{sim.illumination:g}), blur (x{sim.blur:g}), noise {sim.noise:g} grey levels, JPEG quality "
              f"{sim.jpeg_quality}.")
-    L.append(f"- SIFT preset `{pl.preset}`: {data['features']['per_reference_mean']:.0f} features per reference, "
-             f"{data['features']['per_camera_image_mean']:.0f} per camera image on average.")
-    L.append(f"- QuickMatch: one run per time step over the {len(result.world.references)} references and "
+    L.append(f"- SIFT preset `{pl.preset}`: {s.features['per_reference_mean']:.0f} features per reference, "
+             f"{s.features['per_camera_image_mean']:.0f} per camera image on average.")
+    L.append(f"- QuickMatch: one run per time step over the {s.world.n_references} references and "
              f"{sim.n_cameras} cameras, rho {pl.rho:g}, Gaussian kernel"
-             + ("" if "quickmatch-quadratic" not in result.methods else " (QuickMatch quadratic: the same, "
-                "quadratic kernel)")
-             + ("" if "quickmatch-online" not in result.methods else "; QuickMatch online: one online clustering "
+             + ("" if "quickmatch-quadratic" not in ms else " (QuickMatch quadratic: the same, quadratic kernel)")
+             + ("" if "quickmatch-online" not in ms else "; QuickMatch online: one online clustering "
                 "for the whole run, updated frame by frame (section above)")
              + f"; BF / FLANN: each reference against each camera, "
              f"Lowe ratio {pl.ratio:g} (queries from the reference).")
     L.append(f"- Range calibration: target side 0 at {cal.distance:g} m, measured box height "
              f"{cal.box_height:.1f} px -> k = {cal.range_constant:.1f} px m (ideal fy x height = {cal.ideal:.1f}); "
              "the position is moved half the target's depth along the line of sight (face -> centre).")
-    tm = data["timings_s"]
-    L.append("- Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in tm.items()) + ".")
+    L.append("- Time: " + ", ".join(f"{k} {v:.1f} s" for k, v in s.timings_s.items()) + ".")
     L.append("")
+    notes = paper_notes(s)
     if notes:
         L.append("## Comparison with the paper")
         L.append("")
-        L += list(notes)
+        L += notes
         L.append("")
     L.append("## Limits of this reproduction")
     L.append("")
-    online = " (in batch and online)" if "quickmatch-online" in result.methods else ""
+    online = " (in batch and online)" if "quickmatch-online" in ms else ""
     L += [
         "- Simulated, not the paper's robots and images; the paper's PR construction, positives and ground truth "
         "could not be retrieved, so absolute numbers are not comparable, only the ranking and the error patterns.",
@@ -789,13 +669,13 @@ def markdown(result: ExperimentResult, data: Dict[str, object], images: Dict[str
         "part of this experiment.",
     ]
     L.append("")
-    if len(seed_rows) > 1:
+    if s.several_seeds:
         L.append("## Other seeds")
         L.append("")
         L.append("The same experiment (same size and settings) on other simulated worlds: different trajectory, "
                  "camera poses, clutter, textures and noise.")
         L.append("")
-        L += seeds_markdown(seed_rows, result.methods)
+        L += seeds_markdown(s.seeds)
         L.append("")
     return "\n".join(L)
 
@@ -806,12 +686,13 @@ def write_report(result: ExperimentResult, out_dir, img_dir=None, *, command: st
     """Write the figures, ``camnet.json`` and ``camnet.md``; returns the paths written by name.
 
     ``seed_rows``: :func:`seed_row` of this and other seeds' runs, for the robustness table.
+    Both ``camnet.json`` and ``camnet.md`` come from one :func:`~dqm.camnet.summary.build_summary`.
     """
     out = Path(out_dir)
     imgd = Path(img_dir) if img_dir is not None else out / "img"
     out.mkdir(parents=True, exist_ok=True)
     imgd.mkdir(parents=True, exist_ok=True)
-    data = summary(result)
+    s = build_summary(result, seed_rows)
     figs = {
         "pr": pr_detection_figure(result),
         "pr_parameter": pr_parameter_figure(result),
@@ -829,13 +710,9 @@ def write_report(result: ExperimentResult, out_dir, img_dir=None, *, command: st
         p = save(fig, imgd / f"{prefix}{name}.png", dpi=90)
         written[name] = p
         rel[name] = os.path.relpath(p, out)
-    if seed_rows:
-        data["seeds"] = list(seed_rows)
-    notes = paper_notes(result, data, seed_rows)
-    (out / json_name).write_text(json.dumps(data, indent=1, default=_json_default))
+    (out / json_name).write_text(json.dumps(s.as_json(), indent=1, default=_json_default))
     written["json"] = out / json_name
-    (out / md_name).write_text(markdown(result, data, rel, command or "dqm experiment localization", notes,
-                                        seed_rows))
+    (out / md_name).write_text(markdown(s, rel, command or "dqm experiment localization"))
     written["markdown"] = out / md_name
     return written
 
