@@ -347,6 +347,25 @@ def quickmatch(
     stats["time_pass"] = time.perf_counter() - t
     stats["cpu_pass"] = time.process_time() - cpu  # CPU seconds of all threads: how busy the cores were
 
+    density, cr, cc, d = _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, image_index,
+                                 parent == "other-image", threads, progress, stats)
+
+    t = time.perf_counter()
+    par, pdist = tree.select_parents(n, cr, cc, d, density)
+    labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
+    stats["time_tree"] = time.perf_counter() - t
+    stats["time_total"] = time.perf_counter() - t0
+    return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
+
+
+def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, image_index, other_image: bool,
+            threads: int, progress: ProgressArg, stats: Dict[str, float]):
+    """From the pass's density estimates (with error bounds) and candidate edges (None: streaming) to
+    exact decisions: zero-sigma and duplicate terms, the streaming parent pass where the edges did not
+    fit, exact distances of the candidates within each child's radius, and exact densities wherever
+    an order on a candidate edge is not certain. Returns ``(density, cr, cc, d)``."""
+    n = len(sig)
+    streaming = cr is None
     t = time.perf_counter()
     # zero-sigma features contribute only to their exact duplicates (kernel limit)
     gsize = np.bincount(groups)
@@ -359,7 +378,6 @@ def quickmatch(
         exact = pairs.exact_density_others(aug, idx, w, active, kernel)
         return exact if zcount is None else exact + zcount[idx] - zero[idx]
 
-    other_image = parent == "other-image"
     # duplicates first: exact and equal, so their order is certain (by index) in both passes
     # (dens_o and err are this call's own arrays: updated in place)
     dup = np.flatnonzero(gsize[groups] > 1)
@@ -395,13 +413,7 @@ def quickmatch(
     stats["n_candidate_edges"] = float(len(cr))
     stats["n_refined"] = float(len(idx))
     stats["time_refine"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    par, pdist = tree.select_parents(n, cr, cc, d, density)
-    labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
-    stats["time_tree"] = time.perf_counter() - t
-    stats["time_total"] = time.perf_counter() - t0
-    return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
+    return density, cr, cc, d
 
 
 def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
