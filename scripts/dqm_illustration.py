@@ -54,15 +54,15 @@ def main(argv=None):
     xs = np.linspace(X[:, 0].min() - 5, X[:, 0].max() + 5, 300)
     ys = np.linspace(X[:, 1].min() - 5, X[:, 1].max() + 5, 300)
     G = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
-    cell_img = partition.route(G, r.seeds, r.weights).reshape(len(ys), len(xs))
+    cell_img = partition.route(G, r.sites, r.weights).reshape(len(ys), len(xs))
 
     def base(title):
         fig, ax = plt.subplots(figsize=(6, 6))
         ax.imshow(cell_img, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap="Pastel1",
                   vmin=0, vmax=8, alpha=0.6)
         ax.contour(xs, ys, cell_img, levels=np.arange(0.5, 4), colors="k", linewidths=0.8)
-        ax.scatter(*r.seeds.T, marker="*", s=250, c=[colors(a) for a in range(4)], edgecolors="k", zorder=5)
-        for a, p in enumerate(r.seeds):
+        ax.scatter(*r.sites.T, marker="*", s=250, c=[colors(a) for a in range(4)], edgecolors="k", zorder=5)
+        for a, p in enumerate(r.sites):
             ax.annotate(f"agent {a}", p, xytext=(6, 6), textcoords="offset points", weight="bold")
         ax.set_title(title)
         ax.set_aspect("equal")
@@ -88,7 +88,7 @@ def main(argv=None):
     ax.scatter(*X.T, c=[colors(c) for c in r.cells], s=10)
     moved = np.flatnonzero(r.handed_to >= 0)
     for k in moved:
-        ax.annotate("", r.seeds[r.handed_to[k]], X[k], arrowprops=dict(arrowstyle="->", alpha=0.35, lw=0.7))
+        ax.annotate("", r.sites[r.handed_to[k]], X[k], arrowprops=dict(arrowstyle="->", alpha=0.35, lw=0.7))
     ax.set_xlabel(f"{len(moved)} points handed down")
     fig.savefig(out / "dqm2d_handdown.png", dpi=100)
     s = comembership_scores(r.labels, central.labels)
@@ -117,12 +117,12 @@ def balanced_figure(plt, X, r, central, cell_img, xs, ys, colors, out):
         ax.imshow(cell_img, origin="lower", extent=(xs[0], xs[-1], ys[0], ys[-1]), cmap=tint,
                   vmin=-0.5, vmax=3.5, alpha=0.15)
         ax.contour(xs, ys, cell_img, levels=np.arange(0.5, 4), colors="k", linewidths=0.8)
-        ax.scatter(*r.seeds.T, marker="*", s=200, c=[colors(a) for a in range(4)], edgecolors="k", zorder=5)
+        ax.scatter(*r.sites.T, marker="*", s=200, c=[colors(a) for a in range(4)], edgecolors="k", zorder=5)
         ax.set_aspect("equal")
     ax = axes[0]
     ax.scatter(*X.T, c=[colors(c) for c in r.cells], s=12)
     for k, b in r.copies.tolist():
-        ax.annotate("", r.seeds[b], X[k], arrowprops=dict(arrowstyle="->", color=colors(b), alpha=0.35, lw=0.6))
+        ax.annotate("", r.sites[b], X[k], arrowprops=dict(arrowstyle="->", color=colors(b), alpha=0.35, lw=0.6))
     ax.set_title(f"power cells (largest {r.stats['largest_cell_share']:.2f} n/m) and {len(r.copies)} ghost copies\n"
                  "(arrow: copy sent one way to the receiving cell)")
     ax = axes[1]

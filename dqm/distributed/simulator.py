@@ -46,7 +46,7 @@ class DQMResult:
     holder: np.ndarray  # (n,) agent that decided each feature's cluster
     cells: np.ndarray  # (n,) routing cell of each feature
     owners: np.ndarray  # (n,) source agent of each feature
-    seeds: np.ndarray
+    sites: np.ndarray  # (m, dim) the cells' sites (the power diagram's centres), drawn from ``config.seed``
     config: DQMConfig
     traffic: Traffic
     stats: Dict[str, float] = field(default_factory=dict)
@@ -63,6 +63,11 @@ class DQMResult:
     @property
     def n_clusters(self) -> int:
         return int(self.labels.max() + 1) if len(self.labels) else 0
+
+    @property
+    def seeds(self) -> np.ndarray:
+        """The cells' sites under their earlier name (``seed`` is the one integer they come from)."""
+        return self.sites
 
 
 
@@ -189,7 +194,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     for d in drivers:
         cells[(d.core.own if cfg.mode == "balanced" else d.core.shard).ids] = d.me
     source = drivers[0].source
-    res.update(cells=cells, owners=owners, seeds=source.seeds, weights=source.weights, config=drivers[0].cfg,
+    res.update(cells=cells, owners=owners, sites=source.seeds, weights=source.weights, config=drivers[0].cfg,
                traffic=bus.meter)
     per_agent = [dict(d.core_stats) for d in drivers]
     for a in range(m):
