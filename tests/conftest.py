@@ -1,11 +1,8 @@
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
 
 #: the shared real data (Oxford sequences, CMU hotel), next to the project checkout
 SHARED = Path(os.environ.get("DQM_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
@@ -48,3 +45,20 @@ def graf_sift():
         descs.append(d)
         ids.append(np.full(len(d), k))
     return np.vstack(descs), np.concatenate(ids)
+
+
+@pytest.fixture(scope="module")
+def router():
+    """A zenoh router process on a free loopback port (one per test module): its endpoint."""
+    pytest.importorskip("zenoh")
+    from dqm.runtime.launcher import free_port, wait_listening
+    from runtime_helpers import start_dqm
+
+    port = free_port()
+    p = start_dqm(["router", "--listen", f"tcp/127.0.0.1:{port}"])
+    try:
+        wait_listening("127.0.0.1", port, 15.0, p)
+        yield f"tcp/127.0.0.1:{port}"
+    finally:
+        p.terminate()
+        p.wait(timeout=10)

@@ -1,5 +1,7 @@
-"""Shared by the runtime tests: the job data, process checks, a job held at a phase."""
+"""Shared by the runtime tests: the job data, process checks, a job held at a phase, dqm commands as processes."""
 import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -9,6 +11,13 @@ from dqm.synthetic import sift_like
 def job_data():
     ds = sift_like(n_images=6, n_points=200, clutter_per_image=80, noise=0.3, seed=5)
     return ds.descriptors, ds.image_ids
+
+
+
+def start_dqm(args, **kw):
+    """``python -m dqm ARGS`` as a process in its own session (stdout and stderr piped, text)."""
+    return subprocess.Popen([sys.executable, "-m", "dqm", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True, **kw)
 
 
 def alive(pid):

@@ -1,6 +1,6 @@
 """Run a job across "hosts": network namespaces joined to a router namespace by veth pairs.
 
-Used by ``scripts/multihost_demo.py`` (by hand) and ``tests/test_runtime_multihost.py``;
+Used by ``scripts/multihost_demo.py`` (by hand) and ``tests/runtime/test_runtime_multihost.py``;
 the job helpers (:func:`start_job`, :func:`finish_job`) also serve the TLS and
 concurrent-job tests, where every process runs on loopback.
 

@@ -1,1 +1,2 @@
-"""Data generators used only by the tests (conftest.py puts tests/ on sys.path: ``from generators import ...``)."""
+"""Data generators used only by the tests (pyproject.toml's pytest ``pythonpath`` puts tests/ on the
+import path: ``from generators import ...``)."""

@@ -14,7 +14,7 @@ from dqm.progress import ProgressBar
 from dqm.synthetic import sift_like, sized
 from conftest import assert_consistent
 from dense_reference import dense_quickmatch, same_partition
-from test_quickmatch_equivalence import clustered
+from generators.points import clustered
 
 
 def tight_budget(X):
@@ -239,7 +239,7 @@ def test_benchmark_script_small_approximate_run():
     pytest.importorskip("faiss", reason="faiss-cpu is not installed (pip install 'dqm[approx]')")
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_quickmatch.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "bench_quickmatch.py"
     p = subprocess.run([sys.executable, str(script), "--approximate", "--approx-sets", "3000", "--sizes", "",
                         "--no-graf"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
@@ -260,7 +260,7 @@ def test_benchmark_script_small_real_run(tmp_path):
     images.mkdir()
     for p in sorted(require_data("sacre_coeur").glob("*.jpg"))[:3]:
         (images / p.name).symlink_to(p.resolve())
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_quickmatch.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "bench_quickmatch.py"
     p = subprocess.run([sys.executable, str(script), "--real", str(images), "--real-sift", "defaults",
                         "--brute-images", "0", "--sizes", "", "--no-graf"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]

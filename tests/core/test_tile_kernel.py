@@ -7,7 +7,7 @@ import pytest
 import dqm
 from dqm.core import clustering, native, pairs
 from dqm.synthetic import sift_like
-from test_quickmatch_equivalence import clustered
+from generators.points import clustered
 
 needs_native = pytest.mark.skipif(not native.native_available(), reason="the native tile kernel is not built")
 

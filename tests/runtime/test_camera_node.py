@@ -11,7 +11,6 @@ import time
 import cv2
 import numpy as np
 import pytest
-import test_stream
 
 import dqm
 from dqm import io
@@ -21,8 +20,8 @@ from dqm.distributed import keys, messages
 from dqm.runtime.stream import IMAGES_PER_CAMERA, camera_image_id, split_image_id
 from dqm.vision import scenes
 from dqm.vision.features import extract
+from runtime_helpers import start_dqm
 
-router = test_stream.router  # the module's router fixture (a router process on a free loopback port)
 MAX_FEATURES = 150
 
 
@@ -36,8 +35,8 @@ def views(tmp_path_factory):
 
 
 def _camera(*args, endpoint, job):
-    return test_stream._start(["camera", *map(str, args), "--connect", endpoint, "--job", job,
-                               "--max-features", str(MAX_FEATURES)])
+    return start_dqm(["camera", *map(str, args), "--connect", endpoint, "--job", job,
+                      "--max-features", str(MAX_FEATURES)])
 
 
 class Listener:
@@ -98,7 +97,7 @@ def test_two_cameras_feed_one_stream_whose_result_plots(router, views, tmp_path)
     stream gets every image under a distinct id with its name, and its CLUSTERS file is batch QuickMatch of
     the same SIFT, with image_names and keypoints that dqm plot draws."""
     job, out = "cam-e2e", tmp_path / "clusters.npz"
-    stream = test_stream._start(["stream", "--connect", router, "--job", job, "--images", "7", "--idle", "60",
+    stream = start_dqm(["stream", "--connect", router, "--job", job, "--images", "7", "--idle", "60",
                                  "--out", str(out)])
     listener = Listener(router, job)
     try:
@@ -218,7 +217,7 @@ def test_no_stream_and_a_stream_that_goes_away(router, views):
     assert "no dqm stream of job 'cam-nobody'" in err and "Traceback" not in err
     # the stream stops after two images; the looping camera notices its token gone and leaves (exit 1)
     job = "cam-gone"
-    stream = test_stream._start(["stream", "--connect", router, "--job", job, "--images", "2", "--idle", "60"])
+    stream = start_dqm(["stream", "--connect", router, "--job", job, "--images", "2", "--idle", "60"])
     cam = _camera(views, "--loop", "--rate", 10, "--wait", 1, endpoint=router, job=job)
     (o, e), (so, se) = _finish(cam, stream)
     assert stream.returncode == 0 and "stream (2 images accepted)" in so, se
@@ -230,7 +229,7 @@ def test_no_stream_and_a_stream_that_goes_away(router, views):
 @pytest.mark.parametrize("sig,code,why", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
 def test_camera_leaves_cleanly_on_signals(router, views, sig, code, why):
     job = f"cam-{why}"
-    stream = test_stream._start(["stream", "--connect", router, "--job", job, "--idle", "60"])
+    stream = start_dqm(["stream", "--connect", router, "--job", job, "--idle", "60"])
     listener = Listener(router, job)
     cam = None
     try:

@@ -9,7 +9,7 @@ import pytest
 from dqm.commands.runtime_options import tls_from
 from dqm.runtime.bus import client_config, router_config
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 CERTS = "/etc/dqm/certs"
 KEYS = ["mode", "scouting/multicast/enabled", "scouting/gossip/enabled", "transport/shared_memory/enabled",
         "transport/link/tls"]

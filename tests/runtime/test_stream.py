@@ -16,6 +16,7 @@ from dqm.core.online import OnlineQuickMatch
 from dqm.core.tree import canonical_labels
 from dqm.distributed import keys, messages
 from dqm.synthetic import sift_like
+from runtime_helpers import start_dqm
 
 JOB = "stream-test"
 DIM = 128
@@ -178,26 +179,6 @@ def test_decode_raises_only_message_errors_on_mutated_images():
 
 
 # ---------------------------------------------------------------------- over a router
-def _start(args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "dqm", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True, **kw)
-
-
-@pytest.fixture(scope="module")
-def router():
-    pytest.importorskip("zenoh")
-    from dqm.runtime.launcher import free_port, wait_listening
-
-    port = free_port()
-    p = _start(["router", "--listen", f"tcp/127.0.0.1:{port}"])
-    try:
-        wait_listening("127.0.0.1", port, 15.0, p)
-        yield f"tcp/127.0.0.1:{port}"
-    finally:
-        p.terminate()
-        p.wait(timeout=10)
-
-
 def _wait_token(session, key, deadline_s=30.0):
     from dqm.runtime.stream import wait_for_token
 
@@ -212,7 +193,7 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
     X, ids = data
     job, window = "stream-e2e", 3
     out = tmp_path / "clusters.npz"
-    p = _start(["stream", "--connect", router, "--job", job, "--window", str(window), "--images", "5",
+    p = start_dqm(["stream", "--connect", router, "--job", job, "--window", str(window), "--images", "5",
                 "--idle", "40", "--out", str(out), "--verbose"])
     session = open_client(router)
     got, lock = [], threading.Lock()
@@ -311,13 +292,13 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
 def test_stream_stops_when_idle_and_on_sigterm(router, tmp_path):
     from dqm.runtime.bus import open_client
 
-    p = _start(["stream", "--connect", router, "--job", "stream-idle", "--idle", "1", "--out",
+    p = start_dqm(["stream", "--connect", router, "--job", "stream-idle", "--idle", "1", "--out",
                 str(tmp_path / "c.npz")])
     stdout, stderr = p.communicate(timeout=60)
     assert p.returncode == 0, stderr
     assert "stream (no message for 1 s): 0 images accepted" in stdout
     assert "not written" in stdout and not (tmp_path / "c.npz").exists()
-    p = _start(["stream", "--connect", router, "--job", "stream-term"])
+    p = start_dqm(["stream", "--connect", router, "--job", "stream-term"])
     session = open_client(router)
     try:
         _wait_token(session, keys.alive_stream("stream-term"))

@@ -177,7 +177,7 @@ def test_bench_sfm_registers_every_image(tmp_path):
     images = require_data("sacre_coeur")
     p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(images), "--out-dir",
                         str(tmp_path), "--pipelines", "a,c"], capture_output=True, text=True, timeout=600,
-                       cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+                       cwd=str(__import__("pathlib").Path(__file__).resolve().parents[2]))
     assert p.returncode == 0, p.stderr[-2000:]
     rows = [ln for ln in (tmp_path / "sfm.md").read_text().splitlines() if ln.startswith("| (")]
     assert [ln[:5] for ln in rows] == ["| (a)", "| (c)"]

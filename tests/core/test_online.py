@@ -177,7 +177,7 @@ def test_bench_online_quick_runs_and_checks_every_step(tmp_path):
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_online.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "bench_online.py"
     p = subprocess.run([sys.executable, str(script), "--quick", "--out-dir", str(tmp_path)],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stdout + p.stderr

@@ -1,7 +1,9 @@
 """Pairwise BF / FLANN matching and union-find tracks (dqm.vision.baselines)."""
 import hashlib
+import inspect
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -78,10 +80,12 @@ def test_flann_does_not_depend_on_what_ran_before_in_the_process():
     """Issue 12: the same call gives the same matches in a fresh process and after FLANN on a larger set."""
     import cv2
 
-    code = ("import sys; sys.path.insert(0, 'tests'); import test_baselines as t; "
-            "print(t._flann_fingerprint())")
+    # the fresh process runs this very function's source, with the imports it needs
+    code = ("import hashlib\nimport numpy as np\nfrom dqm.vision import baselines as B\n"
+            "from dqm.synthetic import sift_like\n\n"
+            + textwrap.dedent(inspect.getsource(_flann_fingerprint)) + "\nprint(_flann_fingerprint())\n")
     fresh = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                           cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+                           cwd=Path(__file__).resolve().parents[2]).stdout.strip()
     big = sift_like(n_images=2, n_points=3000, clutter_per_image=1000, seed=9)
     B.pairwise_candidates(big.descriptors, big.image_ids, "flann", seed=11)  # a larger index first
     cv2.randu(np.zeros((32, 32), np.float32), 0, 1)  # and draws from OpenCV's RNG

@@ -18,7 +18,7 @@ from dqm.cli import build_parser, main
 from dqm.core.events import ClusterEvent
 from dqm.vision import scenes
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # 1. ChangeSet / ClusterEvent print short --------------------------------------------------------
