@@ -466,7 +466,7 @@ class MemoryBus:
             self.meter.add(src, dst, kind, len(payload) + self.key_bytes[dst])
         if seq is not None and kind in protocol.ACKED:
             self.meter.add(dst, src, "ack", len(protocol.ack(self.job, dst, src, seq)) + self.key_bytes[src])
-        msg = messages.decode(payload, job=self.job, n_agents=self.m, dim=self.dim)
+        msg = messages.decode(payload, job=self.job, agents=self.m, dim=self.dim)
         if kind == "features":
             self.features_moved[msg["phase"]] += len(msg["ids"])
             self.meter.features_moved += len(msg["ids"])

@@ -218,7 +218,7 @@ def encode(kind: str, job: str, src: int, *, seq: int = 0, epoch: int = 0, **fie
     return msgpack.packb(body, use_bin_type=True)
 
 
-def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = None,
+def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = None,
            max_bytes: int = MAX_MESSAGE_BYTES, dim: Optional[int] = None) -> Dict[str, Any]:
     """Decode and validate a message; raise MessageError naming the problem."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
@@ -243,7 +243,7 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
     if job is not None and body["job"] != job:
         raise MessageError(f"message for job {body['job']!r}, not this job {job!r}")
     src = body.get("src")
-    if not isinstance(src, int) or src < -1 or (n_agents is not None and src >= n_agents):
+    if not isinstance(src, int) or src < -1 or (agents is not None and src >= agents):
         raise MessageError(f"bad sender {src!r}")
     for field in ("epoch", "seq"):
         val = body.get(field)
@@ -281,7 +281,7 @@ def decode(payload: bytes, job: Optional[str] = None, n_agents: Optional[int] = 
                 raise MessageError(f"{kind}.{field} must be {nd}-D, got shape {arr.shape}")
             val = arr
         out[field] = val
-    _check_content(kind, out, n_agents, dim)
+    _check_content(kind, out, agents, dim)
     return out
 
 
@@ -291,7 +291,7 @@ def _nonneg(arr: np.ndarray, what: str, allow_inf: bool = False) -> None:
         raise MessageError(f"{what} must be {'non-negative' if allow_inf else 'finite and non-negative'}")
 
 
-def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim: Optional[int]) -> None:
+def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: Optional[int]) -> None:
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
     if "parts" in out and not 0 <= out["part"] < out["parts"] <= 1 << 20:
         raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']}")
@@ -370,24 +370,24 @@ def _check_content(kind: str, out: Dict[str, Any], n_agents: Optional[int], dim:
         raise MessageError("result ids and labels differ in length")
     if kind in ("image", "changes"):
         _check_stream(kind, out)
-    if n_agents is None:
+    if agents is None:
         return
-    if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= n_agents)).any():
+    if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= agents)).any():
         raise MessageError("ready names an agent outside the job")
-    if kind in ("phase_end", "ack") and not 0 <= out["dst"] < n_agents:
+    if kind in ("phase_end", "ack") and not 0 <= out["dst"] < agents:
         raise MessageError(f"bad destination agent {out['dst']}")
     for f in ("child_agent", "target"):
-        if f in out and len(out[f]) and ((out[f] < 0) | (out[f] >= n_agents)).any():
-            raise MessageError(f"{kind}.{f} names an agent outside 0..{n_agents - 1}")
+        if f in out and len(out[f]) and ((out[f] < 0) | (out[f] >= agents)).any():
+            raise MessageError(f"{kind}.{f} names an agent outside 0..{agents - 1}")
     if kind in ("minima", "counts", "weights") or kind == "bounds":
         fields = {"minima": ("values",), "counts": ("counts",), "weights": ("weights",),
                   "bounds": ("minima", "slack")}[kind]
         for f in fields:
-            if len(out[f]) != n_agents:
-                raise MessageError(f"{kind}.{f} has {len(out[f])} values for {n_agents} agents")
+            if len(out[f]) != agents:
+                raise MessageError(f"{kind}.{f} has {len(out[f])} values for {agents} agents")
     if kind == "seeds":
-        if out["seeds"].shape[0] not in (0, n_agents) or len(out["weights"]) != n_agents:
-            raise MessageError(f"{out['seeds'].shape[0]} seeds and {len(out['weights'])} weights for {n_agents} agents")
+        if out["seeds"].shape[0] not in (0, agents) or len(out["weights"]) != agents:
+            raise MessageError(f"{out['seeds'].shape[0]} seeds and {len(out['weights'])} weights for {agents} agents")
         if not (np.isfinite(out["seeds"]).all() and np.isfinite(out["weights"]).all()):
             raise MessageError("non-finite seeds or weights")
         if dim is not None and (out["seeds"].shape[0] and out["seeds"].shape[1] != dim

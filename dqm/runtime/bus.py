@@ -167,7 +167,7 @@ class Bus:
     numbers, acknowledgements and duplicate detection start afresh in each.
     """
 
-    def __init__(self, session, job: str, home: int, n_agents: int, dim: Optional[int] = None,
+    def __init__(self, session, job: str, home: int, agents: int, dim: Optional[int] = None,
                  max_bytes: int = messages.MAX_MESSAGE_BYTES):
         import zenoh
 
@@ -176,7 +176,7 @@ class Bus:
         self.job = job
         self.home = home
         self.me = home
-        self.n_agents = n_agents
+        self.agents = agents
         self.dim = dim
         self.max_bytes = max_bytes
         self.epoch = 0
@@ -307,7 +307,7 @@ class Bus:
     def _accept(self, dst: int, raw: bytes) -> Optional[dict]:
         """A valid new message for the main thread, or None (counted bad message, duplicate, ack)."""
         try:
-            msg = messages.decode(raw, job=self.job, n_agents=self.n_agents, max_bytes=self.max_bytes, dim=self.dim)
+            msg = messages.decode(raw, job=self.job, agents=self.agents, max_bytes=self.max_bytes, dim=self.dim)
         except messages.MessageError as exc:
             self.meter.reject(str(exc).split(" (")[0])
             return None

@@ -325,7 +325,7 @@ def test_round_messages_split_into_parts_and_merge_back():
                "parent": rng.integers(-1, n, n), "distance": rng.random(n)}
     msgs = protocol.data_messages("component", "j", 2, payload, seq0=5)
     assert len(msgs) == protocol.part_count("component", payload) > 1
-    decoded = [messages.decode(b, job="j", n_agents=3) for b in msgs]
+    decoded = [messages.decode(b, job="j", agents=3) for b in msgs]
     assert [d["seq"] for d in decoded] == list(range(5, 5 + len(msgs)))
     merged = protocol.merge_parts("component", decoded[::-1])
     for f, v in payload.items():
@@ -348,10 +348,10 @@ def test_round_messages_split_into_parts_and_merge_back():
 def test_hostile_round_messages_are_refused(kind, fields, pattern):
     raw = messages.encode(kind, "j", 1, seq=0, part=0, parts=1, **fields)
     with pytest.raises(messages.MessageError, match=pattern):
-        messages.decode(raw, job="j", n_agents=3)
+        messages.decode(raw, job="j", agents=3)
     bad_part = messages.encode(kind, "j", 1, seq=0, part=3, parts=2, **fields)
     with pytest.raises(messages.MessageError):
-        messages.decode(bad_part, job="j", n_agents=3)
+        messages.decode(bad_part, job="j", agents=3)
 
 
 def test_an_agent_over_its_memory_budget_refuses_in_one_line(sift, monkeypatch):

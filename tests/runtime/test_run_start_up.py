@@ -88,5 +88,5 @@ def test_statistics_of_a_large_job_are_accepted():
     from dqm.distributed import messages
 
     values = {f"sent:{d}:{k}:{w}": 1.0 for d in range(64) for k in range(16) for w in ("bytes", "messages")}
-    msg = messages.decode(messages.encode("stats", "job", 3, values=values), job="job", n_agents=64)
+    msg = messages.decode(messages.encode("stats", "job", 3, values=values), job="job", agents=64)
     assert msg["values"] == values

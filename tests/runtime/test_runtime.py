@@ -81,7 +81,7 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
-def _inject(endpoint, job, n_agents, dim, ready):
+def _inject(endpoint, job, agents, dim, ready):
     """A foreign client that sends hostile messages to every agent's inbox."""
     import zenoh
 
@@ -93,7 +93,7 @@ def _inject(endpoint, job, n_agents, dim, ready):
                                                 history=True)
     try:
         t0 = time.monotonic()
-        while not all(keys.alive_agent(job, a) in seen for a in range(n_agents)) and time.monotonic() - t0 < 30:
+        while not all(keys.alive_agent(job, a) in seen for a in range(agents)) and time.monotonic() - t0 < 30:
             time.sleep(0.02)
         good = dict(phase="route", seq=999999, ids=np.arange(2, dtype=np.int64), image_ids=np.zeros(2, np.int64),
                     sigma=np.ones(2), unit=np.zeros(2, np.int64))
@@ -107,7 +107,7 @@ def _inject(endpoint, job, n_agents, dim, ready):
         ]
         ready.set()
         for payload in bad:
-            for a in range(n_agents):
+            for a in range(agents):
                 s.put(keys.agent_inbox(job, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
     finally:
         watcher.undeclare()
