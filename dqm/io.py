@@ -70,7 +70,7 @@ class FeatureSet:
 
     def validate(self, source: str = "features") -> "FeatureSet":
         """Check every array against the format; raise InputError naming ``source``, the array and the row."""
-        check_descriptors(self.descriptors, f"{source}: descriptors")
+        check_descriptors(self.descriptors, f"{source}: descriptors", keep_integer=True)  # no float64 copy
         n = len(self.descriptors)
         self.image_ids = check_image_ids(self.image_ids, n, f"{source}: image_ids")
         if self.keypoints is not None:

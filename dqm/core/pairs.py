@@ -96,6 +96,19 @@ def error_gamma(dim: int) -> float:
 #: float32 integers are exact up to this magnitude
 _F32_EXACT_INT = float(1 << 24)
 
+#: rows per chunk where integer descriptors are centred in float32 (4 MiB of 128-dim rows)
+_CENTRE_CHUNK = 1 << 13
+
+
+def _centred_float32_chunks(X: np.ndarray, center: np.ndarray):
+    """``(first row, X[rows] - center)`` in float32, chunk by chunk: integer rows centred on an integer
+    centre stay exact integers, and no whole-array float copy is made."""
+    c32 = center.astype(np.float32)
+    for a in range(0, len(X), _CENTRE_CHUNK):
+        xc = X[a:a + _CENTRE_CHUNK].astype(np.float32)
+        xc -= c32
+        yield a, xc
+
 
 class Augmented:
     """Float32 augmented vectors of centred descriptors for GEMM squared distances.
@@ -119,11 +132,13 @@ class Augmented:
         self.center = np.round(mean) if integral else mean
         # |x - center| < 2048 bounds every square below 2^22 (exact in float32) without a float64 copy
         small = integral and max(float(X.max()) - self.center.min(), self.center.max() - float(X.min())) < 2048.0
-        if small:  # integers stay integers in float32: no float64 copy of the data
-            Xc32 = X.astype(np.float32) - self.center.astype(np.float32)
-            norm2 = np.einsum("ij,ij->i", Xc32, Xc32).astype(np.float64)
+        if small:  # integers stay integers in float32: no float64 copy of the data (and no float32 one)
+            norm2 = np.empty(self.n)
+            for a, xc in _centred_float32_chunks(X, self.center):
+                norm2[a:a + len(xc)] = np.einsum("ij,ij->i", xc, xc)
             max_norm2 = float(norm2.max())
         self._X = X
+        self._operands_lock = threading.Lock()
         if small and 4.0 * max_norm2 < _F32_EXACT_INT:
             self.Xc = None  # exact mode: float32 GEMMs give exact distances (exact_density_others uses them)
             self.norm2 = norm2
@@ -155,11 +170,27 @@ class Augmented:
                    if self.exact.dtype == np.uint8 and self.dim <= 258 else None)
 
     def _float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
-        if self._operands is None:
-            Xc32 = self._X.astype(np.float32) - self.center.astype(np.float32)
-            left, right, _ = augmented_rows(Xc32, self.norm2)
-            self._operands = (left, right)
+        """The operands of the exact mode, made on first use chunk by chunk from the integer rows (the same
+        values as :func:`augmented_rows` of the centred float32 rows, without a whole-array temporary).
+        Under a lock: the pass's worker threads ask at once, and each would otherwise make its own."""
+        with self._operands_lock:
+            if self._operands is None:
+                self._operands = self._make_float32_operands()
         return self._operands
+
+    def _make_float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
+        n, dim = self.n, self.dim
+        left = np.empty((n, dim + 2), dtype=np.float32)
+        right = np.empty((n, dim + 2), dtype=np.float32)
+        for a, xc in _centred_float32_chunks(self._X, self.center):
+            left[a:a + len(xc), :dim] = xc
+            xc *= -2.0
+            right[a:a + len(xc), :dim] = xc
+        left[:, dim] = self.norm2
+        left[:, dim + 1] = 1.0
+        right[:, dim] = 1.0
+        right[:, dim + 1] = self.norm2
+        return left, right
 
     @property
     def left(self) -> np.ndarray:
