@@ -324,10 +324,14 @@ def quickmatch(
         X = X.astype(np.float64, copy=False)  # as the approximate mode's measurements were made
         return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
                                        n_neighbors, threads, budget, progress, t0)
-    base = memory.check_base(n, X.shape[1], threads, budget)
+    if X.dtype.kind in "iu":  # integer rows: the operands hold no float copy of the data (exact mode)
+        aug = pairs.Augmented(X)
+        base = memory.check_base(n, X.shape[1], threads, budget, itemsize=X.dtype.itemsize if aug.exact_d2 else None)
+    else:
+        base = memory.check_base(n, X.shape[1], threads, budget)
+        aug = pairs.Augmented(X)
     native.warn_if_fallback(n)
 
-    aug = pairs.Augmented(X)
     t = time.perf_counter()
     groups = duplicate_groups(aug.exact)
     sig = _sigma(aug, sigma, image_index, n_images, threads, groups)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 import re
-from typing import Union
+from typing import Optional, Union
 
 from ..validation import InputError
 
@@ -96,18 +96,26 @@ def format_bytes(b: float) -> str:
     return f"{b / (1 << 20):.0f} MiB"
 
 
-def base_bytes(n: int, dim: int, n_threads: int) -> int:
-    """Peak memory of an exact run apart from the candidate edges: the float64
-    input and its centred copy, the float32 GEMM operands, a compact copy,
-    about twenty per-feature arrays, and each worker's tiles and buffers."""
-    per_feature = dim * (8 + 8 + 4 + 4 + 1) + 8 + 20 * 8
+def base_bytes(n: int, dim: int, n_threads: int, itemsize: Optional[int] = None) -> int:
+    """Peak memory of an exact run apart from the candidate edges: the input and its copies, about
+    twenty per-feature arrays, and each worker's tiles and buffers.
+
+    ``itemsize``: the bytes per value of integer descriptors that the engine keeps as they are
+    (:attr:`dqm.core.pairs.Augmented.exact_d2`): the input, a compact copy or the packed operands of
+    the integer kernel (2 bytes a value at most), and the float32 GEMM operands. None: float
+    descriptors, held as a float64 input, its float64 centred copy, the float32 operands and a
+    compact copy."""
+    per_value = 8 + 8 + 4 + 4 + 1 if itemsize is None else int(itemsize) + 2 + 4 + 4
+    per_feature = dim * per_value + 8 + 20 * 8
     per_thread = (48 << 20) * min(1.0, n / 1024)  # a tile and its buffers; smaller inputs, smaller tiles
     return int(n * per_feature + n_threads * per_thread + (16 << 20))
 
 
-def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quickmatch") -> int:
-    """Refuse, in one line, an input whose arrays alone exceed the budget; returns the base bytes."""
-    base = base_bytes(n, dim, n_threads)
+def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quickmatch",
+               itemsize: Optional[int] = None) -> int:
+    """Refuse, in one line, an input whose arrays alone exceed the budget; returns the base bytes
+    (``itemsize``: see :func:`base_bytes`)."""
+    base = base_bytes(n, dim, n_threads, itemsize)
     if base > budget:
         raise MemoryBudgetError(
             f"{what}: {n:,} features of dimension {dim} need about {format_bytes(base)} even with the "

@@ -18,8 +18,9 @@ from generators.points import clustered
 
 
 def tight_budget(X):
-    """A budget that holds the O(n) arrays but hardly any candidate edge."""
-    return memory.base_bytes(len(X), X.shape[1], pairs.default_threads()) + (256 << 10)
+    """A budget that holds the O(n) arrays but hardly any candidate edge (integer rows are kept as they are)."""
+    itemsize = X.dtype.itemsize if X.dtype.kind in "iu" else None
+    return memory.base_bytes(len(X), X.shape[1], pairs.default_threads(), itemsize) + (256 << 10)
 
 
 @pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
@@ -104,8 +105,9 @@ def test_memory_refusal_names_sizes_before_any_work():
     msg = str(info.value)
     assert "\n" not in msg
     assert "10,000 features of dimension 128" in msg and "20 MiB" in msg and "--max-memory" in msg
-    need = memory.base_bytes(10_000, 128, pairs.default_threads())
+    need = memory.base_bytes(10_000, 128, pairs.default_threads(), itemsize=1)  # uint8 kept as it is
     assert memory.format_bytes(need) in msg
+    assert need < memory.base_bytes(10_000, 128, pairs.default_threads())  # the float64 copies it no longer makes
 
 
 def test_memory_sizes_parse_and_reject():
@@ -126,7 +128,7 @@ def test_peak_memory_does_not_grow_with_the_candidate_edges(monkeypatch):
 
     ds = sized(2500, seed=1)
     X, ids = ds.descriptors, ds.image_ids
-    budget = memory.base_bytes(len(X), 128, pairs.default_threads()) + (2 << 20)
+    budget = memory.base_bytes(len(X), 128, pairs.default_threads(), itemsize=1) + (2 << 20)
     peaks = {}
     tracemalloc.start()
     try:
