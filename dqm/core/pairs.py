@@ -67,8 +67,15 @@ def tile_pool(n_threads: Optional[int] = None):
         return run
 
     n = default_threads() if n_threads is None else max(1, int(n_threads))
-    with ThreadPoolExecutor(max_workers=n) as pool:
+    pool = ThreadPoolExecutor(max_workers=n)
+    try:
         yield lambda fn, tasks: pool.map(wrap(fn), tasks)
+    except BaseException:
+        # Ctrl-C, SIGTERM or an error: drop the tiles not started (map queues them all at once), so
+        # that the process ends after the running tiles instead of computing the whole pass first
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def augmented_rows(Xc: np.ndarray, norm2: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
