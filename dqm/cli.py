@@ -88,6 +88,12 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"warning: {str(message).removeprefix('quickmatch: ')}", file=file or sys.stderr)
 
 
+#: set when Ctrl-C or SIGTERM came while the command modules were importing (``python -m dqm`` then
+#: leaves with os._exit: a KeyboardInterrupt raised inside an extension's import makes CPython end
+#: itself with SIGINT at exit, whatever code main returned)
+interrupted_while_importing = False
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
@@ -96,6 +102,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser = build_parser()
         from .validation import InputError
     except KeyboardInterrupt as exc:
+        global interrupted_while_importing
+        interrupted_while_importing = True
         print(f"dqm: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
         return 143 if isinstance(exc, Terminated) else 130
     args = parser.parse_args(argv)
