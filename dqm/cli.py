@@ -134,5 +134,17 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 70
 
 
+
+def program() -> None:
+    """The ``dqm`` command (and ``python -m dqm``): :func:`main`, then exit with its code. After a
+    signal during the imports it leaves with ``os._exit`` (see :data:`interrupted_while_importing`)."""
+    code = main()
+    if interrupted_while_importing:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    program()
