@@ -81,18 +81,26 @@ def tile_pool(n_threads: Optional[int] = None):
 def augmented_rows(Xc: np.ndarray, norm2: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """GEMM operands of centred rows: ``left = [x, |x|^2, 1]``, ``right = [-2x, 1, |x|^2]`` (float32),
     so ``left_i . right_j`` is the squared distance; and the float64 ``|x|^2`` (computed unless given)."""
-    n, dim = Xc.shape
     if norm2 is None:
         norm2 = np.einsum("ij,ij->i", Xc, Xc)
+    left, right = _operands_from_chunks(len(Xc), Xc.shape[1], [(0, Xc)], norm2)
+    return left, right, norm2
+
+
+def _operands_from_chunks(n: int, dim: int, chunks, norm2: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The float32 operands of :func:`augmented_rows` filled from ``(first row, centred rows)`` chunks
+    (the rows are not modified; scaling by -2 is exact in float32)."""
     left = np.empty((n, dim + 2), dtype=np.float32)
-    left[:, :dim] = Xc
+    right = np.empty((n, dim + 2), dtype=np.float32)
+    for a, xc in chunks:
+        left[a:a + len(xc), :dim] = xc
+        right[a:a + len(xc), :dim] = xc
+        right[a:a + len(xc), :dim] *= -2.0
     left[:, dim] = norm2
     left[:, dim + 1] = 1.0
-    right = np.empty((n, dim + 2), dtype=np.float32)
-    right[:, :dim] = -2.0 * Xc
     right[:, dim] = 1.0
     right[:, dim + 1] = norm2
-    return left, right, norm2
+    return left, right
 
 
 def error_gamma(dim: int) -> float:
@@ -182,22 +190,9 @@ class Augmented:
         Under a lock: the pass's worker threads ask at once, and each would otherwise make its own."""
         with self._operands_lock:
             if self._operands is None:
-                self._operands = self._make_float32_operands()
+                self._operands = _operands_from_chunks(self.n, self.dim, _centred_float32_chunks(self._X, self.center),
+                                                       self.norm2)
         return self._operands
-
-    def _make_float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
-        n, dim = self.n, self.dim
-        left = np.empty((n, dim + 2), dtype=np.float32)
-        right = np.empty((n, dim + 2), dtype=np.float32)
-        for a, xc in _centred_float32_chunks(self._X, self.center):
-            left[a:a + len(xc), :dim] = xc
-            xc *= -2.0
-            right[a:a + len(xc), :dim] = xc
-        left[:, dim] = self.norm2
-        left[:, dim + 1] = 1.0
-        right[:, dim] = 1.0
-        right[:, dim + 1] = self.norm2
-        return left, right
 
     @property
     def left(self) -> np.ndarray:
