@@ -91,8 +91,8 @@ class AgentDriver:
 
     ``on_state(agent, state)`` is called on entering every state (a test's fault injection, a
     log); ``trace``: keep what the simulator reports beyond the labels (the cascade's initial
-    contested flags and hand-down targets). After the job, :attr:`result` holds ``(ids, labels)``,
-    :attr:`core_stats` the core's typed statistics and :attr:`core` the core itself.
+    contested flags and hand-down targets). After the job, :attr:`core_stats` holds the core's typed
+    statistics and :attr:`core` the core itself; the labels travel in the ``result`` message.
     """
 
     def __init__(self, me: int, cfg: DQMConfig, transport: Transport, ids: np.ndarray, image_ids: np.ndarray,
@@ -129,7 +129,6 @@ class AgentDriver:
         self.cpu0 = time.process_time()
         self.stats: Dict[str, float] = {}
         self.core_stats: Dict[str, float] = {}
-        self.result: Optional[Tuple[np.ndarray, np.ndarray]] = None
         self.contested_initial: Optional[np.ndarray] = None  # trace, cascade
         self.handed: Dict[int, np.ndarray] = {}  # trace, cascade: target agent -> feature ids handed down
         if on_state is not None:
@@ -374,7 +373,6 @@ class AgentDriver:
 
     def _result(self, ids: np.ndarray, labels: np.ndarray, stats: Dict[str, float]) -> None:
         labels = np.asarray(labels).astype(np.int64)
-        self.result = (np.asarray(ids, np.int64), labels)
         if self.catalog is not None:
             self._send_parts("catalog", COORDINATOR, self.catalog)
         self._send_single("result", COORDINATOR, ids=ids, labels=labels)
@@ -469,7 +467,6 @@ class MemoryBus:
         msg = messages.decode(payload, job=self.job, agents=self.m, dim=self.dim)
         if kind == "features":
             self.features_moved[msg["phase"]] += len(msg["ids"])
-            self.meter.features_moved += len(msg["ids"])
         self.queue.append((dst, msg))
 
     def send_single(self, src: int, dst: int, kind: str, **fields) -> None:

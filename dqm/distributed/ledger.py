@@ -29,18 +29,13 @@ def endpoint_name(i: int) -> str:
 
 
 class TrafficLedger:
-    """Bytes and messages per ``(src, dst, kind)``, safe to update from several threads.
-
-    ``features_moved`` counts features carried by ``features`` chunks (the simulator's
-    transfers-per-feature statistic).
-    """
+    """Bytes and messages per ``(src, dst, kind)``, safe to update from several threads."""
 
     _SENT = "sent:"
 
     def __init__(self):
         self.bytes: Dict[Entry, int] = defaultdict(int)
         self.count: Dict[Entry, int] = defaultdict(int)
-        self.features_moved = 0
         self.lock = threading.Lock()
 
     # ------------------------------------------------------------------ counting
@@ -158,12 +153,3 @@ class Meter(TrafficLedger):
         """``(rejected per reason, duplicates, resent)`` copied under the lock."""
         with self.lock:
             return dict(self.rejected), self.duplicates, self.resent
-
-    def snapshot(self) -> Tuple[Dict[Entry, Tuple[int, int]], Dict[str, int], int, int]:
-        """``(sent, rejected, duplicates, resent)`` copied under the lock."""
-        return (self.entries(), *self.counters())
-
-    def as_dict(self) -> dict:
-        rejected, duplicates, resent = self.counters()
-        return {"sent": [[s, d, k, b, c] for (s, d, k), (b, c) in sorted(self.entries().items())],
-                "rejected": rejected, "duplicates": duplicates, "resent": resent}

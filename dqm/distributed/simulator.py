@@ -205,7 +205,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     stats.update(
         time_total=time.perf_counter() - t_all,
         routed_moves=float(bus.features_moved["route"]),
-        transfers_per_feature=bus.meter.features_moved / n,
+        transfers_per_feature=sum(bus.features_moved.values()) / n,
         max_features_share=max(p["max_held"] for p in per_agent) / n,
         max_pair_share=max(p["pairs"] for p in per_agent) / central_pairs,
         bytes_over_raw=bus.meter.total() / raw,

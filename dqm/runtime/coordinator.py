@@ -344,7 +344,7 @@ class Coordinator:
             for k, v in st.items():
                 if k.startswith("rejected:"):
                     out[k[9:]] += v
-        for k, v in self.bus.meter.snapshot()[1].items():
+        for k, v in self.bus.meter.counters()[0].items():
             out[k] += v
         return dict(out)
 
@@ -368,7 +368,7 @@ class Coordinator:
             **traffic, "wire_bytes_received_by_router": wire,
             "rejected": self._rejected(),
             "duplicates": int(sum(st.get("duplicates", 0) for st in self.stats.values())
-                              + self.bus.meter.snapshot()[2]),
+                              + self.bus.meter.counters()[1]),
             "per_agent": agents,
         }
 
