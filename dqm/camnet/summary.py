@@ -33,16 +33,21 @@ LARGE_ERROR_M = 1.0
 SAME_AUC = 0.02
 
 
+class _Fields:
+    """``as_json``: every field of a summary dataclass as it is (numbers, strings and nested plain data)."""
+
+    def as_json(self) -> Dict[str, object]:
+        return dataclasses.asdict(self)
+
+
 @dataclass(frozen=True)
-class PaperResult:
+class PaperResult(_Fields):
     """One method's numbers in the seed paper's camera-network experiment."""
 
     auc: float  #: detection PR AUC
     mean: float  #: localization error, metres
     std: float
 
-    def as_json(self) -> Dict[str, float]:
-        return dataclasses.asdict(self)
 
 
 #: the seed paper's results (camera-network experiment)
@@ -65,7 +70,7 @@ def method_label(pipeline: PipelineConfig, method: str) -> str:
 
 
 @dataclass(frozen=True)
-class OperatingPoint:
+class OperatingPoint(_Fields):
     """A method at the detection rule (score >= ``min_matches``): see :func:`~dqm.camnet.experiment.operating_point`."""
 
     min_matches: int
@@ -76,12 +81,10 @@ class OperatingPoint:
     precision: float
     recall: float
 
-    def as_json(self) -> Dict[str, float]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
-class ErrorSummary:
+class ErrorSummary(_Fields):
     """Localization errors (metres; NaN when there are none): see :class:`~dqm.camnet.experiment.ErrorStats`."""
 
     mean: float
@@ -99,8 +102,6 @@ class ErrorSummary:
     def of(cls, stats: ErrorStats) -> "ErrorSummary":
         return cls(**stats.as_dict())
 
-    def as_json(self) -> Dict[str, float]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
@@ -172,7 +173,7 @@ class MethodSummary:
 
 
 @dataclass(frozen=True)
-class ScoreComparison:
+class ScoreComparison(_Fields):
     """Online against batch QuickMatch (quadratic kernel), frame by frame: the best-reference scores."""
 
     frames: int
@@ -185,8 +186,6 @@ class ScoreComparison:
     online_lower: int
     detection_differs: int  #: frames where the rule (score >= min_matches) decides differently
 
-    def as_json(self) -> Dict[str, float]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
@@ -337,7 +336,7 @@ def seed_row(result: ExperimentResult) -> Dict[str, object]:
 
 
 @dataclass(frozen=True)
-class SeedMeans:
+class SeedMeans(_Fields):
     """The robustness table's last row: each column's mean over the seeds (errors: over seeds that have one)."""
 
     auc: Dict[str, float]
@@ -345,8 +344,6 @@ class SeedMeans:
     auc_quickmatch_per_camera: Optional[float]
     error: Dict[str, float]
 
-    def as_json(self) -> Dict[str, object]:
-        return dataclasses.asdict(self)
 
 
 def _nanmean(values) -> float:
@@ -438,7 +435,7 @@ class LargeErrors:
 
 
 @dataclass(frozen=True)
-class PaperComparison:
+class PaperComparison(_Fields):
     """The comparison with the seed paper over its methods present in the run (at least two of them)."""
 
     methods: Tuple[str, ...]  #: of quickmatch, bf, flann, in that order
@@ -454,8 +451,6 @@ class PaperComparison:
     large_errors: Dict[str, LargeErrors]
     calibration_error_pct: float  #: measured range constant vs its ideal value, percent
 
-    def as_json(self) -> Dict[str, object]:
-        return dataclasses.asdict(self)
 
 
 def paper_comparison(result: ExperimentResult, methods: Mapping[str, MethodSummary],
@@ -522,7 +517,7 @@ def paper_comparison(result: ExperimentResult, methods: Mapping[str, MethodSumma
 
 # --- the whole summary -----------------------------------------------------------------------
 @dataclass(frozen=True)
-class WorldFacts:
+class WorldFacts(_Fields):
     """Counts of the simulated world the report quotes."""
 
     n_references: int  #: target sides (reference images)
@@ -531,12 +526,10 @@ class WorldFacts:
     n_clutter: int  #: clutter boxes placed
     n_clutter_textures: int  #: textures the clutter boxes share
 
-    def as_json(self) -> Dict[str, int]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)
-class MachineInfo:
+class MachineInfo(_Fields):
     """The machine the report was made on (its times are this machine's)."""
 
     cores: Optional[int]
@@ -546,8 +539,6 @@ class MachineInfo:
     def here(cls) -> "MachineInfo":
         return cls(os.cpu_count(), platform.processor() or platform.machine())
 
-    def as_json(self) -> Dict[str, object]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,8 @@ Modes (``mode=``):
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import Field, dataclass, field, fields, replace
 from typing import Dict, List, Optional, Tuple, get_type_hints
 
 from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
@@ -191,11 +190,11 @@ def differing_param(mine: str, theirs: str) -> Optional[Tuple[str, str, str]]:
     return None
 
 
-def algorithm_fields() -> List[dataclasses.Field]:
+def algorithm_fields() -> List[Field]:
     """The :class:`DQMConfig` fields that :func:`add_algorithm` makes options of: the shared parameters in
     the order of the parameter text, then the others; not ``agents`` and ``seed``, which each command
     defines itself (``own_option`` metadata)."""
-    fs = [f for f in dataclasses.fields(DQMConfig) if not f.metadata.get("own_option")]
+    fs = [f for f in fields(DQMConfig) if not f.metadata.get("own_option")]
     return sorted(fs, key=lambda f: (f.metadata["shared"] is None, f.metadata["shared"] or 0))
 
 
