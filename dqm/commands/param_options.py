@@ -9,7 +9,7 @@ default). The distributed commands' options come from :class:`dqm.distributed.DQ
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Dict, Iterable, Optional, get_type_hints
+from typing import Callable, Dict, Iterable, Optional, Sequence, get_type_hints
 
 from ..core.params import DEFAULT_KERNEL, QuickMatchParams
 
@@ -33,10 +33,23 @@ def add_quickmatch_params(p, names: Optional[Iterable[str]] = None, kernel_defau
     by_name = {f.name: f for f in dataclasses.fields(QuickMatchParams)}
     for name in (QuickMatchParams.names() if names is None else names):
         f = by_name[name]
-        help_text = f.metadata["help"] + (notes or {}).get(name, "")
-        kw = {"dest": name, "default": kernel_default if name == "kernel" else f.default, "help": help_text}
-        if f.metadata.get("choices"):
-            kw["choices"] = f.metadata["choices"]
-        elif types[name] in (int, float):
-            kw["type"] = number_type or types[name]
-        p.add_argument(flag(name), **kw)
+        add_field_option(p, f, types[name], flag(name), default=kernel_default if name == "kernel" else f.default,
+                         help_text=f.metadata["help"] + (notes or {}).get(name, ""), number_type=number_type)
+
+
+def add_field_option(p, f: dataclasses.Field, type_hint, option: str, *, default, help_text: str,
+                     aliases: Sequence[str] = (), metavar: Optional[str] = None,
+                     number_type: Optional[Callable[[str], float]] = None) -> None:
+    """The option ``option`` (and ``aliases``) of the dataclass field ``f`` (annotated ``type_hint``): its
+    ``choices`` metadata, else its numeric type (``number_type`` instead, where given) and ``metavar``;
+    the value lands in ``args.<field name>``. The one place where parameter objects become options
+    (:func:`add_quickmatch_params`, :func:`dqm.commands.runtime_options.add_algorithm`)."""
+    kw = {"dest": f.name, "default": default, "help": help_text}
+    if f.metadata.get("choices"):
+        kw["choices"] = f.metadata["choices"]
+    else:
+        if metavar is not None:
+            kw["metavar"] = metavar
+        if type_hint in (int, float):
+            kw["type"] = number_type or type_hint
+    p.add_argument(option, *aliases, **kw)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Optional, get_type_hints
 
 from ..distributed.config import DQMConfig, algorithm_fields, config_args
+from .param_options import add_field_option
 
 __all__ = ["add_algorithm", "add_tls", "algorithm_fields", "check_pem", "config_args", "config_from", "tls_from"]
 
@@ -25,14 +26,8 @@ def add_algorithm(p) -> None:
             g.add_argument(m["negation"], dest=f.name, action="store_false", default=f.default,
                            help=m["negation_help"])
             continue
-        kw = {"dest": f.name, "default": f.default, "help": m["help"]}
-        if m.get("choices"):
-            kw["choices"] = m["choices"]
-        else:
-            kw["metavar"] = _metavar(m["flag"])
-        if types[f.name] in (int, float):
-            kw["type"] = types[f.name]
-        g.add_argument(m["flag"], *m.get("aliases", ()), **kw)
+        add_field_option(g, f, types[f.name], m["flag"], default=f.default, help_text=m["help"],
+                         aliases=m.get("aliases", ()), metavar=_metavar(m["flag"]))
 
 
 def config_from(args, agents: int, seed: int = 0) -> DQMConfig:
