@@ -46,7 +46,7 @@ HEADER = ("v", "kind", "job", "src", "epoch", "seq")
 
 def mutate(category: str, rng: np.random.Generator, captured, job: str, m: int):
     """One hostile message: (key, payload, expected fate) with fate 'refused', 'duplicate' or 'harmless'."""
-    inboxes = [keys.agent_inbox(job, a) for a in range(m)] + [keys.coordinator_inbox(job)]
+    inboxes = [keys.message_key(job, 0, a, a) for a in range(m)] + [keys.message_key(job, 0, -1, -1)]
     if category == "random":
         return inboxes[rng.integers(len(inboxes))], rng.bytes(int(rng.integers(0, 300))), "refused"
     key, raw = captured[rng.integers(len(captured))]

@@ -55,7 +55,7 @@ def watch_ready(port: int, job: str, m: int, ready: threading.Event, deadline_s:
             if len(seen) == m:
                 ready.set()
 
-    sub = session.declare_subscriber(keys.coordinator_inbox(job), on_sample)
+    sub = session.declare_subscriber(keys.process_inbox(job, -1), on_sample)
     try:
         ready.wait(deadline_s)
     finally:

@@ -78,7 +78,7 @@ def camera_node(args) -> int:
         while not go.exists():
             time.sleep(0.02)
         start = float(go.read_text())
-        key = keys.stream_images(args.job)
+        key = keys.camera_images(args.job, c)
         descs, ids, kps = [], [], []
         late = 0
         for f in range(world.n_steps):
@@ -262,7 +262,7 @@ def main(argv=None) -> int:
         for b in range(max(0, args.bad)):
             kind = BAD_KINDS[b % len(BAD_KINDS)]
             time.sleep(max(0.0, t_bad + b / (2 * args.rate) - time.time()))
-            session.put(keys.stream_images(args.job), bad_message(kind, args.job, 128, 0),
+            session.put(keys.camera_images(args.job, 99), bad_message(kind, args.job, 128, 0),
                         congestion_control=zenoh.CongestionControl.BLOCK)
             bad_sent[kind] += 1
         deadline = start + args.frames / args.rate + 120

@@ -448,8 +448,9 @@ class MemoryBus:
         self.meter = Meter()
         self.unmetered = tuple(unmetered)
         self.queue: Deque[Tuple[int, dict]] = deque()
-        self.key_bytes = {dst: len(keys.coordinator_inbox(job) if dst < 0 else keys.agent_inbox(job, dst))
-                          for dst in range(-1, m)}
+        # every agent is its own process here (the runtime's processes start out that way)
+        self.key_bytes = {(src, dst): len(keys.message_key(job, src, dst, dst))
+                          for src in range(-1, m) for dst in range(-1, m)}
         self.seqs: Dict[Tuple[int, int], int] = defaultdict(int)
         #: features carried per phase (``route``, ``handdown``)
         self.features_moved: Dict[str, int] = defaultdict(int)
@@ -461,10 +462,10 @@ class MemoryBus:
 
     def send(self, src: int, dst: int, kind: str, payload: bytes, seq: Optional[int] = None) -> None:
         if kind not in self.unmetered:
-            self.meter.add(src, dst, kind, len(payload) + self.key_bytes[dst])
+            self.meter.add(src, dst, kind, len(payload) + self.key_bytes[(src, dst)])
         if seq is not None and kind in protocol.ACKED:
-            self.meter.add(dst, src, "ack", len(protocol.ack(self.job, dst, src, seq)) + self.key_bytes[src])
-        msg = messages.decode(payload, job=self.job, agents=self.m, dim=self.dim)
+            self.meter.add(dst, src, "ack", len(protocol.ack(self.job, dst, src, seq)) + self.key_bytes[(dst, src)])
+        msg = messages.decode(payload, job=self.job, agents=self.m, dim=self.dim, sender=src)
         if kind == "features":
             self.features_moved[msg["phase"]] += len(msg["ids"])
         self.queue.append((dst, msg))

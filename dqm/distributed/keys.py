@@ -3,16 +3,24 @@
 The runtime puts on these zenoh keys; the simulator meters their length too.
 
 Everything of one job lives under ``dqm/<job>/``, so concurrent jobs on one
-router never see each other's traffic:
+router never see each other's traffic. Every key names its sender, and inboxes
+belong to processes, not to agents, so that a router's access control
+(``dqm router --acl ROSTER``, :mod:`dqm.runtime.roster`) can give each identity
+exactly its own keys: it may put only on keys that name itself as the sender and
+subscribe only to its own inbox. A process that takes over a lost agent's cell
+keeps its own inbox; senders address the agent's new process.
 
-* ``dqm/<job>/agent/<i>``        messages to agent i (any sender)
-* ``dqm/<job>/coordinator``      messages to the coordinator
-* ``dqm/<job>/alive/agent/<i>``  liveliness token of agent i
+* ``dqm/<job>/proc/<P>/from/<Q>/to/<a>``  a message from process Q to agent a, hosted by process P
+* ``dqm/<job>/proc/coordinator/from/<Q>`` a message from process Q to the coordinator
+* ``dqm/<job>/proc/<P>/from/coordinator/to/<a>`` a message from the coordinator (P, Q: process
+  indices; agent process p starts out hosting agent p)
+* ``dqm/<job>/proc/<P>/from/<P>/probe``   a process's check that the router lets it use its keys
+* ``dqm/<job>/alive/agent/<p>``  liveliness token of agent process p
 * ``dqm/<job>/alive/coordinator`` liveliness token of the coordinator
 
 Streaming (``dqm stream``, :mod:`dqm.runtime.stream`):
 
-* ``dqm/<job>/stream/images``   camera nodes put ``image`` messages here (one image each)
+* ``dqm/<job>/stream/images/from/<c>``  camera node c puts ``image`` messages here (one image each)
 * ``dqm/<job>/stream/changes``  the stream publishes one ``changes`` message per add or remove
 * ``dqm/<job>/alive/stream``    liveliness token of the stream: declared once it subscribes, so
   a camera node waits for it before its first put (a put before is lost)
@@ -30,12 +38,46 @@ def check_job(job: str) -> str:
     return job
 
 
-def agent_inbox(job: str, i: int) -> str:
-    return f"dqm/{job}/agent/{int(i)}"
+#: the coordinator's name in keys (processes are named by their index)
+COORDINATOR = "coordinator"
+_PROCESS = r"(coordinator|0|[1-9][0-9]{0,8})"
+_MESSAGE_KEY = re.compile(rf"^dqm/([A-Za-z0-9_.-]{{1,64}})/proc/{_PROCESS}/from/{_PROCESS}"
+                          r"(?:/to/(0|[1-9][0-9]{0,8}))?$")
 
 
-def coordinator_inbox(job: str) -> str:
-    return f"dqm/{job}/coordinator"
+def process_name(p: int) -> str:
+    """A process in keys: its index, or ``coordinator`` (-1)."""
+    return COORDINATOR if int(p) < 0 else str(int(p))
+
+
+def message_key(job: str, src_process: int, dst_process: int, dst_agent: int) -> str:
+    """The key of a message from process ``src_process`` to agent ``dst_agent`` hosted by
+    ``dst_process`` (-1 for the coordinator, as process or as destination)."""
+    key = f"dqm/{job}/proc/{process_name(dst_process)}/from/{process_name(src_process)}"
+    return key if dst_process < 0 else f"{key}/to/{int(dst_agent)}"
+
+
+def process_inbox(job: str, p: int) -> str:
+    """What process ``p`` (-1: the coordinator) subscribes to: every message to it, from anyone."""
+    return f"dqm/{job}/proc/{process_name(p)}/from/*/**"
+
+
+def probe_key(job: str, p: int) -> str:
+    """Where process ``p`` checks, through the router, that it may use its keys."""
+    return f"dqm/{job}/proc/{process_name(p)}/from/{process_name(p)}/probe"
+
+
+def parse_message_key(job: str, key: str):
+    """``(src_process, dst_process, dst_agent)`` of a message key of ``job`` (-1: the coordinator;
+    ``dst_agent`` is -1 for the coordinator); None when ``key`` is not one."""
+    m = _MESSAGE_KEY.match(str(key))
+    if m is None or m.group(1) != job:
+        return None
+    dst, src, agent = m.group(2), m.group(3), m.group(4)
+    dst_p = -1 if dst == COORDINATOR else int(dst)
+    if (dst_p < 0) != (agent is None):
+        return None  # the coordinator's inbox has no agent; an agent process's inbox names one
+    return (-1 if src == COORDINATOR else int(src)), dst_p, (-1 if agent is None else int(agent))
 
 
 def alive_agent(job: str, i: int) -> str:
@@ -51,7 +93,19 @@ def alive_all(job: str) -> str:
 
 
 def stream_images(job: str) -> str:
-    return f"dqm/{job}/stream/images"
+    """What the stream subscribes to: every camera node's images."""
+    return f"dqm/{job}/stream/images/from/*"
+
+
+def camera_images(job: str, camera: int) -> str:
+    """Where camera node ``camera`` puts its images."""
+    return f"dqm/{job}/stream/images/from/{int(camera)}"
+
+
+def camera_of_key(job: str, key: str):
+    """The camera id a stream image key names, or None when it is not one of ``job``'s."""
+    m = re.match(r"^dqm/([A-Za-z0-9_.-]{1,64})/stream/images/from/(0|[1-9][0-9]{0,9})$", str(key))
+    return int(m.group(2)) if m and m.group(1) == job else None
 
 
 def stream_changes(job: str) -> str:

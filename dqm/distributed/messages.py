@@ -219,8 +219,14 @@ def encode(kind: str, job: str, src: int, *, seq: int = 0, epoch: int = 0, **fie
 
 
 def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = None,
-           max_bytes: int = MAX_MESSAGE_BYTES, dim: Optional[int] = None) -> Dict[str, Any]:
-    """Decode and validate a message; raise MessageError naming the problem."""
+           max_bytes: int = MAX_MESSAGE_BYTES, dim: Optional[int] = None, sender: Optional[int] = None,
+           owners: Optional[np.ndarray] = None) -> Dict[str, Any]:
+    """Decode and validate a message; raise MessageError naming the problem.
+
+    ``sender``: the process its key names as the sender (-1: the coordinator; see
+    :mod:`dqm.distributed.keys`), checked against the message's ``src`` with :func:`check_sender`
+    and ``owners`` (the process hosting each agent in the receiver's epoch).
+    """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise MessageError("payload is not bytes")
     if len(payload) > max_bytes:
@@ -282,7 +288,27 @@ def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = No
             val = arr
         out[field] = val
     _check_content(kind, out, agents, dim)
+    if sender is not None:
+        check_sender(out, sender, owners)
     return out
+
+
+def check_sender(msg: Dict[str, Any], sender: int, owners: Optional[np.ndarray] = None) -> None:
+    """Refuse a message whose key names another sender than the message: the coordinator's key carries
+    only the coordinator's messages (``src`` -1), and agent process ``sender``'s key only messages of
+    the agents it hosts (``owners[a]``: agent a's process in this epoch; None: agent p on process p).
+    Under a router's access control (``dqm router --acl``) only the key's identity may put on it, so
+    no admitted process can speak for another."""
+    src, kind = msg["src"], msg["kind"]
+    if sender < 0:
+        if src != -1:
+            raise MessageError(f"{kind} message of agent {src} on the coordinator's key")
+        return
+    if src < 0:
+        raise MessageError(f"{kind} message of the coordinator on the key of process {sender}")
+    host = src if owners is None else (int(owners[src]) if src < len(owners) else None)
+    if host != sender:
+        raise MessageError(f"{kind} message of agent {src} on the key of process {sender}, which does not host it")
 
 
 def _nonneg(arr: np.ndarray, what: str, allow_inf: bool = False) -> None:

@@ -136,6 +136,7 @@ class AgentHost:
             if msg["epoch"] <= self.epoch:
                 return  # a repeated start of this epoch
             self.bus.set_epoch(msg["epoch"])
+            self.bus.set_owners(msg["owners"])
             mine = self.cfg.params_text()
             if msg["params_hash"] != params_hash(mine) or msg["agents"] != self.cfg.agents:
                 name, ours, theirs = differing_param(mine, msg["params"]) or ("params", "?", "?")

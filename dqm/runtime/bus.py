@@ -160,15 +160,20 @@ class Bus:
     """One process's view of the job's key space.
 
     ``home`` is the process's own index (-1: the coordinator); it declares the
-    liveliness token ``alive/agent/<home>`` and always receives on its home
-    inbox. A process that takes over a lost agent's cell also receives on that
-    agent's inbox (:meth:`host`). Every message belongs to an epoch
-    (:meth:`set_epoch`): older ones are refused and counted, and sequence
-    numbers, acknowledgements and duplicate detection start afresh in each.
+    liveliness token ``alive/agent/<home>`` and receives on its process inbox
+    (:func:`keys.process_inbox`), where every key names its sender. It starts out
+    hosting agent ``home``; after a takeover it also hosts the lost agent's cell
+    (:meth:`host`), and every process addresses that agent at its new process
+    (:meth:`set_owners`, from the ``start`` of the epoch). Every message belongs to an
+    epoch (:meth:`set_epoch`): older ones are refused and counted, and sequence
+    numbers, acknowledgements and duplicate detection start afresh in each. A message
+    whose key names another sender than the message, or that is for an agent this
+    process does not host, is refused and counted.
     """
 
     def __init__(self, session, job: str, home: int, agents: int, dim: Optional[int] = None,
                  max_bytes: int = messages.MAX_MESSAGE_BYTES):
+        import numpy as np
         import zenoh
 
         self._zenoh = zenoh
@@ -181,35 +186,43 @@ class Bus:
         self.max_bytes = max_bytes
         self.epoch = 0
         self.inbox: "queue.Queue" = queue.Queue()  # (inbox agent, decoded message) for the main thread
-        self._raw: "queue.Queue" = queue.Queue()  # (inbox agent, payload) as they arrive
+        self._raw: "queue.Queue" = queue.Queue()  # (key, payload) as they arrive
         self.meter = Meter()
         self.alive: Dict[str, bool] = {}
         self._alive_lock = threading.Lock()
-        self._lock = threading.Lock()  # epoch, pending, seen
+        self._lock = threading.Lock()  # epoch, pending, seen, owners, hosted
         self._closed = False
         # (src, dst, seq) -> (t, tries, payload, kind)
         self._pending: Dict[Tuple[int, int, int], Tuple[float, int, bytes, str]] = {}
         self._seen: set = set()
         self._next_seq: Dict[Tuple[int, int], int] = defaultdict(int)
-        self._subs: Dict[int, object] = {}
+        self._owners = np.arange(agents, dtype=np.int64)  # agent -> process hosting it (agent p on process p)
+        self._hosted = frozenset([home]) if home >= 0 else frozenset()
+        self._probes: Dict[bytes, threading.Event] = {}
         self._receiver = threading.Thread(target=self._receive_loop, name=f"dqm-bus-{home}", daemon=True)
         self._receiver.start()
-        self.host([home])
+        self._sub = session.declare_subscriber(keys.process_inbox(job, home), self._on_sample)
         self._live_sub = session.liveliness().declare_subscriber(keys.alive_all(job), self._on_alive, history=True)
-        self._token = session.liveliness().declare_token(
-            keys.alive_coordinator(job) if home < 0 else keys.alive_agent(job, home))
+        self.token_key = keys.alive_coordinator(job) if home < 0 else keys.alive_agent(job, home)
+        self._token = session.liveliness().declare_token(self.token_key)
 
     # ------------------------------------------------------------------ inboxes and epochs
     def _key(self, dst: int) -> str:
-        return keys.coordinator_inbox(self.job) if dst < 0 else keys.agent_inbox(self.job, dst)
+        with self._lock:
+            process = -1 if dst < 0 else int(self._owners[dst])
+        return keys.message_key(self.job, self.home, process, dst)
 
     def host(self, agents) -> None:
-        """Receive on the inboxes of exactly these agents (and the home inbox)."""
-        want = set(int(a) for a in agents) | {self.home}
-        for a in sorted(set(self._subs) - want):
-            self._subs.pop(a).undeclare()
-        for a in sorted(want - set(self._subs)):
-            self._subs[a] = self.session.declare_subscriber(self._key(a), lambda smp, a=a: self._on_sample(a, smp))
+        """Accept messages for exactly these agents (and the home agent)."""
+        with self._lock:
+            self._hosted = frozenset(int(a) for a in agents) | ({self.home} if self.home >= 0 else set())
+
+    def set_owners(self, owners) -> None:
+        """The process hosting each agent in this epoch (the ``start`` message's ``owners``)."""
+        import numpy as np
+
+        with self._lock:
+            self._owners = np.asarray(owners, dtype=np.int64).copy()
 
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
@@ -220,8 +233,8 @@ class Bus:
             self._next_seq.clear()
 
     # ------------------------------------------------------------------ callbacks (tiny)
-    def _on_sample(self, dst: int, sample) -> None:
-        self._raw.put((dst, bytes(sample.payload.to_bytes())))
+    def _on_sample(self, sample) -> None:
+        self._raw.put((str(sample.key_expr), bytes(sample.payload.to_bytes())))
 
     def _on_alive(self, sample) -> None:
         alive = str(sample.kind) == str(self._zenoh.SampleKind.PUT)
@@ -293,25 +306,46 @@ class Bus:
         """The receiver thread: decode, check the epoch, acknowledge, drop duplicates, hand over."""
         while not self._closed:
             try:
-                dst, raw = self._raw.get(timeout=0.2)
+                key, raw = self._raw.get(timeout=0.2)
             except queue.Empty:
                 continue
+            if key == self._probe_key():
+                probe = self._probes.get(raw)
+                if probe is not None:
+                    probe.set()
+                continue
             try:
-                msg = self._accept(dst, raw)
+                item = self._accept(key, raw)
             except Exception as exc:  # noqa: BLE001 - never let one message stop the receiver
                 self.meter.reject(f"receiver error {type(exc).__name__}")
                 continue
-            if msg is not None:
-                self.inbox.put((dst, msg))
+            if item is not None:
+                self.inbox.put(item)
 
-    def _accept(self, dst: int, raw: bytes) -> Optional[dict]:
-        """A valid new message for the main thread, or None (counted bad message, duplicate, ack)."""
+    def _probe_key(self) -> str:
+        return keys.probe_key(self.job, self.home)
+
+    def _accept(self, key: str, raw: bytes) -> Optional[Tuple[int, dict]]:
+        """``(agent, message)``: a valid new message for the main thread, or None (counted bad message,
+        duplicate, ack)."""
+        parsed = keys.parse_message_key(self.job, key)
+        if parsed is None or parsed[1] != self.home:
+            self.meter.reject("message on a key that is not this process's inbox")
+            return None
+        sender, _, dst = parsed
+        with self._lock:
+            owners, hosted = self._owners, self._hosted
+        if self.home >= 0 and dst not in hosted:
+            self.meter.reject("message for an agent this process does not host")
+            return None
         try:
-            msg = messages.decode(raw, job=self.job, agents=self.agents, max_bytes=self.max_bytes, dim=self.dim)
+            msg = messages.decode(raw, job=self.job, agents=self.agents, max_bytes=self.max_bytes, dim=self.dim,
+                                  sender=sender, owners=owners)
         except messages.MessageError as exc:
             self.meter.reject(str(exc).split(" (")[0])
             return None
         msg["_bytes"] = len(raw)
+        msg["_key"] = key
         kind, src, seq = msg["kind"], msg["src"], msg["seq"]
         with self._lock:
             epoch = self.epoch
@@ -339,7 +373,7 @@ class Bus:
             if dup:
                 self.meter.duplicate()
                 return None
-        return msg
+        return dst, msg
 
     def receive(self, timeout: float = 0.2) -> Optional[Tuple[int, dict]]:
         """Next ``(inbox agent, message)``, or None on timeout / liveliness wake-up."""
@@ -353,7 +387,7 @@ class Bus:
         if self._closed:
             return
         self._closed = True
-        for obj in (self._token, self._live_sub, *self._subs.values()):
+        for obj in (self._token, self._live_sub, self._sub):
             try:
                 obj.undeclare()
             except Exception:  # noqa: BLE001 - closing anyway

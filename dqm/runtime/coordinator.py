@@ -183,7 +183,7 @@ class Coordinator:
         elif kind == "stats" and self.phase == "running":
             self.stats[src] = msg["values"]
             # the stats message itself was sent after the agent's meter snapshot
-            self.stats_bytes[src] = msg["_bytes"] + len(keys.coordinator_inbox(self.job))
+            self.stats_bytes[src] = msg["_bytes"] + len(msg["_key"])
 
     def _deaths(self) -> List[int]:
         return [p for p in range(self.m) if p not in self.dead and self.bus.agent_alive(p) is False]
@@ -275,6 +275,7 @@ class Coordinator:
     def _epoch(self) -> None:
         """Start the current epoch and run it to the end; raises _Lost when a process owing work dies."""
         self.bus.set_epoch(self.epoch)
+        self.bus.set_owners(self.owners)
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
         self.phase = "start"

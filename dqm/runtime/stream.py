@@ -126,8 +126,10 @@ class StreamEngine:
         return int(sum(self.rejected.values()))
 
     # ------------------------------------------------------------------ messages
-    def handle(self, payload: bytes) -> List[Output]:
-        """Decode, validate and apply one payload; the change sets to publish (none if it was refused)."""
+    def handle(self, payload: bytes, key: Optional[str] = None) -> List[Output]:
+        """Decode, validate and apply one payload; the change sets to publish (none if it was refused).
+        ``key``: the key it came on, which names the camera node that may send it
+        (:func:`keys.camera_images`); an image of another camera is refused."""
         self.received += 1
         try:
             msg = messages.decode(payload, job=self.job, max_bytes=self.max_bytes, dim=self.dim)
@@ -136,6 +138,9 @@ class StreamEngine:
             return []
         if msg["kind"] != "image":
             self.reject(f"a {msg['kind']} message on the images key (only image messages are accepted)")
+            return []
+        if key is not None and keys.camera_of_key(self.job, key) != msg["src"]:
+            self.reject(f"an image of camera {msg['src']} on the key {key}, which names another camera")
             return []
         image = int(msg["image_id"])
         desc = msg["descriptors"]
@@ -294,7 +299,8 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
     why = "stopped"
     try:
         sub = session.declare_subscriber(keys.stream_images(job),
-                                         lambda sample: inbox.put(bytes(sample.payload.to_bytes())))
+                                         lambda sample: inbox.put((str(sample.key_expr),
+                                                                   bytes(sample.payload.to_bytes()))))
         token = session.liveliness().declare_token(keys.alive_stream(job))
         log(f"listening on {keys.stream_images(job)}, publishing on {keys.stream_changes(job)}"
             + (f", window of {window} images" if window else ""))
@@ -308,14 +314,14 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
                 why = f"{engine.accepted} images accepted"
                 break
             try:
-                payload = inbox.get(timeout=0.1)
+                key, payload = inbox.get(timeout=0.1)
             except queue.Empty:
                 if idle_s is not None and time.monotonic() - last >= idle_s:
                     why = f"no message for {idle_s:g} s"
                     break
                 continue
             last = time.monotonic()
-            for o in engine.handle(payload):
+            for o in engine.handle(payload, key):
                 session.put(changes_key, o.payload, congestion_control=zenoh.CongestionControl.BLOCK)
                 if lines:
                     named = f", {o.name}" if o.name else ""
@@ -507,7 +513,7 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
                     f"no dqm stream of job {job!r} at {endpoint} within {wait_s:g} s (its liveliness token "
                     f"{keys.alive_stream(job)} did not appear); start `dqm stream --connect {endpoint} --job {job}` "
                     f"first, or wait longer with --wait")
-            key = keys.stream_images(job)
+            key = keys.camera_images(job, camera)
             t0 = 0.0
             for k, frame in enumerate(() if stopped() else frames):
                 if k == 0:

@@ -104,11 +104,14 @@ def _inject(endpoint, job, agents, dim, ready):
             messages.encode("features", job, 0, descriptors=np.zeros((2, dim // 2), np.uint8), **good),
             messages.encode("features", "another-job", 0, descriptors=np.zeros((2, dim), np.uint8), **good),
             b"\x91" + b"\x00" * (3 << 20),  # larger than the agents' limit
+            messages.encode("features", job, 1, descriptors=np.zeros((2, dim), np.uint8), **good),  # as agent 1
+            messages.encode("abort", job, -1, reason="forged"),  # as the coordinator
         ]
         ready.set()
         for payload in bad:
             for a in range(agents):
-                s.put(keys.agent_inbox(job, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                # on process 0's keys (without access control the router lets anyone put there)
+                s.put(keys.message_key(job, 0, a, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
     finally:
         watcher.undeclare()
         s.close()
@@ -139,7 +142,9 @@ def test_hostile_messages_are_rejected_and_counted(data):
     assert "descriptor dimension" in text
     assert "another-job" in text
     assert "exceeds the maximum" in text
-    assert sum(rejected.values()) >= 5 * 2
+    assert "message of agent N on the key of process N, which does not host it" in text
+    assert "abort message of the coordinator on the key of process N" in text
+    assert sum(rejected.values()) >= 7 * 2
 
 
 def test_sigterm_to_dqm_run_leaves_no_process(tmp_path):

@@ -205,8 +205,8 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
     sub = session.declare_subscriber(keys.stream_changes(job), on_changes)
     try:
         _wait_token(session, keys.alive_stream(job))
-        put = lambda raw: session.put(keys.stream_images(job), raw,  # noqa: E731
-                                      congestion_control=zenoh.CongestionControl.BLOCK)
+        put = lambda raw, camera=0: session.put(keys.camera_images(job, camera), raw,  # noqa: E731
+                                                congestion_control=zenoh.CongestionControl.BLOCK)
         img = lambda i, **kw: messages.image_message(job, i % 2, i, X[ids == i], name=f"img{i}.png",  # noqa: E731
                                                      keypoints=np.c_[X[ids == i][:, :2], np.full((n(i), 2), i)]
                                                      .astype(np.float32), **kw)
@@ -222,11 +222,13 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
             messages.image_message("other-job", 0, 52, X[ids == 2]),
             messages.image_message(job, 0, 53, np.zeros((0, DIM), np.uint8)),
             messages.encode("finish", job, -1, clusters=1),
+            messages.image_message(job, 1, 54, X[ids == 2]),  # camera 1's image on camera 0's key: forged
         ]
-        plan = [img(0), bad[0], img(1), bad[1], bad[2], bad[3], img(2), bad[4], bad[5], img(3), bad[6], bad[7],
-                img(4)]
-        for raw in plan:
-            put(raw)
+        # (message, the camera whose key it goes on): image i comes from camera i % 2
+        plan = [(img(0), 0), (bad[0], 0), (img(1), 1), (bad[1], 0), (bad[2], 0), (bad[3], 1), (img(2), 0),
+                (bad[4], 0), (bad[5], 0), (img(3), 1), (bad[6], 0), (bad[7], 0), (bad[8], 0), (img(4), 0)]
+        for raw, camera in plan:
+            put(raw, camera)
             time.sleep(0.05)
         stdout, stderr = p.communicate(timeout=60)
         t0 = time.monotonic()
@@ -244,10 +246,10 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
     assert p.returncode == 0, stderr
     assert "Traceback" not in stderr
     assert "stream (5 images accepted)" in stdout
-    assert "rejected 8 messages" in stdout, stdout
+    assert "rejected 9 messages" in stdout, stdout
     for reason in ("not valid msgpack", "non-finite descriptor values", "schema version", "was received before",
                    "descriptor dimension N is not the job's N", "not this job", "has no features",
-                   "a finish message on the images key"):
+                   "a finish message on the images key", "an image of camera N on the key"):
         assert reason in stdout, (reason, stdout)
     assert stdout.count("add image") == 5 and stdout.count("remove image") == 2
     msgs = sorted((messages.decode(raw, job=job) for raw in got), key=lambda m: m["seq"])
@@ -255,7 +257,7 @@ def test_stream_rejects_counts_and_keeps_going(router, data, tmp_path):
         ("add", 0), ("add", 1), ("add", 2), ("remove", 0), ("add", 3), ("remove", 1), ("add", 4)]
     assert [m["seq"] for m in msgs] == list(range(7))
     assert [m["name"] for m in msgs] == [f"img{i}.png" for i in (0, 1, 2, 0, 3, 1, 4)]
-    assert msgs[-1]["rejected"] == 8 and msgs[-1]["n_images"] == window
+    assert msgs[-1]["rejected"] == 9 and msgs[-1]["n_images"] == window
     # the events, replayed over the previous assignment, give every next one; the last equals the file's clusters
     present = [2, 3, 4]
     cl = io.load_clusters(out)
