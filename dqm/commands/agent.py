@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from ..runtime.agent import main_agent, parse_peer_features
-    from ..runtime.bus import JobIdInUse, RouterUnreachable
+    from ..runtime.bus import AccessDenied, JobIdInUse, RouterUnreachable
     from ..validation import InputError
 
     if args.agents < 1:
@@ -54,5 +54,5 @@ def run(args) -> int:
         return main_agent(args.id, cfg, args.connect, args.features, tls_from(args, listen=False),
                           connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout,
                           max_message_bytes=args.max_message_bytes, peers=peers)
-    except (RouterUnreachable, JobIdInUse) as exc:
+    except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

@@ -49,7 +49,7 @@ def run(args) -> int:
     from .. import outputs
     from ..distributed import keys
     from ..distributed.partition import check_agents, check_seed
-    from ..runtime.bus import JobIdInUse, RouterUnreachable, check_endpoint
+    from ..runtime.bus import AccessDenied, JobIdInUse, RouterUnreachable, check_endpoint
     from ..runtime.coordinator import main_coordinator
     from ..validation import InputError
 
@@ -70,5 +70,5 @@ def run(args) -> int:
         return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port,
                                 args.ready_timeout, args.job_timeout, args.connect_timeout, args.max_lost,
                                 args.progress_fd, args.phase_timeout, clusters)
-    except (RouterUnreachable, JobIdInUse) as exc:
+    except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

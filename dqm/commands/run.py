@@ -49,6 +49,9 @@ def add_arguments(p) -> None:
     p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
                                                 "(default: half of them, at least 1)")
     p.add_argument("--check", action="store_true", help="also run the in-process simulator and compare")
+    p.add_argument("--secure", action="store_true",
+                   help="mutual TLS with throwaway certificates (one per process; needs openssl) and a router that "
+                        "lets each process use only its own keys (dqm router --acl with the job's roster)")
     add_algorithm(p)
 
 
@@ -83,7 +86,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     try:
         rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True, features=fs,
-                      clusters=str(out), ready_timeout_s=ready_timeout)
+                      clusters=str(out), ready_timeout_s=ready_timeout, secure=args.secure)
     except JobFailure as exc:
         print(f"dqm run: {exc}", file=sys.stderr)
         return 4 if exc.failure.get("refused") else 3

@@ -36,18 +36,59 @@ def config_from(args, agents: int, seed: int = 0) -> DQMConfig:
     return DQMConfig(agents=agents, seed=seed, **{f.name: getattr(args, f.name) for f in algorithm_fields()})
 
 
-def add_tls(p) -> None:
-    g = p.add_argument_group("mutual TLS (use tls/HOST:PORT endpoints)")
+def add_tls(p, router: bool = False) -> None:
+    g = p.add_argument_group("identity: mutual TLS (use tls/HOST:PORT endpoints) and/or a username")
     g.add_argument("--tls-ca", help="root CA certificate (PEM)")
-    g.add_argument("--tls-cert", help="this process's certificate (PEM)")
+    g.add_argument("--tls-cert", help="this process's certificate (PEM); its common name is its identity")
     g.add_argument("--tls-key", help="this process's private key (PEM)")
+    if router:
+        g.add_argument("--users", metavar="FILE",
+                       help="admit only these usernames: lines of USER:PASSWORD (without TLS the traffic is not "
+                            "encrypted; prefer certificates)")
+    else:
+        g.add_argument("--user", help="this process's username (a router started with --users)")
+        g.add_argument("--password-file", metavar="FILE", help="the file holding --user's password (first line)")
+
+
+def _usrpwd(args, listen: bool) -> Optional[dict]:
+    """zenoh's ``transport/auth/usrpwd`` settings from --users (router) or --user/--password-file."""
+    from pathlib import Path
+
+    from ..validation import InputError
+
+    if listen:
+        users = getattr(args, "users", None)
+        if not users:
+            return None
+        try:
+            lines = [ln for ln in Path(users).read_text().splitlines() if ln.strip()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"--users {users}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+        bad = [n for n, ln in enumerate(lines, 1) if ":" not in ln or not ln.split(":", 1)[0]]
+        if not lines or bad:
+            raise InputError(f"--users {users}: write one USER:PASSWORD line per user"
+                             + (f" (line {bad[0]} is not)" if bad else " (the file is empty)"))
+        return {"dictionary_file": str(users)}
+    user, pwfile = getattr(args, "user", None), getattr(args, "password_file", None)
+    if not (user or pwfile):
+        return None
+    if not (user and pwfile):
+        raise InputError("a username needs both --user and --password-file")
+    try:
+        password = Path(pwfile).read_text().splitlines()[0]
+    except (OSError, UnicodeDecodeError, IndexError) as exc:
+        raise InputError(f"--password-file {pwfile}: cannot read a password from it "
+                         f"({getattr(exc, 'strerror', None) or 'empty file'})") from None
+    return {"user": user, "password": password}
 
 
 def tls_from(args, listen: bool, check_files: bool = True) -> Optional[dict]:
-    """zenoh's ``transport/link/tls`` settings from the ``--tls-*`` options (None without them);
+    """zenoh's ``transport/link/tls`` settings from the ``--tls-*`` options (None without them or a
+    username), plus ``usrpwd``: the ``transport/auth/usrpwd`` settings of --users or --user;
     ``check_files``: refuse a missing or non-PEM file at once (:func:`check_pem`)."""
+    usrpwd = _usrpwd(args, listen)
     if not (args.tls_ca or args.tls_cert or args.tls_key):
-        return None
+        return {"usrpwd": usrpwd} if usrpwd else None
     from ..validation import InputError
 
     if not (args.tls_ca and args.tls_cert and args.tls_key):
@@ -56,8 +97,9 @@ def tls_from(args, listen: bool, check_files: bool = True) -> Optional[dict]:
         if check_files:
             check_pem(path, option)
     side = "listen" if listen else "connect"
-    return {"root_ca_certificate": args.tls_ca, f"{side}_certificate": args.tls_cert,
-            f"{side}_private_key": args.tls_key, "enable_mtls": True}
+    tls = {"root_ca_certificate": args.tls_ca, f"{side}_certificate": args.tls_cert,
+           f"{side}_private_key": args.tls_key, "enable_mtls": True}
+    return {**tls, "usrpwd": usrpwd} if usrpwd else tls
 
 
 def check_pem(path: str, option: str) -> None:

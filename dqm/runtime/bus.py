@@ -56,22 +56,37 @@ def _base_config(extra: Optional[dict] = None) -> dict:
     return cfg
 
 
+def _secure(cfg: dict, tls: Optional[dict]) -> dict:
+    """Put the security settings into a configuration: ``tls`` holds zenoh's ``transport/link/tls``
+    settings (as :func:`dqm.commands.runtime_options.tls_from` makes them) and, under the key
+    ``usrpwd``, its ``transport/auth/usrpwd`` settings (a username and password, or the router's
+    dictionary file)."""
+    if tls:
+        tls = dict(tls)
+        usrpwd = tls.pop("usrpwd", None)
+        if tls:
+            cfg["transport"]["link"]["tls"] = tls
+        if usrpwd:
+            cfg["transport"]["auth"] = {"usrpwd": usrpwd}
+    return cfg
+
+
 def client_config(endpoint: str, tls: Optional[dict] = None) -> "object":
     """zenoh Config of a client connected to ``endpoint`` (tcp/HOST:PORT or tls/HOST:PORT)."""
     import zenoh
 
     cfg = _base_config({"mode": "client", "connect": {"endpoints": [endpoint]}})
-    if tls:
-        cfg["transport"]["link"]["tls"] = tls
-    return zenoh.Config.from_json5(json.dumps(cfg))
+    return zenoh.Config.from_json5(json.dumps(_secure(cfg, tls)))
 
 
-def router_config(endpoints: List[str], tls: Optional[dict] = None) -> "object":
+def router_config(endpoints: List[str], tls: Optional[dict] = None, access_control: Optional[dict] = None) -> "object":
+    """zenoh Config of a router listening on ``endpoints``; ``access_control``: the block
+    :func:`dqm.runtime.roster.access_control` builds (None: everyone admitted may do anything)."""
     import zenoh
 
-    cfg = _base_config({"mode": "router", "listen": {"endpoints": list(endpoints)}})
-    if tls:
-        cfg["transport"]["link"]["tls"] = tls
+    cfg = _secure(_base_config({"mode": "router", "listen": {"endpoints": list(endpoints)}}), tls)
+    if access_control:
+        cfg["access_control"] = access_control
     return zenoh.Config.from_json5(json.dumps(cfg))
 
 
@@ -154,6 +169,65 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
                 f"that signed the router's certificate, that the router's certificate names {host} "
                 f"(subjectAltName), and that --tls-cert/--tls-key were issued by the CA the router trusts")
     return f"{base}; something listens at {addr} but refused a {proto} zenoh session (a tls/ router?)"
+
+
+class AccessDenied(RuntimeError):
+    """The router does not let this process's identity use its keys (its access control)."""
+
+
+def identity_of(tls: Optional[dict]) -> str:
+    """The identity a client presents: its certificate's common name, else its username ("" if none)."""
+    import ssl
+
+    tls = tls or {}
+    cert = tls.get("connect_certificate")
+    if cert:
+        try:
+            subject = ssl._ssl._test_decode_cert(cert).get("subject", ())  # noqa: SLF001 - stdlib's PEM reader
+            for rdn in subject:
+                for name, value in rdn:
+                    if name == "commonName":
+                        return value
+        except Exception:  # noqa: BLE001 - an unreadable certificate is refused by zenoh already
+            pass
+        return f"the holder of {cert}"
+    return str((tls.get("usrpwd") or {}).get("user", ""))
+
+
+def check_access(bus: "Bus", endpoint: str, tls: Optional[dict], what: str, deadline_s: float = 3.0) -> None:
+    """With an identity (a certificate or a username) the router may enforce access control, which drops a
+    denied subscription, put or token silently. Check through the router that this process may use its
+    keys: a second session of the same identity (so that nothing is answered inside this one) must see
+    the process's liveliness token and get a put through to its inbox. :class:`AccessDenied` names the
+    identity and the key otherwise, within ``deadline_s``."""
+    import os
+
+    if not tls:
+        return  # no identity: no access control possible
+    probe = open_client(endpoint, tls, deadline_s=deadline_s)
+    nonce = os.urandom(16)
+    arrived = threading.Event()
+    bus._probes[nonce] = arrived
+    token = inbox = False
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < deadline_s:
+            token = token or bool(live_tokens(probe, bus.token_key, timeout_s=0.5))
+            probe.put(keys.probe_key(bus.job, bus.home), nonce)
+            inbox = inbox or arrived.wait(0.2)
+            if token and inbox:
+                return
+    finally:
+        bus._probes.pop(nonce, None)
+        probe.close()
+    who = identity_of(tls) or "this client"
+    role = "coordinator" if bus.home < 0 else "agent"
+    line = f"{role} {who}" + ("" if bus.home < 0 else f" {bus.home}")
+    denied = ([f"its liveliness token {bus.token_key} is not admitted"] if not token else []) + (
+        [f"messages to it on {keys.process_inbox(bus.job, bus.home)} do not arrive"] if not inbox else [])
+    raise AccessDenied(f"the router at {endpoint} does not let identity {who!r} act as {what}: "
+                       f"{' and '.join(denied)}. Its roster (dqm router --acl) must hold the line '{line}'"
+                       + ("" if bus.home < 0 else " (or start this agent with the --id its certificate is for)"))
 
 
 class Bus:

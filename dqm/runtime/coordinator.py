@@ -40,7 +40,7 @@ from ..distributed.driver import start_fields
 from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
 from .agent import Terminated, _on_sigterm
-from .bus import Bus, check_job_free, open_client
+from .bus import AccessDenied, Bus, check_access, check_job_free, open_client
 
 log = logging.getLogger("dqm.runtime")
 
@@ -415,6 +415,11 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     check_job_free(session, keys.alive_coordinator(cfg.job), "the coordinator", cfg.job, endpoint)
     view = JobView.for_fd(progress_fd, cfg.agents)
     bus = Bus(session, cfg.job, -1, cfg.agents)
+    try:
+        check_access(bus, endpoint, tls, f"the coordinator of job {cfg.job!r}")
+    except AccessDenied:
+        bus.close()
+        raise
     coord = Coordinator(bus, cfg, ready_timeout_s, job_timeout_s, max_lost=max_lost, view=view,
                         phase_timeout_s=phase_timeout_s, catalog=clusters is not None)
     try:

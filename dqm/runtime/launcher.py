@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -30,6 +31,7 @@ from ..distributed.sources import split_features
 from .coordinator import failure_paragraph, failure_path
 from .bus import LEASE_MS
 from .lifeline import PARENT_ENV, child_preexec, signals_deferred
+from .roster import job_roster
 
 #: temporary folders of ``dqm run``: dqm-run-<launcher pid>-<random>
 WORKDIR_PREFIX = "dqm-run-"
@@ -213,6 +215,30 @@ class Processes:
                 p.wait(timeout=5)
 
 
+def tls_options(certs: Path, name: str) -> List[str]:
+    """--tls-* options for the certificate ``name`` (router, agent<i>, coordinator) in ``certs``
+    (as made by deploy/make-certs.sh)."""
+    certs = Path(certs)
+    return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"),
+            "--tls-key", str(certs / f"{name}.key")]
+
+
+def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -> Path:
+    """Run deploy/make-certs.sh (openssl): CA, router certificate naming ``router_names``, client certificates."""
+    from ..validation import InputError
+
+    script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
+    if not script.exists():
+        raise InputError(f"{script} is missing (it ships with the source checkout, not the wheel)")
+    if shutil.which("openssl") is None:
+        raise InputError("making certificates needs openssl (not installed)")
+    r = subprocess.run(["sh", str(script), str(out), ",".join(router_names), *clients],
+                       capture_output=True, text=True, timeout=120)
+    if r.returncode != 0:
+        raise RuntimeError(f"make-certs.sh failed: {r.stderr.strip()}")
+    return Path(out)
+
+
 def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: float,
                      ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None,
                      clusters: Optional[str] = None) -> List[str]:
@@ -321,14 +347,17 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
             env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
             ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False,
-            features: Optional[io.FeatureSet] = None, clusters: Optional[str] = None) -> dict:
+            features: Optional[io.FeatureSet] = None, clusters: Optional[str] = None,
+            secure: bool = False) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
     The agents start with ``features`` (a FEATURES set: its keypoints and image names reach the
     CLUSTERS file), or with the descriptors and image ids. ``clusters``: where the coordinator
     writes the CLUSTERS file (none: no catalogs travel). Raises :class:`JobFailure` (a
     RuntimeError) whose text is the operator's paragraph. ``progress``: show the live job table
-    on this process's standard error if it is a terminal.
+    on this process's standard error if it is a terminal. ``secure``: mutual TLS with throwaway
+    certificates (one per process, made in the work folder) and a router that enforces the job's
+    roster (:func:`dqm.runtime.roster.job_roster`): every process may use only its own keys.
     """
     cfg = cfg.validated(len(features) if features is not None else len(descriptors))
     remove_stale_workdirs()
@@ -337,7 +366,15 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     wd.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(descriptors, image_ids, cfg.agents, wd, features)
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
+    router_extra: List[str] = []
+    identity: Callable[[int], List[str]] = lambda a: []  # noqa: E731
+    if secure:
+        certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator"] + [f"agent{a}" for a in range(cfg.agents)])
+        roster = wd / "roster.txt"
+        roster.write_text(job_roster(cfg.agents, [cfg.job]).text())
+        router_extra = ["--acl", str(roster), *tls_options(certs, "router")]
+        identity = lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}")  # noqa: E731
     procs = Processes()
     env = dict(os.environ if env is None else env)
     # balanced: all agents compute at once: share this host's cores instead of oversubscribing them.
@@ -346,11 +383,12 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode == "balanced" else None
     tty = os.dup(2) if progress and sys.stderr.isatty() else None
     try:
-        router = procs.start(["router", "--listen", endpoint], wd / "router.log", env)
+        router = procs.start(["router", "--listen", endpoint, *router_extra], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
         coordinator_extra = ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
         job = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
-                        client_args=lambda a: coordinator_extra if a < 0 else list(agent_args or []), env=env,
+                        client_args=lambda a: identity(a) + (coordinator_extra if a < 0 else list(agent_args or [])),
+                        env=env,
                         job_timeout_s=timeout_s, phase_timeout_s=None, threads_per_agent=share,
                         clusters=None if clusters is None else Path(clusters).resolve(),
                         ready_timeout_s=ready_timeout_s, max_lost=max_lost, pass_fds=[tty] if tty is not None else [])

@@ -27,7 +27,8 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
-from .launcher import Processes, finish_job, start_job, wait_listening, write_agent_files
+from .launcher import (Processes, finish_job, make_certs, start_job, tls_options, wait_listening,  # noqa: F401
+                       write_agent_files)
 
 SUBNET = "10.213"
 ROUTER_PORT = 7447
@@ -225,28 +226,6 @@ class MultihostResult:
         return {"to_router": sum(c["rx_bytes"] for c in self.counters.values()),
                 "from_router": sum(c["tx_bytes"] for c in self.counters.values()),
                 "packets": sum(c["rx_packets"] + c["tx_packets"] for c in self.counters.values())}
-
-
-def tls_options(certs: Path, name: str) -> List[str]:
-    """--tls-* options for the certificate ``name`` (router, agent<i>, coordinator) in ``certs``
-    (as made by deploy/make-certs.sh)."""
-    certs = Path(certs)
-    return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"),
-            "--tls-key", str(certs / f"{name}.key")]
-
-
-def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -> Path:
-    """Run deploy/make-certs.sh (openssl): CA, router certificate naming ``router_names``, client certificates."""
-    script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
-    if not script.exists():
-        raise RuntimeError(f"{script} is missing (it ships with the source checkout, not the wheel)")
-    if shutil.which("openssl") is None:
-        raise RuntimeError("making certificates needs openssl (not installed)")
-    r = subprocess.run(["sh", str(script), str(out), ",".join(router_names), *clients],
-                       capture_output=True, text=True, timeout=120)
-    if r.returncode != 0:
-        raise RuntimeError(f"make-certs.sh failed: {r.stderr.strip()}")
-    return Path(out)
 
 
 def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path, hosts: int = 3,

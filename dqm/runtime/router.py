@@ -1,17 +1,69 @@
 """A zenoh router from Python (no zenohd binary is needed): routing runs in
 zenoh's own threads; this process only holds the session open until SIGTERM /
-Ctrl-C, then closes it cleanly."""
+Ctrl-C, then closes it cleanly.
+
+With a roster (``dqm router --acl ROSTER``, :mod:`dqm.runtime.roster`) the router
+enforces default-deny access control, and reports every admitted client whose
+identity is not in the roster (zenoh itself logs only its session id): such a
+client can do nothing, which otherwise shows up only as a job that never starts.
+"""
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import threading
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 from .bus import router_config, zenoh_message
+from .roster import Roster, access_control
 
 
-def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Optional[str] = None) -> int:
+def _say(text: str) -> None:
+    print(f"[router] {text}", file=sys.stderr, flush=True)
+
+
+class IdentityWatch:
+    """Polls the router's admin space for its clients' links and the identity each authenticated with
+    (``auth_identifier``: the certificate's common name or the username); reports, once per link, the
+    identities the roster does not know."""
+
+    def __init__(self, session, roster: Roster):
+        self.session = session
+        self.roster = roster
+        self.known = roster.names()
+        self.seen: Dict[str, str] = {}  # link key -> identity
+        self.unknown: List[str] = []
+
+    def poll(self) -> None:
+        zid = str(self.session.zid())
+        try:
+            replies = list(self.session.get(f"@/{zid}/session/transport/unicast/*/link/*", timeout=1.0))
+        except Exception:  # noqa: BLE001 - the router is closing
+            return
+        for r in replies:
+            if r.ok is None:
+                continue
+            link = str(r.ok.key_expr)
+            if link in self.seen:
+                continue
+            try:
+                info = json.loads(r.ok.payload.to_bytes())
+            except ValueError:
+                continue
+            who = str(info.get("auth_identifier") or "")
+            self.seen[link] = who
+            if who not in self.known:
+                self.unknown.append(who)
+                what = f"identity {who!r}" if who else "a client without an identity (no certificate, no username)"
+                _say(f"{what} from {info.get('dst', '?')} is not in the roster {self.roster.source}: the router "
+                     "lets it do nothing (add a line for it, or check which certificate it uses)")
+
+
+def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Optional[str] = None,
+                roster: Optional[Roster] = None) -> int:
+    """Entry point of ``dqm router``; ``roster``: enforce its access control over the identities
+    ``tls`` authenticates (certificate common names; usernames when it holds ``usrpwd``)."""
     import zenoh
 
     from .lifeline import watch_parent
@@ -24,19 +76,28 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     watch_parent()
+    acl = None
+    if roster is not None:
+        kinds = (["cert"] if set(tls or {}) - {"usrpwd"} else []) + (["user"] if (tls or {}).get("usrpwd") else [])
+        acl = access_control(roster, subjects=kinds)
     try:
-        session = zenoh.open(router_config(endpoints, tls))
+        session = zenoh.open(router_config(endpoints, tls, acl))
     except Exception as exc:  # noqa: BLE001 - port in use, bad address, bad certificate
-        print(f"[router] error: cannot listen on {', '.join(endpoints)}: {zenoh_message(exc)}", file=sys.stderr,
-              flush=True)
+        _say(f"error: cannot listen on {', '.join(endpoints)}: {zenoh_message(exc)}")
         return 2
     try:
-        print(f"[router] listening on {', '.join(endpoints)}", file=sys.stderr, flush=True)
+        _say(f"listening on {', '.join(endpoints)}")
+        watch = None
+        if roster is not None:
+            watch = IdentityWatch(session, roster)
+            _say(f"access control: {len(roster.identities)} identities from {roster.source}, everything else "
+                 f"denied{'; jobs ' + ', '.join(roster.jobs) if roster.jobs else ''}")
         if ready_file:
             with open(ready_file, "w") as fh:
                 fh.write("ready\n")
-        while not stop.wait(0.2):
-            pass
+        while not stop.wait(0.5):
+            if watch is not None:
+                watch.poll()
         return 0
     finally:
         session.close()
