@@ -25,7 +25,7 @@ certificates); an agent or camera index belongs to one identity.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -53,7 +53,7 @@ class Identity:
     role: str
     name: str
     index: Optional[int] = None
-    line: int = 0
+    line: int = field(default=0, compare=False)  # where the roster says it
 
     def describe(self) -> str:
         return f"{self.role} {self.index}" if self.index is not None else self.role
@@ -66,7 +66,7 @@ class Identity:
 class Roster:
     identities: Tuple[Identity, ...]
     jobs: Tuple[str, ...] = ()  # empty: any job
-    source: str = "roster"
+    source: str = field(default="roster", compare=False)
 
     def names(self) -> Dict[str, Identity]:
         return {i.name: i for i in self.identities}
