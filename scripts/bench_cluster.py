@@ -8,9 +8,11 @@ M agents + coordinator processes, start-up included, and without start-up:
 the coordinator's time from start to the last result), the simulator's wall
 time, centralized QuickMatch (same finite kernel), bytes per feature, traffic
 over raw descriptor bytes, per-phase times of the slowest agent, and whether
-the runtime's clusters equal the simulator's.
+the runtime's clusters equal the simulator's. With --secure every job also runs under
+mutual TLS and strict access control (`dqm run --secure`: one certificate per process, the
+router enforcing the job's roster), right after the plain one, and the table gives the ratio.
 
-    python scripts/bench_cluster.py [--sizes 25000,100000] [--agents 1,2,4,8] [--no-graf] [--mode balanced]
+    python scripts/bench_cluster.py [--sizes 25000,100000] [--agents 1,2,4,8] [--no-graf] [--mode balanced] [--secure]
 """
 import argparse
 import json
@@ -51,6 +53,8 @@ def main(argv=None):
     ap.add_argument("--no-graf", action="store_true")
     ap.add_argument("--json", help="write raw numbers here")
     ap.add_argument("--mode", default="balanced", help="balanced, lean or paper")
+    ap.add_argument("--secure", action="store_true",
+                    help="also run every job under mutual TLS + access control and report the ratio")
     args = ap.parse_args(argv)
     rows = []
     for name, X, ids in datasets([int(s) for s in args.sizes.split(",") if s], not args.no_graf):
@@ -76,15 +80,32 @@ def main(argv=None):
                        bytes_per_feature=rep["total_bytes"] / len(X),
                        traffic_over_raw=rep["total_bytes"] / raw, wire=rep["wire_bytes_received_by_router"],
                        equal_to_simulator=same, phases_slowest_agent=phases)
+            if args.secure:
+                t = time.perf_counter()
+                sec = run_job(X, ids, cfg, timeout_s=3600, secure=True)
+                row.update(secure_s=time.perf_counter() - t, secure_job_s=sec["time_run_s"],
+                           secure_bytes=sec["total_bytes"], secure_wire=sec["wire_bytes_received_by_router"],
+                           secure_equal=bool(np.array_equal(np.asarray(sec["labels"]), sim.labels)))
+                row["secure_over_plain"] = row["secure_s"] / t_run
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
-    print("| data | M | centralized s | simulator s | runtime s (job / start-up) | runtime / simulator | "
-          "bytes / feature | traffic / raw | = simulator |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    secure = ["secure s (job)", "secure / plain", "secure = simulator"] if args.secure else []
+    head = ["data", "M", "centralized s", "simulator s", "runtime s (job / start-up)", "runtime / simulator",
+            "bytes / feature", "traffic / raw", "= simulator"] + secure
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
     for r in rows:
+        extra = (f" {r['secure_s']:.1f} ({r['secure_job_s']:.1f}) | {r['secure_over_plain']:.2f} | "
+                 f"{r['secure_equal']} |" if args.secure else "")
         print(f"| {r['data']} | {r['m']} | {r['central_s']:.1f} | {r['simulator_s']:.1f} | {r['runtime_s']:.1f} "
               f"({r['runtime_job_s']:.1f} / {r['runtime_startup_s']:.1f}) | {r['ratio_vs_sim']:.2f} | "
-              f"{r['bytes_per_feature']:.0f} | {r['traffic_over_raw']:.2f} | {r['equal_to_simulator']} |")
+              f"{r['bytes_per_feature']:.0f} | {r['traffic_over_raw']:.2f} | {r['equal_to_simulator']} |" + extra)
+    if args.secure:
+        ratios = [r["secure_over_plain"] for r in rows]
+        jobs = [r["secure_job_s"] / r["runtime_job_s"] for r in rows]
+        print(f"\nmutual TLS + access control / plain TCP: whole run {min(ratios):.2f}-{max(ratios):.2f}x "
+              f"(median {float(np.median(ratios)):.2f}), job without start-up {min(jobs):.2f}-{max(jobs):.2f}x "
+              f"(median {float(np.median(jobs)):.2f})")
     print()
     for r in rows:
         print(f"- {r['data']}, M={r['m']}: slowest agent phases (s) {r['phases_slowest_agent']}")
