@@ -147,7 +147,7 @@ def attack_window(out: dict, job: str, m: int, seconds: float, rng) -> dict:
         for key in (keys.alive_coordinator(job), keys.alive_agent(job, 0), keys.alive_agent(job, m),
                     keys.alive_stream(job), keys.alive_coordinator(job + "-other")):
             tokens.append(sessions[who][1].liveliness().declare_token(key))
-            out["sent"]["liveliness token of another"] += 1
+            out["sent"][f"{who}: liveliness token of another"] += 1
     time.sleep(0.3)
     t0 = time.monotonic()
     while time.monotonic() - t0 < seconds:
@@ -160,8 +160,8 @@ def attack_window(out: dict, job: str, m: int, seconds: float, rng) -> dict:
                         payload = forged(job, kind, -1, epoch, rng, m)
                         s.put(keys.message_key(job, -1, v, v), payload, congestion_control=block)
                         s.put(keys.message_key(job, own, v, v), payload, congestion_control=block)
-                        out["sent"]["as the coordinator, on its key"] += 1
-                        out["sent"]["as the coordinator, on the attacker's key"] += 1
+                        out["sent"][f"{who}: as the coordinator, on its key"] += 1
+                        out["sent"][f"{who}: as the coordinator, on the attacker's key"] += 1
                         out["own_key_sent"] += who == "mallory"
                     for a in range(m):
                         if a == evil:
@@ -170,8 +170,8 @@ def attack_window(out: dict, job: str, m: int, seconds: float, rng) -> dict:
                             payload = forged(job, kind, a, epoch, rng, m)
                             s.put(keys.message_key(job, a, v, v), payload, congestion_control=block)
                             s.put(keys.message_key(job, own, v, v), payload, congestion_control=block)
-                            out["sent"]["as another agent, on its key"] += 1
-                            out["sent"]["as another agent, on the attacker's key"] += 1
+                            out["sent"][f"{who}: as another agent, on its key"] += 1
+                            out["sent"][f"{who}: as another agent, on the attacker's key"] += 1
                             out["own_key_sent"] += who == "mallory"
             if who == "mallory":  # replay what reached its own inbox, on the original key and on its own
                 for key, raw in [c for c in captured if keys.parse_message_key(job, c[0])][:20]:
@@ -179,8 +179,8 @@ def attack_window(out: dict, job: str, m: int, seconds: float, rng) -> dict:
                     for v in victims:
                         s.put(keys.message_key(job, src, v, v), raw, congestion_control=block)
                         s.put(keys.message_key(job, evil, v, v), raw, congestion_control=block)
-                        out["sent"]["replayed, on the original sender's key"] += 1
-                        out["sent"]["replayed, on the attacker's key"] += 1
+                        out["sent"][f"{who}: replayed, on the original sender's key"] += 1
+                        out["sent"][f"{who}: replayed, on the attacker's key"] += 1
                         out["own_key_sent"] += 1
         time.sleep(0.2)
     time.sleep(1.0)  # let the last puts arrive and be counted before the job resumes
@@ -241,13 +241,15 @@ def markdown(res: dict) -> str:
         rows.append(f"| {who}: subscribe to the other processes' inboxes, `dqm/**`, `dqm/{res['job']}/**` | "
                     f"{a['subscriptions']} subscriptions | {r['bytes']} bytes of others' messages received |")
     for what, n in sorted(a["sent"].items()):
-        if what == "liveliness token of another":
-            got = f"{res['forged_tokens_visible']} visible to the observer"
+        if what.endswith("liveliness token of another"):
+            got = f"none visible to the observer ({res['forged_tokens_visible']} forged tokens in all)"
+        elif what.startswith("outsider"):
+            got = "0: the router drops them (an identity in no roster line may do nothing)"
         elif "attacker's key" in what:
             got = "reached the processes, all refused there (counted below)"
         else:
             got = "0: the router drops them (not the sender's key)"
-        rows.append(f"| forged: {what} | {n} | {got} |")
+        rows.append(f"| {what.replace(': ', ': forged, ', 1)} | {n} | {got} |")
     rows.append(f"| forged messages on mallory's own keys | {a['own_key_sent']} | {res['rejected_total']} refused "
                 f"by the job's processes, **{res['accepted']} accepted** |")
     rows.append(f"| the job | 1 | labels identical to the simulator: **{res['labels_identical']}**, "
@@ -354,7 +356,9 @@ def main(argv=None) -> int:
             return 2
         head, rest = text.split(BEGIN, 1)
         _, tail = rest.split(END, 1)
-        cmd = " ".join(["scripts/attack.py"] + (argv if argv is not None else sys.argv[1:]))
+        given = argv if argv is not None else sys.argv[1:]
+        cmd = " ".join(["scripts/attack.py"] + [x for i, x in enumerate(given)
+                                                if x != "--json" and (i == 0 or given[i - 1] != "--json")])
         DOC.write_text(f"{head}{BEGIN}\nMade by `{cmd}` ({m} agents, {res['features']} features, "
                        f"{args.seconds:g} s of attacks, eclipse-zenoh {zenoh_version()}):\n\n{table}\n{END}{tail}")
     if not args.keep:

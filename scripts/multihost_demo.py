@@ -12,6 +12,7 @@ bytes with the kernel's counters on the veths, then deletes the namespaces.
     sudo .venv/bin/python scripts/multihost_demo.py --agents 6 --hosts 2 --points 500
     sudo .venv/bin/python scripts/multihost_demo.py --features my.npz --keep out/multihost
     sudo .venv/bin/python scripts/multihost_demo.py --tls          # mutual TLS (certificates by openssl)
+    sudo .venv/bin/python scripts/multihost_demo.py --tls --acl    # and the router enforces the job's roster
 
 Needs root (ip netns). Exit code 0: identical clusters; 1: different; 2: cannot run here.
 """
@@ -49,7 +50,11 @@ def main(argv=None) -> int:
     p.add_argument("--timeout", type=float, default=120.0)
     p.add_argument("--keep", help="keep the agents' files and logs in this folder")
     p.add_argument("--tls", action="store_true", help="mutual TLS on every link (certificates made with openssl)")
+    p.add_argument("--acl", action="store_true",
+                   help="with --tls: the router enforces the job's roster (each process only its own keys)")
     args = p.parse_args(argv)
+    if args.acl and not args.tls:
+        p.error("--acl needs --tls (identities are the certificates' common names)")
 
     reason = netns_unavailable_reason()
     if reason:
@@ -71,6 +76,7 @@ def main(argv=None) -> int:
             certs = make_certs(wd / "certs", router_names, [f"agent{a}" for a in range(cfg.agents)] + ["coordinator"])
             print(f"  certificates (CA, router naming {', '.join(router_names)}, clients) in {certs}")
         res = run_across_namespaces(X, ids, cfg, wd, hosts=args.hosts, timeout_s=args.timeout, tls_certs=certs,
+                                    acl=args.acl,
                                     log=lambda t: print(f"  {t}", flush=True))
     except NamespacesUnavailable as exc:
         print(f"multihost_demo: cannot run here: {exc}", file=sys.stderr)
@@ -87,7 +93,7 @@ def main(argv=None) -> int:
     sim = simulate(X, ids, cfg)
     same = np.array_equal(sim.labels, labels)
     print(f"\n{len(labels)} features of {len(np.unique(ids))} images, {cfg.agents} agents on {args.hosts} hosts"
-          f"{' over mutual TLS' if args.tls else ''}: "
+          f"{' over mutual TLS' if args.tls else ''}{' with access control' if args.acl else ''}: "
           f"{rep['clusters']} clusters; {wall:.1f} s wall including namespace set-up "
           f"(job {rep['wall_s']:.1f} s). Simulator: {'identical clusters' if same else 'DIFFERENT clusters'}.")
     print(f"Namespaces {', '.join(res.namespaces)} deleted.\n")

@@ -7,7 +7,7 @@ IMAGES: folders, glob patterns or image files, and/or --image-list FILE (the sam
 inputs, in the same order, as dqm extract; --recursive too). The node waits for the
 stream's liveliness token (dqm/<job>/alive/stream, up to --wait seconds), then
 extracts SIFT (the same --preset / --max-features as dqm extract) and puts one
-`image` message per image on dqm/<job>/stream/images, one every 1/--rate seconds
+`image` message per image on dqm/<job>/stream/images/from/C, one every 1/--rate seconds
 (an image whose SIFT takes longer is put as soon as it is ready). Every message
 carries the image's name (--names: its absolute path, its file name, or none) and
 keypoints, so that the stream's --out file can be drawn with dqm plot pair / clusters.

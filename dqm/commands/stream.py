@@ -5,7 +5,7 @@
 
 Camera nodes (dqm camera, one per camera) put one `image` message per image (msgpack,
 dqm.distributed.messages: image_id, name, time, descriptors, keypoints) on
-dqm/<job>/stream/images, once the stream's liveliness token dqm/<job>/alive/stream
+dqm/<job>/stream/images/from/<camera>, once the stream's liveliness token dqm/<job>/alive/stream
 is present. After every add (and every removal by --window) the stream publishes a
 `changes` message (the cluster events, the image and its name, the counts) on
 dqm/<job>/stream/changes. Its clusters equal dqm match --kernel quadratic on the

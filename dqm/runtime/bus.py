@@ -206,8 +206,7 @@ def check_access(bus: "Bus", endpoint: str, tls: Optional[dict], what: str, dead
         return  # no identity: no access control possible
     probe = open_client(endpoint, tls, deadline_s=deadline_s)
     nonce = os.urandom(16)
-    arrived = threading.Event()
-    bus._probes[nonce] = arrived
+    arrived = bus.expect_probe(nonce)
     token = inbox = False
     try:
         t0 = time.monotonic()
@@ -218,7 +217,7 @@ def check_access(bus: "Bus", endpoint: str, tls: Optional[dict], what: str, dead
             if token and inbox:
                 return
     finally:
-        bus._probes.pop(nonce, None)
+        bus.expect_probe(nonce, False)
         probe.close()
     who = identity_of(tls) or "this client"
     role = "coordinator" if bus.home < 0 else "agent"
@@ -297,6 +296,13 @@ class Bus:
 
         with self._lock:
             self._owners = np.asarray(owners, dtype=np.int64).copy()
+
+    def expect_probe(self, nonce: bytes, expect: bool = True) -> threading.Event:
+        """The event set when ``nonce`` arrives on this process's probe key (:func:`check_access`);
+        ``expect=False`` forgets it."""
+        if not expect:
+            return self._probes.pop(nonce, threading.Event())
+        return self._probes.setdefault(nonce, threading.Event())
 
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
+from .roster import job_roster
 from .launcher import (Processes, finish_job, make_certs, start_job, tls_options, wait_listening,  # noqa: F401
                        write_agent_files)
 
@@ -230,19 +231,27 @@ class MultihostResult:
 
 def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path, hosts: int = 3,
                           timeout_s: float = 120.0, tag: Optional[str] = None, log=None,
-                          tls_certs: Optional[Path] = None) -> MultihostResult:
+                          tls_certs: Optional[Path] = None, acl: bool = False) -> MultihostResult:
     """Router in its own namespace, agent a on host a mod ``hosts``, coordinator on host 0.
 
     Builds the namespaces, runs the job, stops every process and deletes the
     namespaces (also on failure). Raises NamespacesUnavailable if they cannot be built.
     With ``tls_certs`` (a folder from :func:`make_certs` with certificates
-    router, agent<i>, coordinator) every link is mutual TLS.
+    router, agent<i>, coordinator) every link is mutual TLS; with ``acl`` too, the router enforces
+    the job's roster (:func:`dqm.runtime.roster.job_roster`: each process only its own keys).
     """
     log = log or (lambda text: None)
     cfg = cfg.validated(len(descriptors))
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(descriptors, image_ids, cfg.agents, workdir)
+    router_args = tls_options(tls_certs, "router") if tls_certs else []
+    if acl:
+        if not tls_certs:
+            raise ValueError("access control needs identities: pass tls_certs")
+        roster = workdir / "roster.txt"
+        roster.write_text(job_roster(cfg.agents, [cfg.job]).text())
+        router_args += ["--acl", str(roster)]
     nss = Namespaces(hosts=hosts, **({"tag": tag} if tag else {}))
     procs = Processes()
     host_of = lambda a: 0 if a < 0 else a % hosts  # noqa: E731
@@ -253,7 +262,7 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
             proto = "tls" if tls_certs else "tcp"
             endpoints = [f"{proto}/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(hosts)]
             start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns),
-                         tls_args=tls_options(tls_certs, "router") if tls_certs else ())
+                         tls_args=router_args)
             log(f"router in {nss.router_ns} listening on {', '.join(endpoints)}")
             before = nss.counters()
             job = start_job(procs, cfg, files, workdir,

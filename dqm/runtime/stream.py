@@ -1,7 +1,7 @@
 """``dqm stream``: online QuickMatch fed by camera nodes over zenoh.
 
 Camera nodes put ``image`` messages (one image each; :mod:`dqm.distributed.messages`)
-on ``dqm/<job>/stream/images``; the stream adds every valid image to an
+on ``dqm/<job>/stream/images/from/<camera>``; the stream adds every valid image to an
 :class:`dqm.core.online.OnlineQuickMatch` and publishes what changed (a
 ``changes`` message per add or remove) on ``dqm/<job>/stream/changes``
 (:mod:`dqm.distributed.keys`). The liveliness token ``dqm/<job>/alive/stream``

@@ -83,6 +83,13 @@ def test_rules_give_each_identity_only_its_own_keys():
     assert {tuple(sorted(s)) for s in acl["subjects"]} == {("cert_common_names", "id"), ("id", "usernames")}
 
 
+def test_the_example_roster_in_deploy_parses():
+    from pathlib import Path
+
+    r = load_roster(str(Path(__file__).resolve().parents[2] / "deploy" / "roster.example"))
+    assert [i.describe() for i in r.identities] == ["coordinator"] + [f"agent {p}" for p in range(4)]
+
+
 def test_a_job_roster_names_what_dqm_run_secure_certifies():
     r = job_roster(3, ["j"])
     assert [i.as_line() for i in r.identities] == ["coordinator coordinator", "agent agent0 0", "agent agent1 1",

@@ -43,7 +43,8 @@ def test_spies_receive_no_byte_of_others_messages(attack):
 
 def test_forged_messages_on_others_keys_never_arrive_and_on_own_keys_are_all_refused(attack):
     sent = attack["attack"]["sent"]
-    assert sent["as the coordinator, on its key"] > 0 and sent["as another agent, on its key"] > 0
+    for who in ("mallory", "outsider"):
+        assert sent[f"{who}: as the coordinator, on its key"] > 0 and sent[f"{who}: as another agent, on its key"] > 0
     # every refusal in the job is one of mallory's own-key forgeries: nothing on others' keys arrived
     assert attack["rejected_total"] == attack["attack"]["own_key_sent"] > 0
     assert attack["accepted"] == 0
@@ -55,13 +56,14 @@ def test_forged_messages_on_others_keys_never_arrive_and_on_own_keys_are_all_ref
 
 def test_replayed_messages_are_refused(attack):
     assert attack["attack"]["captured"] > 0  # mallory did receive its own agent's messages to replay
-    assert attack["attack"]["sent"]["replayed, on the attacker's key"] > 0
-    assert attack["attack"]["sent"]["replayed, on the original sender's key"] > 0
+    assert attack["attack"]["sent"]["mallory: replayed, on the attacker's key"] > 0
+    assert attack["attack"]["sent"]["mallory: replayed, on the original sender's key"] > 0
     assert attack["accepted"] == 0
 
 
 def test_others_liveliness_tokens_are_not_admitted(attack):
-    assert attack["attack"]["sent"]["liveliness token of another"] == 10
+    assert attack["attack"]["sent"]["mallory: liveliness token of another"] == 5
+    assert attack["attack"]["sent"]["outsider: liveliness token of another"] == 5
     assert attack["forged_tokens_visible"] == 0, attack["tokens_left"]
 
 

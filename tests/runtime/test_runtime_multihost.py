@@ -76,14 +76,14 @@ def test_job_across_namespaces_matches_simulator_and_kernel_counters(netns_ok, t
     _check(res, ds, cfg, overhead=1.10)  # the bound: kernel within 10% of the metered bytes
 
 
-def test_mutual_tls_across_namespaces(netns_ok, tmp_path):
+def test_mutual_tls_and_access_control_across_namespaces(netns_ok, tmp_path):
     if shutil.which("openssl") is None:
         pytest.skip("mutual-TLS test needs openssl to make certificates (not installed)")
     ds = synthetic.sift_like(n_images=5, n_points=150, seed=3)
     cfg = DQMConfig(agents=3, seed=2, partition="seeded", job="multihost-tls")
     router_names = [Namespaces().router_addr(h) for h in range(3)]
     certs = make_certs(tmp_path / "certs", router_names, [f"agent{a}" for a in range(3)] + ["coordinator"])
-    res = _run(ds, cfg, tmp_path, tls_certs=certs)
+    res = _run(ds, cfg, tmp_path, tls_certs=certs, acl=True)  # the router enforces the job's roster
     _check(res, ds, cfg, overhead=1.15)  # TLS records add a few percent
 
 
