@@ -168,7 +168,8 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
         return (f"{base}; something listens at {addr} but refused the TLS session: check that --tls-ca is the CA "
                 f"that signed the router's certificate, that the router's certificate names {host} "
                 f"(subjectAltName), and that --tls-cert/--tls-key were issued by the CA the router trusts")
-    return f"{base}; something listens at {addr} but refused a {proto} zenoh session (a tls/ router?)"
+    return (f"{base}; something listens at {addr} but refused a {proto} zenoh session: a tls/ router, or one that "
+            "admits only known usernames (--user and --password-file: check both)")
 
 
 class AccessDenied(RuntimeError):

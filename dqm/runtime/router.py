@@ -25,12 +25,14 @@ def _say(text: str) -> None:
 
 class IdentityWatch:
     """Polls the router's admin space for its clients' links and the identity each authenticated with
-    (``auth_identifier``: the certificate's common name or the username); reports, once per link, the
-    identities the roster does not know."""
+    (``auth_identifier``: the client certificate's common name); reports, once per link, the identities
+    the roster does not know. zenoh does not show a link's username there, so a router that identifies
+    clients by username only (``certificates=False``) cannot tell who they are and reports nothing."""
 
-    def __init__(self, session, roster: Roster):
+    def __init__(self, session, roster: Roster, certificates: bool = True):
         self.session = session
         self.roster = roster
+        self.certificates = certificates
         self.known = roster.names()
         self.seen: Dict[str, str] = {}  # link key -> identity
         self.unknown: List[str] = []
@@ -53,7 +55,7 @@ class IdentityWatch:
                 continue
             who = str(info.get("auth_identifier") or "")
             self.seen[link] = who
-            if who not in self.known:
+            if who not in self.known and self.certificates:
                 self.unknown.append(who)
                 what = f"identity {who!r}" if who else "a client without an identity (no certificate, no username)"
                 _say(f"{what} from {info.get('dst', '?')} is not in the roster {self.roster.source}: the router "
@@ -80,6 +82,8 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
     if roster is not None:
         kinds = (["cert"] if set(tls or {}) - {"usrpwd"} else []) + (["user"] if (tls or {}).get("usrpwd") else [])
         acl = access_control(roster, subjects=kinds)
+    else:
+        kinds = []
     try:
         session = zenoh.open(router_config(endpoints, tls, acl))
     except Exception as exc:  # noqa: BLE001 - port in use, bad address, bad certificate
@@ -89,7 +93,7 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
         _say(f"listening on {', '.join(endpoints)}")
         watch = None
         if roster is not None:
-            watch = IdentityWatch(session, roster)
+            watch = IdentityWatch(session, roster, certificates="cert" in kinds)
             _say(f"access control: {len(roster.identities)} identities from {roster.source}, everything else "
                  f"denied{'; jobs ' + ', '.join(roster.jobs) if roster.jobs else ''}")
         if ready_file:
