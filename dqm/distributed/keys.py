@@ -18,6 +18,11 @@ keeps its own inbox; senders address the agent's new process.
 * ``dqm/<job>/alive/agent/<p>``  liveliness token of agent process p
 * ``dqm/<job>/alive/coordinator`` liveliness token of the coordinator
 
+Gathering (:mod:`dqm.runtime.gather`: every source's features to one host, the centralized baseline):
+
+* ``dqm/<job>/gather/from/<Q>``  source Q's features, in parts
+* ``dqm/<job>/alive/gather``     liveliness token of the gathering host, declared once it subscribes
+
 Streaming (``dqm stream``, :mod:`dqm.runtime.stream`):
 
 * ``dqm/<job>/stream/images/from/<c>``  camera node c puts ``image`` messages here (one image each)
@@ -114,3 +119,16 @@ def stream_changes(job: str) -> str:
 
 def alive_stream(job: str) -> str:
     return f"dqm/{job}/alive/stream"
+
+
+def gather_from(job: str, src: int) -> str:
+    """Where source ``src`` puts its features for the gathering host."""
+    return f"dqm/{job}/gather/from/{int(src)}"
+
+
+def gather_inbox(job: str) -> str:
+    return f"dqm/{job}/gather/from/*"
+
+
+def alive_gather(job: str) -> str:
+    return f"dqm/{job}/alive/gather"

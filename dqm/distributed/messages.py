@@ -145,6 +145,9 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
                 "names": "array:|u1:1"},
     # receiver -> sender: acknowledgement of the sequence number in the header
     "ack": {"dst": "int"},
+    # gather (dqm.runtime.gather): a source -> the gathering host, its features in parts (the centralized
+    # baseline of the distributed modes)
+    "gather": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "descriptors": "array:|u1,<f4:2"},
     # agent -> coordinator: per-phase timings and local statistics (numbers only)
     "stats": {"values": "dict"},
     # coordinator -> agents: abort the job (reason)
@@ -197,6 +200,7 @@ ROW_FIELDS: Dict[str, tuple] = {
     "component": ("ids", "image_ids", "sigma", "parent", "distance"),
     "changes": ("event_kind", "cluster", "source", "new", "size"),
     "catalog": ("ids", "image"),
+    "gather": ("ids", "image_ids", "descriptors"),
 }
 #: row fields that may also be empty (sums.high: only when a partial sum is too large for one int64)
 OPTIONAL_ROW_FIELDS: Dict[str, tuple] = {"sums": ("high",), "catalog": ("keypoints", "point_ids")}
@@ -329,7 +333,7 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
         for f in rows[1:]:
             if len(out[f]) != n:
                 raise MessageError(f"{kind}.{f} has {len(out[f])} rows, {rows[0]} has {n}")
-    if "descriptors" in out and kind in ("features", "ghost", "sample", "image"):
+    if "descriptors" in out and kind in ("features", "ghost", "sample", "image", "gather"):
         d = out["descriptors"]
         if kind == "image" and d.shape[1] == 0:
             raise MessageError(f"{kind}.descriptors have no dimensions (shape {tuple(d.shape)})")

@@ -183,14 +183,15 @@ class Processes:
         self.procs: List[subprocess.Popen] = []
 
     def start(self, args: List[str], log_path: Path, env=None, prefix: Optional[List[str]] = None,
-              pass_fds=()) -> subprocess.Popen:
-        """Start ``python -m dqm ARGS`` (output to ``log_path``); it dies with this process."""
+              pass_fds=(), module: str = "dqm") -> subprocess.Popen:
+        """Start ``python -m MODULE ARGS`` (``dqm`` by default; output to ``log_path``); it dies with this
+        process."""
         fh = open(log_path, "w")
         env = dict(os.environ if env is None else env)
         env[PARENT_ENV] = str(os.getpid())
         try:
             with signals_deferred():  # Ctrl-C / SIGTERM arrive once the child is started and known
-                p = subprocess.Popen((prefix or []) + [sys.executable, "-m", "dqm"] + args, stdout=fh,
+                p = subprocess.Popen((prefix or []) + [sys.executable, "-m", module] + args, stdout=fh,
                                      stderr=subprocess.STDOUT, env=env, start_new_session=True,
                                      preexec_fn=child_preexec(os.getpid()), pass_fds=tuple(pass_fds))
                 self.procs.append(p)

@@ -177,6 +177,75 @@ class Namespaces:
         return out
 
 
+CGROUP_CPU = Path("/sys/fs/cgroup/cpu")
+
+
+@dataclass
+class EmulatedHosts(Namespaces):
+    """:class:`Namespaces` that behave like small machines on a real network: every host (and its
+    processes) in a cgroup-v1 CPU quota of ``cpu_cores`` cores (the router namespace, the network,
+    has none), and every veth capped at ``rate_mbit`` Mbit/s in each direction with ``tc tbf``
+    (``netem`` is not available here, so links add no delay beyond queueing). ``None``: no limit.
+    """
+
+    rate_mbit: Optional[float] = None
+    cpu_cores: Optional[float] = None
+    cgroups: List[Path] = field(default_factory=list)
+
+    def cgroup(self, h: int) -> Path:
+        return CGROUP_CPU / f"{self.tag}-h{h + 1}"
+
+    def create(self) -> "EmulatedHosts":
+        super().create()
+        try:
+            if self.rate_mbit is not None:
+                bps = self.rate_mbit * 1e6 / 8
+                burst = int(max(96 * 1024, bps / 250))  # >= a 64 KiB GSO segment, >= 4 ms of traffic
+                limit = int(max(256 * 1024, bps * 0.1))  # 100 ms of queue
+                for h in range(self.hosts):
+                    for ns, dev in ((self.host_ns(h), "eth0"), (self.router_ns, self.router_veth(h))):
+                        _ip_tc(ns, "qdisc", "replace", "dev", dev, "root", "tbf", "rate", f"{self.rate_mbit}mbit",
+                               "burst", str(burst), "limit", str(limit))
+            if self.cpu_cores is not None:
+                if not (CGROUP_CPU / "cpu.cfs_quota_us").exists():
+                    raise NamespacesUnavailable(f"no cgroup-v1 CPU controller at {CGROUP_CPU}")
+                for h in range(self.hosts):
+                    cg = self.cgroup(h)
+                    cg.mkdir(exist_ok=True)
+                    self.cgroups.append(cg)
+                    (cg / "cpu.cfs_period_us").write_text("100000\n")
+                    (cg / "cpu.cfs_quota_us").write_text(f"{max(1000, int(self.cpu_cores * 100000))}\n")
+        except (subprocess.CalledProcessError, OSError) as exc:
+            detail = getattr(exc, "stderr", "") or str(exc)
+            self.delete()
+            raise NamespacesUnavailable(f"cannot emulate the hosts: {str(detail).strip()}") from None
+        return self
+
+    def host_prefix(self, h: int) -> List[str]:
+        """Command prefix that runs a program on host h: in its CPU quota, in its namespace."""
+        ns = self.prefix(self.host_ns(h))
+        if self.cpu_cores is None:
+            return ns
+        return ["sh", "-c", f'echo $$ > {self.cgroup(h)}/cgroup.procs && exec "$@"', "sh", *ns]
+
+    def delete(self) -> None:
+        super().delete()
+        for cg in self.cgroups:
+            for _ in range(20):  # the processes are gone with their namespaces; the kernel frees the group soon
+                try:
+                    cg.rmdir()
+                    break
+                except OSError:
+                    time.sleep(0.05)
+        self.cgroups.clear()
+
+
+def _ip_tc(ns: str, *args: str) -> None:
+    r = subprocess.run(["ip", "netns", "exec", ns, "tc", *args], capture_output=True, text=True, timeout=10)
+    if r.returncode != 0:
+        raise subprocess.CalledProcessError(r.returncode, ["tc", *args], r.stdout, r.stderr)
+
+
 # ---------------------------------------------------------------------- jobs over any endpoint layout
 def start_router(procs: Processes, endpoints: Sequence[str], workdir: Path, wait_addr, *,
                  prefix: Optional[List[str]] = None, tls_args: Sequence[str] = (), env=None,
@@ -281,3 +350,68 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
     placement = {"coordinator": host_of(-1), **{f"agent{a}": host_of(a) for a in range(cfg.agents)}}
     counters = {h: {k: after[h][k] - before[h][k] for k in after[h]} for h in after}
     return MultihostResult(report, placement, counters, names)
+
+
+#: what :func:`run_on_hosts` runs: the distributed modes, and every source's features gathered to one
+#: host that runs centralized QuickMatch (exact, or approximate)
+HOST_MODES = ("gather", "gather-approx", "lean", "balanced")
+
+
+@dataclass
+class HostRun:
+    """One mode's run on emulated hosts: time to result (processes started to labels), bytes moved,
+    and the labels ordered by feature id."""
+
+    mode: str
+    seconds: float
+    bytes: int
+    ids: "object"
+    labels: "object"
+    detail: Dict[str, float] = field(default_factory=dict)
+
+
+def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
+                 timeout_s: float = 600.0) -> HostRun:
+    """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
+    router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
+    agent per host); the coordinator, or the gathering host, is host 0."""
+    import numpy as np
+
+    m = cfg.agents
+    connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
+    procs = Processes()
+    tag = f"{mode}-"
+    try:
+        if mode in ("lean", "balanced"):
+            job = start_job(procs, cfg.but(mode=mode), files, workdir,
+                            connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)), job_timeout_s=timeout_s,
+                            tag=tag, threads_per_agent=None)
+            rep = finish_job(job, timeout_s + 15)
+            order = np.argsort(np.asarray(rep["ids"]))
+            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), np.asarray(rep["ids"])[order],
+                           np.asarray(rep["labels"])[order], {"job_s": rep["time_run_s"]})
+        if mode not in ("gather", "gather-approx"):
+            raise ValueError(f"unknown mode {mode!r}; one of {', '.join(HOST_MODES)}")
+        out = workdir / f"{tag}result.json"
+        t0 = time.monotonic()
+        gather = "dqm.runtime.gather"
+        recv = procs.start(["receive", "--sources", str(m), "--connect", connect(0), "--job", cfg.job,
+                                   "--out", str(out), "--timeout", str(timeout_s), str(files[0])]
+                           + (["--approximate"] if mode == "gather-approx" else []),
+                           workdir / f"{tag}receive.log", prefix=nss.host_prefix(0), module=gather)
+        senders = [procs.start(["send", "--id", str(h), "--connect", connect(h), "--job", cfg.job,
+                                       "--timeout", str(timeout_s), str(files[h])],
+                               workdir / f"{tag}send{h}.log", prefix=nss.host_prefix(h), module=gather)
+                   for h in range(1, m)]
+        rc = recv.wait(timeout=timeout_s + 15)
+        seconds = time.monotonic() - t0
+        for s in senders:
+            s.wait(timeout=15)
+        if rc != 0 or not out.exists():
+            raise RuntimeError(f"gathering failed (exit {rc}): {(workdir / f'{tag}receive.log').read_text()[-500:]}")
+        res = json.loads(out.read_text())
+        order = np.argsort(np.asarray(res["ids"]))
+        return HostRun(mode, seconds, int(res["bytes"]), np.asarray(res["ids"])[order],
+                       np.asarray(res["labels"])[order], {"gather_s": res["gather_s"], "match_s": res["match_s"]})
+    finally:
+        procs.stop_all()

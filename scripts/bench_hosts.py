@@ -1,0 +1,212 @@
+#!/usr/bin/env python3
+"""Time to result on emulated hosts and links: is running dqm across M machines faster than copying
+every feature to one machine and matching there?
+
+Each of M hosts is a network namespace in a cgroup-v1 CPU quota (2 cores / M each, so that the M
+hosts share this machine's two cores as M small machines would), joined to a router namespace by a
+veth capped with `tc tbf` at each link rate (`dqm.runtime.multihost.EmulatedHosts`). Source a's
+features (whole images, image k -> source k mod M) start on host a. Modes, run one after the other
+on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
+
+* gather: every source sends its features to host 0 (zenoh, through the router), which runs
+  centralized QuickMatch (quadratic kernel, the same clusters as balanced) in the same CPU quota
+  as one agent host;
+* gather-approx: the same with approximate QuickMatch (faiss);
+* lean, balanced: `dqm agent` on every host, the coordinator on host 0.
+
+Time to result: from starting the processes (Python start-up in the quota included, for every
+mode) to the labels. Reported with the bytes moved and the speed-up over gather at each rate; every
+row's labels are compared with gather's (identical, or co-membership F1 for lean and approx).
+
+    sudo .venv/bin/python scripts/bench_hosts.py --data graf --agents 2,4,8 --rates 1000,100,10
+    sudo .venv/bin/python scripts/bench_hosts.py --data 100000 --agents 8 --json docs/bench_hosts.json
+
+Needs root (network namespaces, cgroups, tc). Exit code 0: done; 2: cannot run here.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dqm import evaluation, synthetic  # noqa: E402
+from dqm.distributed import DQMConfig  # noqa: E402
+from dqm.runtime.launcher import Processes, write_agent_files  # noqa: E402
+from dqm.runtime.multihost import (HOST_MODES, ROUTER_PORT, EmulatedHosts, NamespacesUnavailable,  # noqa: E402
+                                   _wait_ready_file, netns_unavailable_reason, run_on_hosts, start_router)
+
+
+def load(name: str):
+    if name in ("graf", "wall", "boat", "bikes"):
+        from dqm.vision import datasets, features
+
+        path = ROOT.parent / "shared" / "data" / "oxford" / name
+        if not path.exists():
+            print(f"skipping {name}: {path} is absent", file=sys.stderr)
+            return None
+        seq = datasets.load_homography_sequence(path)
+        X, ids, _ = features.extract_many(seq.image_paths)
+        return f"{name} ({len(X)})", X, ids
+    ds = synthetic.sized(int(name))
+    return f"generated {len(ds)}", ds.descriptors, ds.image_ids
+
+
+def agreement(run, ref) -> dict:
+    assert np.array_equal(run.ids, ref.ids), "the runs cover different features"
+    same = bool(np.array_equal(_canonical(run.labels), _canonical(ref.labels)))
+    f1 = 1.0 if same else evaluation.comembership_scores(run.labels, ref.labels).f1
+    return {"identical": same, "f1": f1}
+
+
+def _canonical(labels: np.ndarray) -> np.ndarray:
+    _, first, inv = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))
+    return order[inv]
+
+
+def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log) -> list:
+    rows = []
+    workdir.mkdir(parents=True, exist_ok=True)
+    files = write_agent_files(X, ids, m, workdir)
+    raw = X.size * X.dtype.itemsize
+    cpu = 2.0 / m
+    cfg = DQMConfig(agents=m, seed=1, job=f"hosts{m}").validated(len(X))
+    for rate in rates:
+        with EmulatedHosts(hosts=m, rate_mbit=rate, cpu_cores=cpu) as nss:
+            procs = Processes()
+            try:
+                endpoints = [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(m)]
+                start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns))
+                runs = {}
+                for mode in modes:
+                    t = time.perf_counter()
+                    runs[mode] = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
+                    log(f"{name} M={m} {rate:g} Mbit/s {mode}: {runs[mode].seconds:.1f} s, "
+                        f"{runs[mode].bytes / raw:.2f}x raw ({time.perf_counter() - t:.1f} s)")
+            finally:
+                procs.stop_all()
+        ref = runs.get("gather")
+        for mode, r in runs.items():
+            row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu, "mode": mode,
+                   "seconds": r.seconds, "bytes": r.bytes, "bytes_over_raw": r.bytes / raw, **r.detail}
+            if ref is not None:
+                row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
+            rows.append(row)
+    return rows
+
+
+def after_start_up(r: dict) -> float:
+    """Seconds without the processes' start-up: the coordinator's start-to-last-result (lean, balanced),
+    the gathering host's time from its own start-up to its labels (gather)."""
+    return r["job_s"] if "job_s" in r else r["gather_s"] + r["match_s"]
+
+
+def table(rows) -> str:
+    out = ["| data | M | link Mbit/s | mode | time to result s | speed-up over gather | after start-up s | "
+           "speed-up over gather | bytes / raw | labels vs gather |", "|---|---|---|---|---|---|---|---|---|---|"]
+    ref = {(r["data"], r["m"], r["rate_mbit"]): r for r in rows if r["mode"] == "gather"}
+    for r in rows:
+        agree = "" if "identical" not in r else ("identical" if r["identical"] else f"F1 {r['f1']:.4f}")
+        speed = f"{r['speedup_over_gather']:.2f}" if "speedup_over_gather" in r else ""
+        g = ref.get((r["data"], r["m"], r["rate_mbit"]))
+        warm = f"{after_start_up(g) / after_start_up(r):.2f}" if g else ""
+        out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {r['seconds']:.1f} | {speed} | "
+                   f"{after_start_up(r):.1f} | {warm} | {r['bytes_over_raw']:.2f} | {agree} |")
+    return "\n".join(out)
+
+
+def figure(rows, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = sorted({(r["data"], r["m"]) for r in rows})
+    fig, axes = plt.subplots(2, len(groups), figsize=(4.2 * len(groups), 6.6), squeeze=False)
+    for col, (data, m) in enumerate(groups):
+        for row, (what, get) in enumerate((("time to result (s)", lambda r: r["seconds"]),
+                                           ("after start-up (s)", after_start_up))):
+            ax = axes[row][col]
+            for mode in HOST_MODES:
+                pts = sorted((r["rate_mbit"], get(r)) for r in rows
+                             if (r["data"], r["m"], r["mode"]) == (data, m, mode))
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", label=mode)
+            ax.set_xscale("log")
+            ax.set_xlabel("link rate (Mbit/s)")
+            ax.set_ylabel(what)
+            ax.set_ylim(bottom=0)
+            ax.set_title(f"{data}, M = {m}")
+            ax.grid(alpha=0.3)
+    axes[0][0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="graf", help="comma-separated: graf, wall, boat, bikes and/or generated sizes")
+    ap.add_argument("--agents", default="2,4,8", help="host counts M")
+    ap.add_argument("--rates", default="1000,100,10", help="link rates in Mbit/s")
+    ap.add_argument("--modes", default=",".join(HOST_MODES), help=f"of {', '.join(HOST_MODES)}; gather first")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds one mode may take")
+    ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--figure", help="write the figure (PNG) here")
+    ap.add_argument("--keep", help="keep the work folder (files, logs) here")
+    ap.add_argument("--table-from", nargs="+", metavar="JSON",
+                    help="print the table (and --figure) of earlier runs' --json files instead of running")
+    args = ap.parse_args(argv)
+    if args.table_from:
+        rows = [r for f in args.table_from for r in json.loads(Path(f).read_text())]
+        print(table(rows))
+        if args.figure:
+            figure(rows, Path(args.figure))
+        return 0
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *a: sys.exit(143))  # unwind: namespaces and cgroups are deleted
+    reason = netns_unavailable_reason()
+    if reason:
+        print(f"bench_hosts: cannot run here: {reason}", file=sys.stderr)
+        return 2
+    modes = [m for m in args.modes.split(",") if m]
+    bad = [m for m in modes if m not in HOST_MODES]
+    if bad:
+        ap.error(f"unknown mode {bad[0]!r}; the modes are {', '.join(HOST_MODES)}")
+    rates = [float(r) for r in args.rates.split(",") if r]
+    wd = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dqm-hosts-"))
+    rows = []
+    try:
+        for name in [d for d in args.data.split(",") if d]:
+            data = load(name)
+            if data is None:
+                continue
+            label, X, ids = data
+            for m in [int(a) for a in args.agents.split(",") if a]:
+                rows += bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
+                              lambda text: print(text, file=sys.stderr, flush=True))
+                if args.json:  # after every group: a long run keeps what it measured
+                    Path(args.json).write_text(json.dumps(rows, indent=1))
+    except NamespacesUnavailable as exc:
+        print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if not args.keep:
+            shutil.rmtree(wd, ignore_errors=True)
+    print(table(rows))
+    if args.figure and rows:
+        figure(rows, Path(args.figure))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

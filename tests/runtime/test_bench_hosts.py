@@ -1,0 +1,66 @@
+"""Emulated hosts (network namespaces in CPU quotas, links capped with tc tbf): every mode of
+scripts/bench_hosts.py gives its documented result through them (a small version: 2 hosts, one rate)."""
+import subprocess
+
+import numpy as np
+import pytest
+
+from dqm import evaluation, synthetic
+from dqm.distributed import DQMConfig
+from dqm.runtime.launcher import Processes, write_agent_files
+from dqm.runtime.multihost import (ROUTER_PORT, EmulatedHosts, NamespacesUnavailable, _wait_ready_file,
+                                   netns_unavailable_reason, run_on_hosts, start_router)
+
+pytest.importorskip("zenoh")
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(f"emulated hosts need network namespaces: {reason}")
+    ds = synthetic.sift_like(n_images=4, n_points=250, seed=5)
+    wd = tmp_path_factory.mktemp("hosts")
+    files = write_agent_files(ds.descriptors, ds.image_ids, 2, wd)
+    cfg = DQMConfig(agents=2, seed=1, job="hosts-test").validated(len(ds.descriptors))
+    out = {"n": len(ds.descriptors)}
+    try:
+        with EmulatedHosts(hosts=2, rate_mbit=100, cpu_cores=1.0, tag=f"dqmh{np.random.randint(1 << 16)}") as nss:
+            qdisc = subprocess.run(["ip", "netns", "exec", nss.host_ns(0), "tc", "qdisc", "show", "dev", "eth0"],
+                                   capture_output=True, text=True).stdout
+            out["settings"] = (qdisc, (nss.cgroup(1) / "cpu.cfs_quota_us").read_text().strip())
+            out["cgroups"] = list(nss.cgroups)
+            procs = Processes()
+            try:
+                start_router(procs, [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(2)], wd,
+                             _wait_ready_file, prefix=nss.prefix(nss.router_ns))
+                for mode in ("gather", "balanced", "lean"):
+                    out[mode] = run_on_hosts(nss, mode, cfg, files, wd, timeout_s=120)
+            finally:
+                procs.stop_all()
+    except NamespacesUnavailable as exc:
+        pytest.skip(f"emulated hosts cannot be built here: {exc}")
+    return out
+
+
+def test_hosts_get_their_cpu_quota_and_link_rate_and_leave_nothing(runs):
+    qdisc, quota = runs["settings"]
+    assert "tbf" in qdisc and "100Mbit" in qdisc
+    assert quota == "100000"  # one core per host
+    assert not any(cg.exists() for cg in runs["cgroups"])
+
+
+def test_gather_and_balanced_give_the_same_clusters_and_lean_is_scored(runs):
+    g, b, lean = runs["gather"], runs["balanced"], runs["lean"]
+    assert len(g.ids) == runs["n"] and np.array_equal(g.ids, b.ids) and np.array_equal(g.ids, lean.ids)
+    assert evaluation.comembership_scores(b.labels, g.labels).f1 == 1.0
+    assert len(np.unique(b.labels)) == len(np.unique(g.labels))
+    assert evaluation.comembership_scores(lean.labels, g.labels).f1 >= 0.99
+
+
+def test_gather_moves_about_one_copy_and_balanced_more(runs):
+    raw = runs["n"] * 128
+    # gather ships the features of the one other host: about half of them, once
+    assert 0.4 * raw < runs["gather"].bytes < 0.7 * raw
+    assert runs["balanced"].bytes > runs["gather"].bytes
+    assert all(runs[m].seconds > 0 for m in ("gather", "balanced", "lean"))
