@@ -73,8 +73,9 @@ def _canonical(labels: np.ndarray) -> np.ndarray:
     return order[inv]
 
 
-def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log) -> list:
-    rows = []
+def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save) -> list:
+    """Run every mode at every rate on M emulated hosts; appends to ``rows`` and calls ``save()`` after each
+    run (a long benchmark keeps what it measured). A mode that fails is a row with its ``error``."""
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(X, ids, m, workdir)
     raw = X.size * X.dtype.itemsize
@@ -86,21 +87,28 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
             try:
                 endpoints = [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(m)]
                 start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns))
-                runs = {}
+                ref = None
                 for mode in modes:
                     t = time.perf_counter()
-                    runs[mode] = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
-                    log(f"{name} M={m} {rate:g} Mbit/s {mode}: {runs[mode].seconds:.1f} s, "
-                        f"{runs[mode].bytes / raw:.2f}x raw ({time.perf_counter() - t:.1f} s)")
+                    row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
+                           "mode": mode}
+                    try:
+                        r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
+                    except RuntimeError as exc:  # JobFailure included: the row says why
+                        row.update(error=str(exc).split("\n")[0], seconds=time.perf_counter() - t)
+                        log(f"{name} M={m} {rate:g} Mbit/s {mode}: FAILED after {row['seconds']:.1f} s: "
+                            f"{row['error']}")
+                    else:
+                        ref = r if mode == "gather" else ref
+                        row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
+                        if ref is not None:
+                            row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
+                        log(f"{name} M={m} {rate:g} Mbit/s {mode}: {r.seconds:.1f} s, {r.bytes / raw:.2f}x raw "
+                            f"({time.perf_counter() - t:.1f} s)")
+                    rows.append(row)
+                    save()
             finally:
                 procs.stop_all()
-        ref = runs.get("gather")
-        for mode, r in runs.items():
-            row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu, "mode": mode,
-                   "seconds": r.seconds, "bytes": r.bytes, "bytes_over_raw": r.bytes / raw, **r.detail}
-            if ref is not None:
-                row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
-            rows.append(row)
     return rows
 
 
@@ -115,9 +123,14 @@ def table(rows) -> str:
            "speed-up over gather | bytes / raw | labels vs gather |", "|---|---|---|---|---|---|---|---|---|---|"]
     ref = {(r["data"], r["m"], r["rate_mbit"]): r for r in rows if r["mode"] == "gather"}
     for r in rows:
+        if "error" in r:
+            out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | failed after "
+                       f"{r['seconds']:.0f} s: {r['error']} | | | | | |")
+            continue
         agree = "" if "identical" not in r else ("identical" if r["identical"] else f"F1 {r['f1']:.4f}")
         speed = f"{r['speedup_over_gather']:.2f}" if "speedup_over_gather" in r else ""
         g = ref.get((r["data"], r["m"], r["rate_mbit"]))
+        g = g if g is not None and "error" not in g else None
         warm = f"{after_start_up(g) / after_start_up(r):.2f}" if g else ""
         out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {r['seconds']:.1f} | {speed} | "
                    f"{after_start_up(r):.1f} | {warm} | {r['bytes_over_raw']:.2f} | {agree} |")
@@ -130,6 +143,7 @@ def figure(rows, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if "error" not in r]
     groups = sorted({(r["data"], r["m"]) for r in rows})
     fig, axes = plt.subplots(2, len(groups), figsize=(4.2 * len(groups), 6.6), squeeze=False)
     for col, (data, m) in enumerate(groups):
@@ -192,10 +206,9 @@ def main(argv=None) -> int:
                 continue
             label, X, ids = data
             for m in [int(a) for a in args.agents.split(",") if a]:
-                rows += bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
-                              lambda text: print(text, file=sys.stderr, flush=True))
-                if args.json:  # after every group: a long run keeps what it measured
-                    Path(args.json).write_text(json.dumps(rows, indent=1))
+                bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
+                      lambda text: print(text, file=sys.stderr, flush=True), rows,
+                      lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)))
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2
