@@ -34,7 +34,8 @@ import re
 
 from ..validation import InputError
 
-_JOB = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_JOB_ID = r"[A-Za-z0-9_.-]{1,64}"
+_JOB = re.compile(rf"^{_JOB_ID}$")
 
 
 def check_job(job: str) -> str:
@@ -46,8 +47,10 @@ def check_job(job: str) -> str:
 #: the coordinator's name in keys (processes are named by their index)
 COORDINATOR = "coordinator"
 _PROCESS = r"(coordinator|0|[1-9][0-9]{0,8})"
-_MESSAGE_KEY = re.compile(rf"^dqm/([A-Za-z0-9_.-]{{1,64}})/proc/{_PROCESS}/from/{_PROCESS}"
+_MESSAGE_KEY = re.compile(rf"^dqm/({_JOB_ID})/proc/{_PROCESS}/from/{_PROCESS}"
                           r"(?:/to/(0|[1-9][0-9]{0,8}))?$")
+#: keys of sources that put into one space: camera nodes (``stream/images``), gathered sources (``gather``)
+_SOURCE_KEY = re.compile(rf"^dqm/({_JOB_ID})/(stream/images|gather)/from/(0|[1-9][0-9]{{0,9}})$")
 
 
 def process_name(p: int) -> str:
@@ -107,10 +110,15 @@ def camera_images(job: str, camera: int) -> str:
     return f"dqm/{job}/stream/images/from/{int(camera)}"
 
 
+def _source_of_key(job: str, space: str, key: str):
+    """The source a ``dqm/<job>/<space>/from/<source>`` key names, or None when it is not one."""
+    m = _SOURCE_KEY.match(str(key))
+    return int(m.group(3)) if m and m.group(1) == job and m.group(2) == space else None
+
+
 def camera_of_key(job: str, key: str):
     """The camera id a stream image key names, or None when it is not one of ``job``'s."""
-    m = re.match(r"^dqm/([A-Za-z0-9_.-]{1,64})/stream/images/from/(0|[1-9][0-9]{0,9})$", str(key))
-    return int(m.group(2)) if m and m.group(1) == job else None
+    return _source_of_key(job, "stream/images", key)
 
 
 def stream_changes(job: str) -> str:
@@ -128,6 +136,11 @@ def gather_from(job: str, src: int) -> str:
 
 def gather_inbox(job: str) -> str:
     return f"dqm/{job}/gather/from/*"
+
+
+def gather_source_of_key(job: str, key: str):
+    """The source a gather key names, or None when it is not one of ``job``'s."""
+    return _source_of_key(job, "gather", key)
 
 
 def alive_gather(job: str) -> str:

@@ -90,10 +90,13 @@ class Gathering:
         self.token = session.liveliness().declare_token(keys.alive_gather(job))
 
     def _take(self, key: str, raw: bytes) -> None:
+        sender = keys.gather_source_of_key(self.job, key)
+        if sender is None:
+            self.rejected.append(f"a message on {key}, which names no source")
+            return
         try:
-            sender = int(key.rsplit("/", 1)[1])
             msg = messages.decode(raw, job=self.job, agents=self.sources, dim=self.dim, sender=sender)
-        except (ValueError, messages.MessageError) as exc:
+        except messages.MessageError as exc:
             self.rejected.append(str(exc))
             return
         if msg["kind"] != "gather" or sender == 0:
