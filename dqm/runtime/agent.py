@@ -24,7 +24,7 @@ from ..distributed.config import DQMConfig, differing_param, params_hash
 from ..distributed.driver import AgentDriver, JobAborted, ready_fields
 from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
-from .bus import Bus, check_access, check_job_free, open_client
+from .bus import Bus, check_job_free, open_client
 
 log = logging.getLogger("dqm.runtime")
 
@@ -233,7 +233,7 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     bus = None
     try:
         bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=max_message_bytes)
-        check_access(bus, endpoint, tls, f"agent process {me} of job {cfg.job!r}")
+        bus.check_access(endpoint, tls, f"agent process {me} of job {cfg.job!r}")
         host = AgentHost(me, cfg, bus, files, phase_timeout_s=phase_timeout_s, own=own,
                          on_state=fault_pause_from_env())
         host.run()

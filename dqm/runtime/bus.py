@@ -195,41 +195,6 @@ def identity_of(tls: Optional[dict]) -> str:
     return str((tls.get("usrpwd") or {}).get("user", ""))
 
 
-def check_access(bus: "Bus", endpoint: str, tls: Optional[dict], what: str, deadline_s: float = 3.0) -> None:
-    """With an identity (a certificate or a username) the router may enforce access control, which drops a
-    denied subscription, put or token silently. Check through the router that this process may use its
-    keys: a second session of the same identity (so that nothing is answered inside this one) must see
-    the process's liveliness token and get a put through to its inbox. :class:`AccessDenied` names the
-    identity and the key otherwise, within ``deadline_s``."""
-    import os
-
-    if not tls:
-        return  # no identity: no access control possible
-    probe = open_client(endpoint, tls, deadline_s=deadline_s)
-    nonce = os.urandom(16)
-    arrived = bus.expect_probe(nonce)
-    token = inbox = False
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < deadline_s:
-            token = token or bool(live_tokens(probe, bus.token_key, timeout_s=0.5))
-            probe.put(keys.probe_key(bus.job, bus.home), nonce)
-            inbox = inbox or arrived.wait(0.2)
-            if token and inbox:
-                return
-    finally:
-        bus.expect_probe(nonce, False)
-        probe.close()
-    who = identity_of(tls) or "this client"
-    role = "coordinator" if bus.home < 0 else "agent"
-    line = f"{role} {who}" + ("" if bus.home < 0 else f" {bus.home}")
-    denied = ([f"its liveliness token {bus.token_key} is not admitted"] if not token else []) + (
-        [f"messages to it on {keys.process_inbox(bus.job, bus.home)} do not arrive"] if not inbox else [])
-    raise AccessDenied(f"the router at {endpoint} does not let identity {who!r} act as {what}: "
-                       f"{' and '.join(denied)}. Its roster (dqm router --acl) must hold the line '{line}'"
-                       + ("" if bus.home < 0 else " (or start this agent with the --id its certificate is for)"))
-
-
 class Bus:
     """One process's view of the job's key space.
 
@@ -272,7 +237,8 @@ class Bus:
         self._next_seq: Dict[Tuple[int, int], int] = defaultdict(int)
         self._owners = np.arange(agents, dtype=np.int64)  # agent -> process hosting it (agent p on process p)
         self._hosted = frozenset([home]) if home >= 0 else frozenset()
-        self._probes: Dict[bytes, threading.Event] = {}
+        self._probes: Dict[bytes, threading.Event] = {}  # check_access: nonce -> arrived on the probe key
+        self._probe_key = keys.probe_key(job, home)
         self._receiver = threading.Thread(target=self._receive_loop, name=f"dqm-bus-{home}", daemon=True)
         self._receiver.start()
         self._sub = session.declare_subscriber(keys.process_inbox(job, home), self._on_sample)
@@ -298,12 +264,40 @@ class Bus:
         with self._lock:
             self._owners = np.asarray(owners, dtype=np.int64).copy()
 
-    def expect_probe(self, nonce: bytes, expect: bool = True) -> threading.Event:
-        """The event set when ``nonce`` arrives on this process's probe key (:func:`check_access`);
-        ``expect=False`` forgets it."""
-        if not expect:
-            return self._probes.pop(nonce, threading.Event())
-        return self._probes.setdefault(nonce, threading.Event())
+    def check_access(self, endpoint: str, tls: Optional[dict], what: str, deadline_s: float = 3.0) -> None:
+        """With an identity (a certificate or a username) the router may enforce access control, which drops
+        a denied subscription, put or token silently. Check through the router that this process may use its
+        keys: a second session of the same identity (so that nothing is answered inside this one) must see
+        the process's liveliness token and get a put through to its inbox. :class:`AccessDenied` names the
+        identity and the key otherwise, within ``deadline_s``."""
+        import os
+
+        from .roster import Identity
+
+        if not tls:
+            return  # no identity: no access control possible
+        probe = open_client(endpoint, tls, deadline_s=deadline_s)
+        nonce = os.urandom(16)
+        arrived = self._probes[nonce] = threading.Event()
+        token = inbox = False
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < deadline_s:
+                token = token or bool(live_tokens(probe, self.token_key, timeout_s=0.5))
+                probe.put(self._probe_key, nonce)
+                inbox = inbox or arrived.wait(0.2)
+                if token and inbox:
+                    return
+        finally:
+            self._probes.pop(nonce, None)
+            probe.close()
+        who = identity_of(tls) or "this client"
+        line = (Identity("coordinator", who) if self.home < 0 else Identity("agent", who, self.home)).as_line()
+        denied = ([f"its liveliness token {self.token_key} is not admitted"] if not token else []) + (
+            [f"messages to it on {keys.process_inbox(self.job, self.home)} do not arrive"] if not inbox else [])
+        raise AccessDenied(f"the router at {endpoint} does not let identity {who!r} act as {what}: "
+                           f"{' and '.join(denied)}. Its roster (dqm router --acl) must hold the line '{line}'"
+                           + ("" if self.home < 0 else " (or start this agent with the --id its certificate is for)"))
 
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
@@ -390,7 +384,7 @@ class Bus:
                 key, raw = self._raw.get(timeout=0.2)
             except queue.Empty:
                 continue
-            if key == self._probe_key():
+            if key == self._probe_key:
                 probe = self._probes.get(raw)
                 if probe is not None:
                     probe.set()
@@ -402,9 +396,6 @@ class Bus:
                 continue
             if item is not None:
                 self.inbox.put(item)
-
-    def _probe_key(self) -> str:
-        return keys.probe_key(self.job, self.home)
 
     def _accept(self, key: str, raw: bytes) -> Optional[Tuple[int, dict]]:
         """``(agent, message)``: a valid new message for the main thread, or None (counted bad message,

@@ -40,7 +40,7 @@ from ..distributed.driver import start_fields
 from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
 from .agent import Terminated, _on_sigterm
-from .bus import AccessDenied, Bus, check_access, check_job_free, open_client
+from .bus import AccessDenied, Bus, check_job_free, open_client
 
 log = logging.getLogger("dqm.runtime")
 
@@ -416,7 +416,7 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     view = JobView.for_fd(progress_fd, cfg.agents)
     bus = Bus(session, cfg.job, -1, cfg.agents)
     try:
-        check_access(bus, endpoint, tls, f"the coordinator of job {cfg.job!r}")
+        bus.check_access(endpoint, tls, f"the coordinator of job {cfg.job!r}")
     except AccessDenied:
         bus.close()
         raise

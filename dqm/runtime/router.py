@@ -35,7 +35,6 @@ class IdentityWatch:
         self.certificates = certificates
         self.known = roster.names()
         self.seen: Dict[str, str] = {}  # link key -> identity
-        self.unknown: List[str] = []
 
     def poll(self) -> None:
         zid = str(self.session.zid())
@@ -56,7 +55,6 @@ class IdentityWatch:
             who = str(info.get("auth_identifier") or "")
             self.seen[link] = who
             if who not in self.known and self.certificates:
-                self.unknown.append(who)
                 what = f"identity {who!r}" if who else "a client without an identity (no certificate, no username)"
                 _say(f"{what} from {info.get('dst', '?')} is not in the roster {self.roster.source}: the router "
                      "lets it do nothing (add a line for it, or check which certificate it uses)")
@@ -78,12 +76,9 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     watch_parent()
-    acl = None
-    if roster is not None:
-        kinds = (["cert"] if set(tls or {}) - {"usrpwd"} else []) + (["user"] if (tls or {}).get("usrpwd") else [])
-        acl = access_control(roster, subjects=kinds)
-    else:
-        kinds = []
+    # identities are certificate common names (TLS settings beside ``usrpwd``) and/or usernames
+    kinds = (["cert"] if set(tls or {}) - {"usrpwd"} else []) + (["user"] if (tls or {}).get("usrpwd") else [])
+    acl = access_control(roster, subjects=kinds) if roster is not None else None
     try:
         session = zenoh.open(router_config(endpoints, tls, acl))
     except Exception as exc:  # noqa: BLE001 - port in use, bad address, bad certificate
