@@ -134,7 +134,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 70
 
 
-
 def program() -> None:
     """The ``dqm`` command (and ``python -m dqm``): :func:`main`, then exit with its code. After a
     signal during the imports it leaves with ``os._exit`` (see :data:`interrupted_while_importing`)."""

@@ -47,19 +47,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dqm import synthetic  # noqa: E402
 from dqm.distributed import DQMConfig, keys, messages, simulate  # noqa: E402
 from dqm.runtime.bus import RouterUnreachable, client_config, open_client  # noqa: E402
-from dqm.runtime.launcher import (Processes, finish_job, free_port, make_certs, start_job, tls_options,  # noqa: E402
-                                  write_agent_files)
+from dqm.runtime.launcher import (Processes, client_tls, finish_job, free_port, make_certs, start_job,  # noqa: E402
+                                  tls_options, write_agent_files)
 from dqm.runtime.multihost import start_router  # noqa: E402
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "runtime.md"
 BEGIN, END = "<!-- attack table: begin -->", "<!-- attack table: end -->"
 CONTROL_KINDS = ("start", "go", "abort", "finish")
 AGENT_KINDS = ("result", "ready", "refuse")
-
-
-def tls_dict(certs: Path, name: str) -> dict:
-    return {"root_ca_certificate": str(certs / "ca.pem"), "connect_certificate": str(certs / f"{name}.pem"),
-            "connect_private_key": str(certs / f"{name}.key"), "enable_mtls": True}
 
 
 def expired_cert(certs: Path, name: str) -> None:
@@ -123,7 +118,7 @@ def open_attackers(endpoint: str, certs: Path, job: str, m: int) -> dict:
     out: dict = {"sent": Counter(), "own_key_sent": 0, "subscriptions": len(spy_exprs)}
     sessions = {}
     for who, name in (("mallory", f"agent{evil}"), ("outsider", "outsider")):
-        sessions[who] = [open_client(endpoint, tls_dict(certs, name)) for _ in range(3)]  # spy, forger, capture
+        sessions[who] = [open_client(endpoint, client_tls(certs, name)) for _ in range(3)]  # spy, forger, capture
     spies = {"mallory": Spy(sessions["mallory"][0], spy_exprs, keys.message_key(job, 0, evil, evil).split("/from/")[0]),
              "outsider": Spy(sessions["outsider"][0], spy_exprs, None)}
     captured = []
@@ -210,8 +205,8 @@ def refusals(wd: Path, certs: Path, other: Path, endpoint: str) -> dict:
     expired_cert(certs, "expired")
     rows = {
         "no certificate": {"root_ca_certificate": str(certs / "ca.pem"), "enable_mtls": True},
-        "certificate of another CA": tls_dict(other, "intruder"),
-        "expired certificate": tls_dict(certs, "expired"),
+        "certificate of another CA": client_tls(other, "intruder"),
+        "expired certificate": client_tls(certs, "expired"),
     }
     from concurrent.futures import ThreadPoolExecutor
 
@@ -303,7 +298,7 @@ def main(argv=None) -> int:
                      tls_args=[*tls_options(certs, "router"), "--acl", str(roster)])
         import zenoh
 
-        observer = zenoh.open(client_config(endpoint, tls_dict(certs, "observer")))
+        observer = zenoh.open(client_config(endpoint, client_tls(certs, "observer")))
         attackers = open_attackers(endpoint, certs, job, m)
         job_run = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
                             client_args=lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}"),

@@ -49,7 +49,6 @@ class PaperResult(_Fields):
     std: float
 
 
-
 #: the seed paper's results (camera-network experiment)
 PAPER: Dict[str, PaperResult] = {
     "quickmatch": PaperResult(0.64, 0.21, 0.43),
@@ -82,7 +81,6 @@ class OperatingPoint(_Fields):
     recall: float
 
 
-
 @dataclass(frozen=True)
 class ErrorSummary(_Fields):
     """Localization errors (metres; NaN when there are none): see :class:`~dqm.camnet.experiment.ErrorStats`."""
@@ -101,7 +99,6 @@ class ErrorSummary(_Fields):
     @classmethod
     def of(cls, stats: ErrorStats) -> "ErrorSummary":
         return cls(**stats.as_dict())
-
 
 
 @dataclass(frozen=True)
@@ -185,7 +182,6 @@ class ScoreComparison(_Fields):
     online_higher: int
     online_lower: int
     detection_differs: int  #: frames where the rule (score >= min_matches) decides differently
-
 
 
 @dataclass(frozen=True)
@@ -345,7 +341,6 @@ class SeedMeans(_Fields):
     error: Dict[str, float]
 
 
-
 def _nanmean(values) -> float:
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
@@ -452,7 +447,6 @@ class PaperComparison(_Fields):
     calibration_error_pct: float  #: measured range constant vs its ideal value, percent
 
 
-
 def paper_comparison(result: ExperimentResult, methods: Mapping[str, MethodSummary],
                      quickmatch_per_camera: Optional[SweepRow],
                      seed_rows: Sequence[SeedRow] = ()) -> Optional[PaperComparison]:
@@ -527,7 +521,6 @@ class WorldFacts(_Fields):
     n_clutter_textures: int  #: textures the clutter boxes share
 
 
-
 @dataclass(frozen=True)
 class MachineInfo(_Fields):
     """The machine the report was made on (its times are this machine's)."""
@@ -538,7 +531,6 @@ class MachineInfo(_Fields):
     @classmethod
     def here(cls) -> "MachineInfo":
         return cls(os.cpu_count(), platform.processor() or platform.machine())
-
 
 
 @dataclass(frozen=True)

@@ -25,9 +25,8 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from ..runtime.bus import check_endpoint
-    from ..runtime.router import main_router
-
     from ..runtime.roster import load_roster
+    from ..runtime.router import main_router
     from ..validation import InputError
 
     for endpoint in args.listen:

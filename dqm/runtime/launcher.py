@@ -224,6 +224,22 @@ def tls_options(certs: Path, name: str) -> List[str]:
             "--tls-key", str(certs / f"{name}.key")]
 
 
+def client_tls(certs: Path, name: str) -> dict:
+    """zenoh's client TLS settings for the certificate ``name`` in ``certs`` (what ``--tls-*`` options
+    of :func:`tls_options` become in a client)."""
+    certs = Path(certs)
+    return {"root_ca_certificate": str(certs / "ca.pem"), "connect_certificate": str(certs / f"{name}.pem"),
+            "connect_private_key": str(certs / f"{name}.key"), "enable_mtls": True}
+
+
+def secure_router_args(workdir: Path, cfg: DQMConfig, certs: Path) -> List[str]:
+    """The router's options for ``cfg``'s job under strict access control: its TLS certificate and the
+    job's roster (:func:`dqm.runtime.roster.job_roster`), written to ``workdir``."""
+    roster = Path(workdir) / "roster.txt"
+    roster.write_text(job_roster(cfg.agents, [cfg.job]).text())
+    return [*tls_options(certs, "router"), "--acl", str(roster)]
+
+
 def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -> Path:
     """Run deploy/make-certs.sh (openssl): CA, router certificate naming ``router_names``, client certificates."""
     from ..validation import InputError
@@ -372,9 +388,7 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     identity: Callable[[int], List[str]] = lambda a: []  # noqa: E731
     if secure:
         certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator"] + [f"agent{a}" for a in range(cfg.agents)])
-        roster = wd / "roster.txt"
-        roster.write_text(job_roster(cfg.agents, [cfg.job]).text())
-        router_extra = ["--acl", str(roster), *tls_options(certs, "router")]
+        router_extra = secure_router_args(wd, cfg, certs)
         identity = lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}")  # noqa: E731
     procs = Processes()
     env = dict(os.environ if env is None else env)

@@ -27,9 +27,8 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
-from .roster import job_roster
-from .launcher import (Processes, finish_job, make_certs, start_job, tls_options, wait_listening,  # noqa: F401
-                       write_agent_files)
+from .launcher import (Processes, finish_job, make_certs, secure_router_args, start_job, tls_options,  # noqa: F401
+                       wait_listening, write_agent_files)
 
 SUBNET = "10.213"
 ROUTER_PORT = 7447
@@ -314,13 +313,10 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(descriptors, image_ids, cfg.agents, workdir)
-    router_args = tls_options(tls_certs, "router") if tls_certs else []
-    if acl:
-        if not tls_certs:
-            raise ValueError("access control needs identities: pass tls_certs")
-        roster = workdir / "roster.txt"
-        roster.write_text(job_roster(cfg.agents, [cfg.job]).text())
-        router_args += ["--acl", str(roster)]
+    if acl and not tls_certs:
+        raise ValueError("access control needs identities: pass tls_certs")
+    router_args = (secure_router_args(workdir, cfg, tls_certs) if acl
+                   else tls_options(tls_certs, "router") if tls_certs else [])
     nss = Namespaces(hosts=hosts, **({"tag": tag} if tag else {}))
     procs = Processes()
     host_of = lambda a: 0 if a < 0 else a % hosts  # noqa: E731
@@ -370,13 +366,20 @@ class HostRun:
     detail: Dict[str, float] = field(default_factory=dict)
 
 
+def _by_id(ids, labels) -> tuple:
+    """``(ids, labels)`` ordered by feature id."""
+    import numpy as np
+
+    ids, labels = np.asarray(ids), np.asarray(labels)
+    order = np.argsort(ids)
+    return ids[order], labels[order]
+
+
 def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
                  timeout_s: float = 600.0) -> HostRun:
     """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
     router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
     agent per host); the coordinator, or the gathering host, is host 0."""
-    import numpy as np
-
     m = cfg.agents
     connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
     procs = Processes()
@@ -387,20 +390,19 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                             connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)), job_timeout_s=timeout_s,
                             tag=tag, threads_per_agent=None)
             rep = finish_job(job, timeout_s + 15)
-            order = np.argsort(np.asarray(rep["ids"]))
-            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), np.asarray(rep["ids"])[order],
-                           np.asarray(rep["labels"])[order], {"job_s": rep["time_run_s"]})
+            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]),
+                           {"job_s": rep["time_run_s"]})
         if mode not in ("gather", "gather-approx"):
             raise ValueError(f"unknown mode {mode!r}; one of {', '.join(HOST_MODES)}")
         out = workdir / f"{tag}result.json"
         t0 = time.monotonic()
         gather = "dqm.runtime.gather"
         recv = procs.start(["receive", "--sources", str(m), "--connect", connect(0), "--job", cfg.job,
-                                   "--out", str(out), "--timeout", str(timeout_s), str(files[0])]
+                            "--out", str(out), "--timeout", str(timeout_s), str(files[0])]
                            + (["--approximate"] if mode == "gather-approx" else []),
                            workdir / f"{tag}receive.log", prefix=nss.host_prefix(0), module=gather)
         senders = [procs.start(["send", "--id", str(h), "--connect", connect(h), "--job", cfg.job,
-                                       "--timeout", str(timeout_s), str(files[h])],
+                                "--timeout", str(timeout_s), str(files[h])],
                                workdir / f"{tag}send{h}.log", prefix=nss.host_prefix(h), module=gather)
                    for h in range(1, m)]
         rc = recv.wait(timeout=timeout_s + 15)
@@ -410,8 +412,7 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
         if rc != 0 or not out.exists():
             raise RuntimeError(f"gathering failed (exit {rc}): {(workdir / f'{tag}receive.log').read_text()[-500:]}")
         res = json.loads(out.read_text())
-        order = np.argsort(np.asarray(res["ids"]))
-        return HostRun(mode, seconds, int(res["bytes"]), np.asarray(res["ids"])[order],
-                       np.asarray(res["labels"])[order], {"gather_s": res["gather_s"], "match_s": res["match_s"]})
+        return HostRun(mode, seconds, int(res["bytes"]), *_by_id(res["ids"], res["labels"]),
+                       {"gather_s": res["gather_s"], "match_s": res["match_s"]})
     finally:
         procs.stop_all()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dqm import synthetic
-from dqm.runtime.launcher import Processes, free_port, make_certs, tls_options, write_agent_files
+from dqm.runtime.launcher import Processes, client_tls, free_port, make_certs, tls_options, write_agent_files
 from dqm.runtime.multihost import start_router
 
 pytest.importorskip("zenoh")
@@ -124,9 +124,7 @@ def test_the_router_reports_identities_not_in_the_roster(acl_router):
     ep, certs = acl_router["endpoint"], acl_router["certs"]
     from dqm.runtime.bus import open_client
 
-    s = open_client(ep, {"root_ca_certificate": str(certs / "ca.pem"), "enable_mtls": True,
-                         "connect_certificate": str(certs / "outsider.pem"),
-                         "connect_private_key": str(certs / "outsider.key")})
+    s = open_client(ep, client_tls(certs, "outsider"))
     try:
         t0 = time.monotonic()
         while "'outsider'" not in acl_router["log"].read_text() and time.monotonic() - t0 < 10:
