@@ -50,18 +50,18 @@ def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), settle_s=0.0, **kw
 #: every phase runs under strict access control (dqm run --secure: mutual TLS, each process only its own
 #: keys), where a survivor cannot read a lost agent's inbox and must be addressed at its own (the same
 #: takeover without TLS: the small fault soak in test_fault_scripts.py)
-@pytest.mark.parametrize("mode,state,secure", [
-    ("balanced", "wait_start", True), ("balanced", "wait_seeds", True), ("balanced", "wait_routed", True),
-    ("balanced", "wait_ghost", True), ("balanced", "wait_density", True), ("balanced", "wait_component", True),
-    ("balanced", "wait_finish", True), ("lean", "wait_minima", True), ("lean", "wait_handdown", True),
+@pytest.mark.parametrize("mode,state", [
+    ("balanced", "wait_start"), ("balanced", "wait_seeds"), ("balanced", "wait_routed"),
+    ("balanced", "wait_ghost"), ("balanced", "wait_density"), ("balanced", "wait_component"),
+    ("balanced", "wait_finish"), ("lean", "wait_minima"), ("lean", "wait_handdown"),
 ])
-def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mode, state, secure):
+def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mode, state):
     X, ids = data
     cfg = DQMConfig(agents=3, seed=1, mode=mode, job=f"kill-{mode}-{state}")
     # wait_finish: the agent has just sent its statistics; give them 2 s to reach the coordinator
     # (on a loaded machine a kill right away could beat them, and the job would rightly redo it)
     outcome, _ = run_with_kill(X, ids, cfg, tmp_path, state, settle_s=2.0 if state == "wait_finish" else 0.0,
-                               secure=secure)
+                               secure=True)
     assert "ok" in outcome, outcome.get("error")
     rep = outcome["ok"]
     np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
