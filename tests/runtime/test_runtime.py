@@ -98,14 +98,14 @@ def _inject(endpoint, job, agents, dim, ready):
         good = dict(phase="route", seq=999999, ids=np.arange(2, dtype=np.int64), image_ids=np.zeros(2, np.int64),
                     sigma=np.ones(2), unit=np.zeros(2, np.int64))
         bad = [
+            messages.encode("features", job, 1, descriptors=np.zeros((2, dim), np.uint8), **good),  # as agent 1
+            messages.encode("abort", job, -1, reason="forged"),  # as the coordinator
             b"\x00garbage\xff",
             messages.encode("finish", job, -1, clusters=1).replace(
                 b"\xa1v" + bytes([messages.VERSION]), b"\xa1v\x7f"),
             messages.encode("features", job, 0, descriptors=np.zeros((2, dim // 2), np.uint8), **good),
             messages.encode("features", "another-job", 0, descriptors=np.zeros((2, dim), np.uint8), **good),
-            b"\x91" + b"\x00" * (3 << 20),  # larger than the agents' limit
-            messages.encode("features", job, 1, descriptors=np.zeros((2, dim), np.uint8), **good),  # as agent 1
-            messages.encode("abort", job, -1, reason="forged"),  # as the coordinator
+            b"\x91" + b"\x00" * (3 << 20),  # larger than the agents' limit (last: the slowest to deliver)
         ]
         ready.set()
         for payload in bad:
