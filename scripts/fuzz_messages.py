@@ -29,7 +29,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import msgpack
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +40,7 @@ from dqm.synthetic import sift_like  # noqa: E402
 
 LIMIT = 1 << 21  # the agents' --max-message-bytes in this job
 CATEGORIES = ("random", "truncated", "wrong_type", "huge", "wrong_epoch", "wrong_job", "bad_header", "replayed")
-HEADER = ("v", "kind", "job", "src", "epoch", "seq")
+HEADER = messages.HEADER
 
 
 def mutate(category: str, rng: np.random.Generator, captured, job: str, m: int):
@@ -50,7 +49,7 @@ def mutate(category: str, rng: np.random.Generator, captured, job: str, m: int):
     if category == "random":
         return inboxes[rng.integers(len(inboxes))], rng.bytes(int(rng.integers(0, 300))), "refused"
     key, raw = captured[rng.integers(len(captured))]
-    body = msgpack.unpackb(raw, raw=False)
+    body = messages.unpack_body(raw)
     if category == "truncated":
         return key, raw[:int(rng.integers(0, len(raw)))], "refused"
     if category == "replayed":
@@ -67,7 +66,7 @@ def mutate(category: str, rng: np.random.Generator, captured, job: str, m: int):
     elif category == "huge":
         if rng.random() < 0.05:
             return key, b"\x91" + b"\x00" * (LIMIT + int(rng.integers(1, 1 << 16))), "refused"
-        arrays = [f for f, v in body.items() if isinstance(v, dict) and set(v) == {"dtype", "shape", "data"}]
+        arrays = [f for f, v in body.items() if isinstance(v, dict) and {"dtype", "shape", "data"} <= set(v)]
         if arrays:
             f = arrays[rng.integers(len(arrays))]
             body[f] = dict(body[f], shape=[1 << 39] + list(body[f]["shape"][1:]))
@@ -89,7 +88,7 @@ def mutate(category: str, rng: np.random.Generator, captured, job: str, m: int):
             body["src"] = m + int(rng.integers(0, 100))
         else:
             body["seq"] = -int(rng.integers(1, 100))
-    return key, msgpack.packb(body, use_bin_type=True), "refused"
+    return key, messages.pack_body(body), "refused"
 
 
 def fuzz(port: int, job: str, m: int, n: int, seed: int, marker: Path, result: dict) -> None:

@@ -122,11 +122,9 @@ def bad_message(kind: str, job: str, dim: int, seen_image: int) -> bytes:
         f[3, 7] = np.nan
         return messages.image_message(job, 99, 10 ** 9 + 1, f)
     if kind == "version":
-        import msgpack
-
-        body = msgpack.unpackb(messages.image_message(job, 99, 10 ** 9 + 2, d), raw=False)
+        body = messages.unpack_body(messages.image_message(job, 99, 10 ** 9 + 2, d))
         body["v"] = messages.VERSION + 1
-        return msgpack.packb(body, use_bin_type=True)
+        return messages.pack_body(body)
     if kind == "job":
         return messages.image_message("another-job", 99, 10 ** 9 + 3, d)
     if kind == "dimension":

@@ -7,7 +7,10 @@ reassignments: messages of an older epoch are refused) and ``seq`` (the
 message's number on its (src, dst) link within the epoch; receivers drop a
 number they have seen, so a replayed message is never processed twice; an
 ``ack`` carries the number it acknowledges, ``progress`` always 0). numpy arrays travel as
-``{"dtype", "shape", "data"}`` maps of raw little-endian bytes.
+``{"dtype", "shape", "data"[, "enc"]}`` maps of little-endian bytes (``enc``: delta and byte-plane
+layouts, dqm.distributed.wire), and the fields of a message (all but the header), once they take
+256 bytes or more, as one zstd frame in the field ``z`` when that is shorter: all lossless, so every
+value arrives bit for bit.
 
 :func:`decode` checks everything a receiver relies on -- size, msgpack
 validity, version, kind, job, the fields of that kind with their types,
@@ -32,8 +35,9 @@ import msgpack
 import numpy as np
 
 from ..core.events import EVENT_KINDS, ClusterEvent
+from . import wire
 
-VERSION = 4
+VERSION = 5
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 #: most entries of a map: an agent's ``stats`` hold two per (destination, kind) it sent to, so 1,024
@@ -52,11 +56,15 @@ def _pack_array(a: np.ndarray) -> Dict[str, Any]:
     a = np.ascontiguousarray(a)
     dt = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
     a = a.astype(dt, copy=False)
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+    enc, data = wire.encode_array(a)
+    out = {"dtype": a.dtype.str, "shape": list(a.shape), "data": data}
+    if enc:
+        out["enc"] = enc
+    return out
 
 
 def _unpack_array(obj: Any, name: str) -> np.ndarray:
-    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+    if not isinstance(obj, dict) or not {"dtype", "shape", "data"} <= set(obj) <= {"dtype", "shape", "data", "enc"}:
         raise MessageError(f"field {name!r} is not an array")
     dt, shape, data = obj["dtype"], obj["shape"], obj["data"]
     if dt not in _ALLOWED_DTYPES:
@@ -69,14 +77,17 @@ def _unpack_array(obj: Any, name: str) -> np.ndarray:
     count = int(np.prod(shape)) if shape else 1
     if count * dtype.itemsize != len(data):
         raise MessageError(f"field {name!r}: {len(data)} bytes do not fit shape {shape} of {dt}")
-    return np.frombuffer(data, dtype=dtype).reshape(shape)
+    try:
+        return wire.decode_array(data, dtype, tuple(shape), obj.get("enc", ""))
+    except wire.WireError as exc:
+        raise MessageError(f"field {name!r}: {exc}") from None
 
 
 # the envelope of every data message of a round: per-link sequence number (acknowledged,
 # resent, duplicates dropped) and the part index among the message's parts
 ENVELOPE = {"part": "int", "parts": "int"}
 #: kinds that are not numbered on their link (never deduplicated): acknowledgements, progress reports
-UNNUMBERED = ("ack", "progress")
+UNNUMBERED = ("ack", "progress", "probe")
 
 # kind -> {field: type spec}; "array:<dtypes>:<ndim>", "int", "float", "str" or "dict"
 SCHEMAS: Dict[str, Dict[str, str]] = {
@@ -150,6 +161,10 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "gather": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "descriptors": "array:|u1,<f4:2"},
     # agent -> coordinator: per-phase timings and local statistics (numbers only)
     "stats": {"values": "dict"},
+    # link measurement (--mode auto): the coordinator -> a process, ``data`` bytes of filler, and the
+    # process -> the coordinator, its answer with the same ``token`` and ``reply`` bytes of filler
+    # (``reply``: what the coordinator asks for; 0 in an answer). Not numbered
+    "probe": {"token": "int", "reply": "int", "data": "array:|u1:1"},
     # coordinator -> agents: abort the job (reason)
     "abort": {"reason": "str"},
     # coordinator -> agents: all results are in, exit
@@ -219,7 +234,53 @@ def encode(kind: str, job: str, src: int, *, seq: int = 0, epoch: int = 0, **fie
                             "seq": int(seq)}
     for k, v in fields.items():
         body[k] = _pack_array(v) if isinstance(v, np.ndarray) else v
-    return msgpack.packb(body, use_bin_type=True)
+    return pack_body(body)
+
+
+#: the header of every message (outside the compressed fields; see :func:`pack_body`)
+HEADER = ("v", "kind", "job", "src", "epoch", "seq")
+#: the header field that carries the other fields as one zstd frame (dqm.distributed.wire)
+FRAME_FIELD = "z"
+
+
+def pack_body(body: Dict[str, Any]) -> bytes:
+    """The payload of a message body (a map of plain values and packed arrays): msgpack, with every
+    field but the header compressed into one zstd frame (dqm.distributed.wire) when that is shorter, so
+    that the size of a message does not depend on its header."""
+    head = {k: v for k, v in body.items() if k in HEADER}
+    rest = {k: v for k, v in body.items() if k not in HEADER}
+    packed = msgpack.packb(rest, use_bin_type=True)
+    frame = wire.compress(packed)
+    if frame is packed:
+        return msgpack.packb(body, use_bin_type=True)
+    return msgpack.packb({**head, FRAME_FIELD: frame}, use_bin_type=True)
+
+
+def _unpackb(raw: bytes, max_bytes: int) -> Any:
+    try:
+        return msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=max_bytes, max_str_len=1 << 16,
+                               max_array_len=1 << 16, max_map_len=MAX_MAP_ENTRIES)
+    except Exception as exc:  # noqa: BLE001 - any malformed input
+        raise MessageError(f"not valid msgpack ({type(exc).__name__})") from None
+
+
+def unpack_body(payload: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> Any:
+    """The msgpack value of a payload with its compressed fields restored, not validated further (also
+    for tools that alter messages: :func:`pack_body` packs it again); raises MessageError."""
+    body = _unpackb(bytes(payload), max_bytes)
+    if not isinstance(body, dict) or FRAME_FIELD not in body:
+        return body
+    frame = body.pop(FRAME_FIELD)
+    if not isinstance(frame, (bytes, bytearray)):
+        raise MessageError("compressed fields are not bytes")
+    try:
+        rest = _unpackb(wire.decompress(frame, max_bytes), max_bytes)
+    except wire.WireError as exc:
+        raise MessageError(str(exc)) from None
+    if not isinstance(rest, dict) or set(rest) & (set(body) | {FRAME_FIELD}):
+        raise MessageError("compressed fields are not a map of fields apart from the header")
+    body.update(rest)
+    return body
 
 
 def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = None,
@@ -235,12 +296,7 @@ def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = No
         raise MessageError("payload is not bytes")
     if len(payload) > max_bytes:
         raise MessageError(f"message of {len(payload)} bytes exceeds the maximum {max_bytes}")
-    try:
-        body = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
-                               max_bin_len=max_bytes, max_str_len=1 << 16, max_array_len=1 << 16,
-                               max_map_len=MAX_MAP_ENTRIES)
-    except Exception as exc:  # noqa: BLE001 - any malformed input
-        raise MessageError(f"not valid msgpack ({type(exc).__name__})") from None
+    body = unpack_body(payload, max_bytes)
     if not isinstance(body, dict):
         raise MessageError("message is not a map")
     if body.get("v") != VERSION:
@@ -325,7 +381,8 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
     if "parts" in out and not 0 <= out["part"] < out["parts"] <= 1 << 20:
         raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']}")
-    if (kind in CONTROL) != (out["src"] == -1) and kind != "ack":  # the coordinator acknowledges catalogs
+    if (kind in CONTROL) != (out["src"] == -1) and kind not in ("ack", "probe"):  # the coordinator acknowledges
+        # catalogs; probes go both ways
         raise MessageError(f"{kind} message from the wrong sender {out['src']}")
     rows = row_fields(kind, out)
     if rows:
@@ -386,6 +443,8 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
         raise MessageError(f"start names {len(out['owners'])} owners for {out['agents']} agents")
     if kind == "ready" and (out["dim"] < 1 or out["features"] < 0 or out["dtype"] not in ("|u1", "<f4")):
         raise MessageError("ready has a bad dimension, feature count or dtype")
+    if kind == "probe" and not (0 <= out["token"] < 1 << 62 and 0 <= out["reply"] <= MAX_MESSAGE_BYTES // 2):
+        raise MessageError("probe has a bad token or reply size")
     if kind == "progress" and (out["features"] < 0 or out["bytes"] < 0):
         raise MessageError("negative progress counts")
     if kind == "catalog":

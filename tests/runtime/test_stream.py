@@ -35,7 +35,7 @@ def _image(i=3, n=5, dim=DIM, dtype=np.uint8, kp_rows=None, **kw):
 
 
 def _mutate(payload: bytes, **changes) -> bytes:
-    body = msgpack.unpackb(payload, raw=False)
+    body = messages.unpack_body(payload)
     body.update(changes)
     return msgpack.packb(body, use_bin_type=True)
 
@@ -84,7 +84,7 @@ BAD_IMAGES = [
     (lambda: _mutate(_image(), time=-1.0), "image.time is negative"),
     (lambda: _mutate(_image(), src=-1), "wrong sender"),
     (lambda: _mutate(_image(), seq=-1), "bad seq"),
-    (lambda: msgpack.packb({k: v for k, v in msgpack.unpackb(_image(), raw=False).items() if k != "keypoints"}),
+    (lambda: msgpack.packb({k: v for k, v in messages.unpack_body(_image()).items() if k != "keypoints"}),
      "lacks field 'keypoints'"),
     (lambda: _mutate(_image(), name=7), "image.name must be a string"),
     (lambda: _image(name="a\nb"), "without control characters"),
@@ -103,7 +103,7 @@ def test_image_names_are_optional_and_travel():
     """A name goes through; a message of an older sender (no name field, same version) reads as name ""."""
     named = messages.decode(_image(name="/data/cam1/img 07.png"), job=JOB)
     assert named["name"] == "/data/cam1/img 07.png"
-    old = msgpack.packb({k: v for k, v in msgpack.unpackb(_image(), raw=False).items() if k != "name"})
+    old = msgpack.packb({k: v for k, v in messages.unpack_body(_image()).items() if k != "name"})
     assert "name" not in msgpack.unpackb(old, raw=False)
     assert messages.decode(old, job=JOB)["name"] == ""
     om = OnlineQuickMatch()
@@ -111,7 +111,7 @@ def test_image_names_are_optional_and_travel():
     raw = messages.changes_message(JOB, cs, "add", 0, sent=1.0, n_images=1, n_features=6, n_clusters=6,
                                    rejected=0, name="img 07.png")
     assert messages.decode(raw, job=JOB)["name"] == "img 07.png"
-    old = msgpack.packb({k: v for k, v in msgpack.unpackb(raw, raw=False).items() if k != "name"})
+    old = msgpack.packb({k: v for k, v in messages.unpack_body(raw).items() if k != "name"})
     assert messages.decode(old, job=JOB)["name"] == ""
     with pytest.raises(messages.MessageError, match="changes.name must be at most"):
         messages.decode(_mutate(raw, name="a\x00b"), job=JOB)
