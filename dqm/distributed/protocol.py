@@ -118,6 +118,37 @@ def ack(job: str, src: int, dst: int, seq: int, epoch: int = 0) -> bytes:
     return messages.encode("ack", job, src, seq=int(seq), epoch=epoch, dst=int(dst))
 
 
+class Retransmit:
+    """When an unacknowledged message is due again: an adaptive timeout with exponential backoff.
+
+    The timeout of a link starts at ``base_s`` and follows its measured acknowledgement
+    round trips (``factor`` times their smoothed mean, as TCP does, first tries only: a resent
+    message's ack cannot be matched to one send), never below ``base_s``; every resend of the
+    same message doubles it, up to ``max_s``. On a saturated thin link a message's ack can take
+    seconds behind megabytes queued before it: a fixed 2-s timeout then resent every part again
+    and again, which filled the link further (lean moved 3.9x the raw bytes at 10 Mbit/s instead
+    of 2.2x). A lost receiver is not the retransmitter's business: the coordinator notices it.
+    """
+
+    def __init__(self, base_s: float = 2.0, max_s: float = 60.0, factor: float = 3.0):
+        self.base_s = float(base_s)
+        self.max_s = float(max_s)
+        self.factor = float(factor)
+        self.srtt: Dict[int, float] = {}
+
+    def timeout(self, peer: int, tries: int) -> float:
+        """Seconds to wait for the ack of a message to ``peer`` sent ``tries`` times so far."""
+        base = max(self.base_s, self.factor * self.srtt.get(peer, 0.0))
+        return min(self.max_s, base * 2.0 ** max(0, tries - 1))
+
+    def acknowledged(self, peer: int, rtt_s: float, tries: int) -> None:
+        """An ack from ``peer`` came ``rtt_s`` after the message's last send."""
+        if tries != 1 or not rtt_s >= 0:
+            return
+        old = self.srtt.get(peer)
+        self.srtt[peer] = rtt_s if old is None else 0.875 * old + 0.125 * rtt_s
+
+
 def part_count(kind: str, payload: Dict[str, np.ndarray]) -> int:
     """Number of parts the payload of a round message is split into (at least 1)."""
     rows = messages.row_fields(kind, payload)

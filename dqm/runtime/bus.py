@@ -38,17 +38,25 @@ class RouterUnreachable(RuntimeError):
 
 
 #: liveliness lease (ms): a process cut off from the router is declared lost after about this long
-#: (a process that dies on a reachable host loses its token within milliseconds: its socket closes)
-LEASE_MS = 2000
+#: (a process that dies on a reachable host loses its token within milliseconds: its socket closes).
+#: 8 s, not 2: on a saturated 10 Mbit/s link the router, blocked forwarding bulk data to one host, stops
+#: reading another host's link for seconds, and with 2 s it took healthy processes for lost (a balanced
+#: job of 100k features on 8 such hosts lost 5 processes; with 8 s it finished in 40 s, docs/distributed.md)
+LEASE_MS = 8000
 #: keep-alive messages per lease
 KEEP_ALIVE = 4
+#: how long (µs) a put under congestion control BLOCK may wait for room in a link's queue before zenoh
+#: closes that link (zenoh's default, 5 s, closed healthy links to hosts on saturated 10 Mbit/s links)
+BLOCK_BEFORE_CLOSE_US = 60_000_000
 
 
 def _base_config(extra: Optional[dict] = None) -> dict:
     cfg = {
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"shared_memory": {"enabled": False},
-                      "link": {"tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVE}}},
+                      "link": {"tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVE,
+                                      "queue": {"congestion_control": {
+                                          "block": {"wait_before_close": BLOCK_BEFORE_CLOSE_US}}}}}},
     }
     if extra:
         for k, v in extra.items():
@@ -233,6 +241,7 @@ class Bus:
         self._closed = False
         # (src, dst, seq) -> (t, tries, payload, kind)
         self._pending: Dict[Tuple[int, int, int], Tuple[float, int, bytes, str]] = {}
+        self.retransmit = protocol.Retransmit()
         self._seen: set = set()
         self._next_seq: Dict[Tuple[int, int], int] = defaultdict(int)
         self._owners = np.arange(agents, dtype=np.int64)  # agent -> process hosting it (agent p on process p)
@@ -346,10 +355,21 @@ class Bus:
         Kinds in :data:`protocol.ACKED` (pass their ``seq``) are kept until
         acknowledged and resent by :meth:`resend_due`.
         """
-        if seq is not None and kind in protocol.ACKED:
+        acked = seq is not None and kind in protocol.ACKED
+        if acked:
             with self._lock:  # before the put: the ack may come back at once
                 self._pending[(src, dst, seq)] = (time.monotonic(), 1, payload, kind)
         self._put(src, dst, kind, payload)
+        if acked:
+            self._sent_now((src, dst, seq))
+
+    def _sent_now(self, key: Tuple[int, int, int]) -> None:
+        """Start a pending message's ack timer when its put returns: a put blocked behind a full link
+        (congestion control BLOCK) is not yet waiting for its ack."""
+        with self._lock:
+            entry = self._pending.get(key)
+            if entry is not None:
+                self._pending[key] = (time.monotonic(),) + entry[1:]
 
     def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
         """Encode and send one message of this epoch, numbered on its link (``src -> dst``)."""
@@ -362,18 +382,21 @@ class Bus:
         with self._lock:
             return sum(1 for k in self._pending if src is None or k[0] == src)
 
-    def resend_due(self, timeout_s: float = 2.0) -> None:
-        """Resend messages not acknowledged within ``timeout_s`` (a lost receiver is the coordinator's
-        business: it starts a new epoch, which drops what is pending)."""
+    def resend_due(self) -> None:
+        """Resend messages whose ack is overdue (:class:`dqm.distributed.protocol.Retransmit`: adaptive
+        per link, doubling per resend). A lost receiver is the coordinator's business: it starts a new
+        epoch, which drops what is pending."""
         now = time.monotonic()
         with self._lock:
-            due = [(k, v) for k, v in self._pending.items() if now - v[0] >= timeout_s]
+            due = [(k, v) for k, v in self._pending.items()
+                   if now - v[0] >= self.retransmit.timeout(k[1], v[1])]
         for (src, dst, seq), (t, tries, payload, kind) in due:
             with self._lock:
                 if (src, dst, seq) not in self._pending:
                     continue  # acknowledged meanwhile (or a new epoch)
                 self._pending[(src, dst, seq)] = (now, tries + 1, payload, kind)
             self._put(src, dst, kind, payload)
+            self._sent_now((src, dst, seq))
             self.meter.resend()
 
     # ------------------------------------------------------------------ receiving
@@ -418,6 +441,7 @@ class Bus:
             return None
         msg["_bytes"] = len(raw)
         msg["_key"] = key
+        msg["_t"] = time.monotonic()  # when it was decoded here (a probe's answer is timed by it)
         kind, src, seq = msg["kind"], msg["src"], msg["seq"]
         with self._lock:
             epoch = self.epoch
@@ -432,7 +456,9 @@ class Bus:
                 self.meter.reject("ack for another agent")
                 return None
             with self._lock:
-                self._pending.pop((dst, src, seq), None)
+                entry = self._pending.pop((dst, src, seq), None)
+                if entry is not None:
+                    self.retransmit.acknowledged(src, time.monotonic() - entry[0], entry[1])
             return None
         if kind not in messages.UNNUMBERED:
             key = (msg["epoch"], dst, src, seq)

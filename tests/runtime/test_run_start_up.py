@@ -53,7 +53,7 @@ def test_agent_counts_beyond_the_host_are_refused_or_warned(tmp_path, capsys):
     with pytest.warns(UserWarning, match="on .* cores: the agent processes only share the cores"):
         timeout = check_scale(MAX_AGENTS_PER_CORE * cores, 10 ** 6)
     assert timeout > 30.0  # the ready timeout grows with the agents per core
-    with pytest.raises(InputError, match="cannot keep their 2 s liveliness leases"):
+    with pytest.raises(InputError, match=r"cannot keep their \d+ s liveliness leases"):
         check_scale(MAX_AGENTS_PER_CORE * cores + 1, 10 ** 6)
 
 
