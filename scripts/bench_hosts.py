@@ -12,7 +12,11 @@ on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
   centralized QuickMatch (quadratic kernel, the same clusters as balanced) in the same CPU quota
   as one agent host;
 * gather-approx: the same with approximate QuickMatch (faiss);
-* lean, balanced: `dqm agent` on every host, the coordinator on host 0.
+* lean, balanced: `dqm agent` on every host, the coordinator on host 0;
+* auto: the same processes with `--mode auto`: the coordinator times its link to every host, picks
+  gather (every agent's features to the coordinator, which matches them), lean or balanced with
+  dqm.distributed.costmodel, and runs it. Its rows say what it picked and its time over the best
+  of gather, lean and balanced in the same run ("auto / best").
 
 Time to result: from starting the processes (Python start-up in the quota included, for every
 mode) to the labels. Reported with the bytes moved and the speed-up over gather at each rate; every
@@ -103,8 +107,9 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
                         row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
                         if ref is not None:
                             row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
-                        log(f"{name} M={m} {rate:g} Mbit/s {mode}: {r.seconds:.1f} s, {r.bytes / raw:.2f}x raw "
-                            f"({time.perf_counter() - t:.1f} s)")
+                        picked = f" (picked {r.detail['picked']})" if "picked" in r.detail else ""
+                        log(f"{name} M={m} {rate:g} Mbit/s {mode}{picked}: {r.seconds:.1f} s, {r.bytes / raw:.2f}x "
+                            f"raw ({time.perf_counter() - t:.1f} s)")
                     rows.append(row)
                     save()
             finally:
@@ -118,14 +123,29 @@ def after_start_up(r: dict) -> float:
     return r["job_s"] if "job_s" in r else r["gather_s"] + r["match_s"]
 
 
+#: the modes auto picks from: "auto / best" is auto's time over the best of these in the same run
+AUTO_PICKS = ("gather", "lean", "balanced")
+
+
+def auto_over_best(r: dict, rows) -> str:
+    """An auto row's time over the best time of gather, lean and balanced at the same data, M and rate
+    ("" for other rows, or when none of them ran)."""
+    if r["mode"] != "auto" or "error" in r:
+        return ""
+    same = [o["seconds"] for o in rows if o["mode"] in AUTO_PICKS and "error" not in o
+            and (o["data"], o["m"], o["rate_mbit"]) == (r["data"], r["m"], r["rate_mbit"])]
+    return f"{r['seconds'] / min(same):.2f}" if same else ""
+
+
 def table(rows) -> str:
     out = ["| data | M | link Mbit/s | mode | time to result s | speed-up over gather | after start-up s | "
-           "speed-up over gather | bytes / raw | labels vs gather |", "|---|---|---|---|---|---|---|---|---|---|"]
+           "speed-up over gather | bytes / raw | labels vs gather | auto picked | auto / best |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     ref = {(r["data"], r["m"], r["rate_mbit"]): r for r in rows if r["mode"] == "gather"}
     for r in rows:
         if "error" in r:
             out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | failed after "
-                       f"{r['seconds']:.0f} s: {r['error']} | | | | | |")
+                       f"{r['seconds']:.0f} s: {r['error']} | | | | | | | |")
             continue
         agree = "" if "identical" not in r else ("identical" if r["identical"] else f"F1 {r['f1']:.4f}")
         speed = f"{r['speedup_over_gather']:.2f}" if "speedup_over_gather" in r else ""
@@ -133,7 +153,8 @@ def table(rows) -> str:
         g = g if g is not None and "error" not in g else None
         warm = f"{after_start_up(g) / after_start_up(r):.2f}" if g else ""
         out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {r['seconds']:.1f} | {speed} | "
-                   f"{after_start_up(r):.1f} | {warm} | {r['bytes_over_raw']:.2f} | {agree} |")
+                   f"{after_start_up(r):.1f} | {warm} | {r['bytes_over_raw']:.2f} | {agree} | {r.get('picked', '')} | "
+                   f"{auto_over_best(r, rows)} |")
     return "\n".join(out)
 
 

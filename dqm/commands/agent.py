@@ -45,7 +45,7 @@ def run(args) -> int:
     check_endpoint(args.connect)
     if not 0 <= args.id < args.agents:
         raise InputError(f"--id must be in 0..{args.agents - 1}, got {args.id}")
-    cfg = config_from(args, args.agents).validated()
+    cfg = config_from(args, args.agents).validated(runtime=True)
     peers = parse_peer_features(args.peer_features)
     bad = [a for a in peers if not 0 <= a < args.agents]
     if bad:

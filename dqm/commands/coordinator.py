@@ -40,6 +40,12 @@ def add_arguments(p) -> None:
     p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
     p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
                                                 "(default: half of them, at least 1)")
+    p.add_argument("--host-cores", type=float, metavar="CORES",
+                   help="--mode auto: the cores of each agent host, for the cost model that picks the mode "
+                        "(default: this host's, its CPU quota included)")
+    p.add_argument("--gather-cores", type=float, metavar="CORES",
+                   help="--mode auto: the cores this host gives a gather (default: this host's, its CPU quota "
+                        "included)")
     p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
     add_algorithm(p)
     add_tls(p)
@@ -65,10 +71,13 @@ def run(args) -> int:
         args.clusters or outputs.default_dir("coordinator") / f"{args.job}.npz", "--clusters", (".npz",)))
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
-    cfg = config_from(args, args.agents, args.seed).validated()
+    for option, value in (("--host-cores", args.host_cores), ("--gather-cores", args.gather_cores)):
+        if value is not None and not value > 0:
+            raise InputError(f"{option} must be positive, got {value}")
+    cfg = config_from(args, args.agents, args.seed).validated(runtime=True)
     try:
         return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port,
                                 args.ready_timeout, args.job_timeout, args.connect_timeout, args.max_lost,
-                                args.progress_fd, args.phase_timeout, clusters)
+                                args.progress_fd, args.phase_timeout, clusters, args.host_cores, args.gather_cores)
     except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

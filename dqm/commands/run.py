@@ -81,7 +81,7 @@ def run(args) -> int:
     n_images = len(np.unique(ids))
     if len(X) == 0 or n_images < 2:
         raise InputError(f"a distributed job needs features of at least two images, got {n_images}")
-    cfg = config_from(args, args.agents, args.seed).validated(len(X))
+    cfg = config_from(args, args.agents, args.seed).validated(len(X), runtime=True)
     ready_timeout = check_scale(cfg.agents, n_images, args.ready_timeout)
     t0 = time.perf_counter()
     try:
@@ -93,7 +93,14 @@ def run(args) -> int:
     wall = time.perf_counter() - t0
     labels = np.asarray(rep["labels"])
     sizes = np.bincount(labels)
-    print(f"Distributed QuickMatch ({cfg.mode} mode, {cfg.agents} agent processes, partition {cfg.partition}, "
+    mode = rep.get("mode", cfg.mode)
+    if "auto" in rep:
+        from ..distributed.costmodel import mbit_text
+
+        rates = ", ".join(f"{p}: {mbit_text(r)}" for p, r in rep["auto"]["rates_bytes_s"].items())
+        print(f"--mode auto picked {rep['auto']['reason']} [measured Mbit/s per process {rates}; "
+              f"{rep['auto']['probe_s']:.2f} s of probes]")
+    print(f"Distributed QuickMatch ({mode} mode, {cfg.agents} agent processes, partition {cfg.partition}, "
           f"seed {cfg.seed}): {len(labels)} features from {n_images} images -> {rep['clusters']} clusters, "
           f"{int((sizes > 1).sum())} spanning 2+ images; {wall:.1f} s wall.")
     for lost in rep.get("lost", []):
@@ -103,7 +110,10 @@ def run(args) -> int:
         s = evaluation.cluster_scores_landmarks(labels, np.asarray(truth), ids)
         print(f"Against ground truth: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f}.")
     cpu = {int(a): st.get("cpu_s", 0.0) for a, st in rep.get("per_agent", {}).items()}
-    if cpu:
+    if mode == "gather":
+        print(f"Work: the coordinator matched every feature itself in {rep.get('match_s', 0.0):.2f} s "
+              f"(dqm.quickmatch); the agents sent their features ({sum(cpu.values()):.2f} CPU s in all).")
+    elif cpu:
         busiest = max(cpu, key=cpu.get)
         pairs = [st.get("pairs", 0.0) for st in rep["per_agent"].values()]
         most = 100.0 * max(pairs) / max(1.0, len(labels) * (len(labels) - 1) / 2)
@@ -111,8 +121,10 @@ def run(args) -> int:
         print(f"Work: the busiest agent (agent {busiest}) used {cpu[busiest]:.2f} CPU s, all agents "
               f"{sum(cpu.values()):.2f} CPU s{share}.")
     raw = np.asarray(X).size * (1 if np.asarray(X).dtype == np.uint8 else 4)
+    probes = rep["auto"]["probe_bytes"] if "auto" in rep else 0
     print(f"Traffic: {rep['total_bytes']} bytes metered ({rep['total_bytes'] / raw:.2f}x the raw descriptor bytes)"
-          + (f", {rep['wire_bytes_received_by_router']} bytes received by the router (kernel TCP counters)"
+          + (f", {rep['wire_bytes_received_by_router']} bytes received by the router (kernel TCP counters"
+             + (f"; --mode auto's link probes, {probes} bytes, among them" if probes else "") + ")"
              if rep.get("wire_bytes_received_by_router") else "") + ".")
     print(traffic_table(rep, max_links=TABLE_LINKS))
     if len(rep["links"]) > TABLE_LINKS:
@@ -130,12 +142,22 @@ def run(args) -> int:
     if args.check:
         from ..distributed.simulator import simulate
 
-        print(f"Checking: the same job ({len(labels)} features, {cfg.agents} agents, {cfg.mode} mode) in the "
-              "in-process simulator; this takes about as long as the job's CPU time ...", file=sys.stderr, flush=True)
+        # gather ran dqm.quickmatch: check it against balanced's simulation (its clusters with the quadratic
+        # kernel), or against dqm.quickmatch itself with another kernel
+        central = mode == "gather" and cfg.kernel != "quadratic"
+        what, name = (("dqm.quickmatch in this process", "dqm.quickmatch") if central
+                      else ("the in-process simulator", "In-process simulator"))
+        print(f"Checking: the same job ({len(labels)} features, {cfg.agents} agents, {mode} mode) in {what}; this "
+              "takes about as long as the job's CPU time ...", file=sys.stderr, flush=True)
         t1 = time.perf_counter()
-        sim = simulate(X, ids, cfg)
-        same = np.array_equal(sim.labels, labels)
-        print(f"In-process simulator: {'identical clusters' if same else 'DIFFERENT clusters'} "
+        if central:
+            import dqm
+
+            reference = dqm.quickmatch(X, ids, params=cfg.params).labels
+        else:
+            reference = simulate(X, ids, cfg.but(mode="balanced" if mode == "gather" else mode)).labels
+        same = np.array_equal(reference, labels)
+        print(f"{name}: {'identical clusters' if same else 'DIFFERENT clusters'} "
               f"({time.perf_counter() - t1:.1f} s).")
         if not same:
             return 1

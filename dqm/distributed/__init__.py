@@ -8,7 +8,8 @@ both the in-process simulator (:func:`simulate`) and the zenoh runtime
 =================  ===============================================================
 module             holds
 =================  ===============================================================
-``config``         :class:`DQMConfig`, the modes (balanced, lean, paper)
+``config``         :class:`DQMConfig`, the modes (balanced, lean, paper; the runtime's gather, auto)
+``costmodel``      --mode auto's predicted time to result of gather, lean, balanced; the pick
 ``partition``      seeds from the integer (k-means / seeded), power weights, routing
 ``boundary``       bisector distances (closed form, rigorous lower bounds), QP cell distances
 ``seeding``        the set-up every mode shares (sample, seeds, weights, sketch basis, sigma fill)

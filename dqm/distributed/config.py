@@ -16,6 +16,14 @@ Modes (``mode=``):
   agent 0 (docs/distributed.md).
 * ``"paper"``: the seed paper's literal procedure (per-agent sigma, QP cell
   distances, local clusters as units).
+
+Two more modes exist only in the runtime (``dqm run``, ``dqm coordinator``, ``dqm agent``:
+:data:`RUNTIME_MODES`), not in the simulator:
+
+* ``"gather"``: every agent sends its features to the coordinator, which runs
+  :func:`dqm.quickmatch` with the job's kernel and rho (the balanced mode's clusters);
+* ``"auto"``: the coordinator measures the link to every agent process once all are
+  ready and picks gather, lean or balanced with :mod:`dqm.distributed.costmodel`.
 """
 from __future__ import annotations
 
@@ -26,8 +34,13 @@ from typing import Dict, List, Optional, Tuple, get_type_hints
 from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
 from ..validation import InputError, check_choice, check_positive
 from . import partition
+from .costmodel import AUTO_MODES
 
+#: the distributed algorithms (the simulator runs these)
 MODES = ("balanced", "lean", "paper")
+#: the modes a runtime job may be started with: the algorithms, ``gather`` (centralized at the coordinator)
+#: and ``auto`` (the coordinator picks gather, lean or balanced from measured links; docs/runtime.md)
+RUNTIME_MODES = MODES + ("gather", "auto")
 DEFAULT_MODE = "balanced"
 GHOST_RULES = ("one-way", "two-way")
 #: the default partition seed integer (every command and DQMConfig)
@@ -88,8 +101,10 @@ class DQMConfig:
         choices=partition.PARTITION_MODES))
     mode: str = field(default=DEFAULT_MODE, metadata=_meta(
         "balanced (clusters identical to centralized, work spread evenly), lean (the hand-down cascade: fewer "
-        "bytes, work gathers at agent 0) or paper (the seed paper's literal procedure); docs/distributed.md",
-        "--mode", 2, choices=MODES))
+        "bytes, work gathers at agent 0), paper (the seed paper's literal procedure), gather (every agent's "
+        "features to the coordinator, which matches them centrally) or auto (the coordinator measures the links "
+        "and picks gather, lean or balanced); docs/distributed.md, docs/runtime.md",
+        "--mode", 2, choices=RUNTIME_MODES))
     rho: float = field(default=DEFAULT_RHO, metadata=_meta(_qm_help("rho"), "--rho", 5))
     kernel: str = field(default=FINITE_KERNEL, metadata=_meta(
         "density kernel: a distributed job takes only the finite quadratic one (a density never needs features "
@@ -113,12 +128,20 @@ class DQMConfig:
         "balanced: dimension of the lower-bound sketch pre-filter (0 = off)", "--sketch-dims", 11))
     balance_rounds: int = field(default=12, metadata=_meta(
         "most rounds of cell-weight refinement", "--balance-rounds", 12))
+    auto_modes: str = field(default=",".join(AUTO_MODES), metadata=_meta(
+        "--mode auto: the modes the coordinator may pick, comma-separated (of gather, balanced, lean; not shared: "
+        "only the coordinator picks)", "--auto-modes", None))
 
     @property
     def params(self) -> QuickMatchParams:
         """The QuickMatch parameters of the job: ``quickmatch(X, ids, params=cfg.params)`` gives the labels a
         balanced job gives (parent ``any``, the default ratio_density, which the quadratic kernel ignores)."""
         return QuickMatchParams(rho=self.rho, kernel=self.kernel, parent="any", ratio_density=DEFAULT_RATIO_DENSITY)
+
+    @property
+    def auto_choices(self) -> Tuple[str, ...]:
+        """The modes ``--mode auto`` may pick (:attr:`auto_modes` as a tuple)."""
+        return tuple(m.strip() for m in str(self.auto_modes).split(",") if m.strip())
 
     @property
     def weighted(self) -> bool:
@@ -135,13 +158,26 @@ class DQMConfig:
         """Whether agents send descriptor samples to agent 0 at set-up."""
         return self.partition == "kmeans" or self.weighted or (self.mode == "balanced" and self.sketch_dims > 0)
 
-    def validated(self, n_features: Optional[int] = None) -> "DQMConfig":
+    def validated(self, n_features: Optional[int] = None, runtime: bool = False) -> "DQMConfig":
+        """Self, after checking every field (one clear line naming it). ``runtime``: also accept the modes
+        only the runtime runs (:data:`RUNTIME_MODES`: gather, auto); the simulator takes :data:`MODES`."""
         partition.check_agents(self.agents, n_features)
         partition.check_seed(self.seed)
         check_choice(self.partition, "partition", partition.PARTITION_MODES)
-        check_choice(self.mode, "mode", MODES)
-        # balanced mode is exact only with a finite kernel; lean and paper are approximate and take either
-        self.params.validated(finite=self.mode == "balanced", engine=f"a {self.mode}-mode distributed job")
+        if not runtime and self.mode in RUNTIME_MODES and self.mode not in MODES:
+            raise InputError(f"mode {self.mode!r} runs only in the runtime (dqm run, dqm coordinator): the "
+                             f"simulator takes {', '.join(repr(m) for m in MODES)}")
+        check_choice(self.mode, "mode", RUNTIME_MODES if runtime else MODES)
+        picks = self.auto_choices
+        if not picks or any(m not in AUTO_MODES for m in picks) or len(set(picks)) != len(picks):
+            raise InputError(f"auto_modes must name some of {', '.join(AUTO_MODES)} once each, comma-separated; "
+                             f"got {self.auto_modes!r}")
+        # balanced mode is exact only with a finite kernel (and auto, which may pick it); lean and paper are
+        # approximate and take either; gather runs dqm.quickmatch, which takes either
+        may_balance = self.mode == "auto" and "balanced" in self.auto_choices
+        self.params.validated(finite=self.mode == "balanced" or may_balance,
+                              engine="a --mode auto job that may pick balanced (--auto-modes)" if may_balance
+                              else f"a {self.mode}-mode distributed job")
         check_choice(self.ghost_rule, "ghost_rule", GHOST_RULES)
         check_positive(self.halo, "halo")
         check_positive(self.seed_norm, "seed_norm")

@@ -19,17 +19,20 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..distributed import keys, messages, sources
-from ..distributed.config import DQMConfig, differing_param, params_hash
+from ..distributed import keys, messages, protocol, sources
+from ..distributed.config import DQMConfig, differing_param, params_hash, parse_params
+from ..distributed.costmodel import AUTO_MODES
 from ..distributed.driver import AgentDriver, JobAborted, ready_fields
 from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
 from .bus import Bus, check_job_free, open_client
+from .gather import gather_messages, gather_slices
+from .measure import probe_answer
 
 log = logging.getLogger("dqm.runtime")
 
-__all__ = ["AgentHost", "CoordinatorLost", "JobAborted", "Refused", "fault_pause_from_env", "load_agent_features",
-           "main_agent", "parse_peer_features"]
+__all__ = ["AgentHost", "CoordinatorLost", "GatherSource", "JobAborted", "Refused", "fault_pause_from_env",
+           "load_agent_features", "main_agent", "parse_peer_features"]
 
 
 def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
@@ -80,6 +83,76 @@ class CoordinatorLost(RuntimeError):
     """The coordinator's liveliness token vanished."""
 
 
+class GatherSource:
+    """One hosted agent of a ``gather`` job (``--mode gather``, or ``auto`` when the coordinator picked it):
+    on ``go`` it sends its features to the coordinator as ``gather`` messages
+    (:func:`dqm.runtime.gather.gather_messages`, numbered on its link, not acknowledged: BLOCK puts on a
+    reliable session, like the stand-alone gathering) and its catalog when the job asked for it, then its
+    statistics once the catalog is acknowledged, and waits for ``finish``. The same calls as
+    :class:`~dqm.distributed.driver.AgentDriver` (``begin``, ``handle``, ``settle``, ``check_timeout``)."""
+
+    def __init__(self, me: int, cfg: DQMConfig, bus: Bus, features: sources.AgentFeatures, epoch: int,
+                 home: int, catalog: bool, phase_timeout_s: float = 120.0):
+        self.me, self.cfg, self.bus, self.features = me, cfg, bus, features
+        self.epoch, self.home, self.catalog = epoch, home, catalog
+        self.phase_timeout_s = phase_timeout_s
+        self.state = "wait_start"
+        self.phase_started = time.monotonic()
+        self.cpu0 = time.process_time()
+        self.times: Dict[str, float] = {}
+
+    def _enter(self, state: str) -> None:
+        now = time.monotonic()
+        self.times[f"time_{self.state}"] = self.times.get(f"time_{self.state}", 0.0) + now - self.phase_started
+        self.state, self.phase_started = state, now
+        self.bus.send(self.me, COORDINATOR, "progress", messages.encode(
+            "progress", self.cfg.job, self.me, epoch=self.epoch, state=state, features=len(self.features),
+            bytes=int(self.bus.meter.sent_by(self.me))))
+
+    def begin(self, seed: int) -> None:
+        """``go``: send the features (and the catalog) to the coordinator."""
+        self._enter("gather")
+        f = self.features
+        seq0 = self.bus.next_seq(self.me, COORDINATOR, len(gather_slices(f.descriptors)))
+        for payload in gather_messages(self.cfg.job, self.me, f.ids, f.image_ids, f.descriptors, epoch=self.epoch,
+                                       seq0=seq0):
+            self.bus.send(self.me, COORDINATOR, "gather", payload)
+        if self.catalog:
+            payload = self.features.catalog
+            n = protocol.part_count("catalog", payload)
+            seq0 = self.bus.next_seq(self.me, COORDINATOR, n)
+            for j, msg in enumerate(protocol.data_messages("catalog", self.cfg.job, self.me, payload, seq0=seq0,
+                                                           epoch=self.epoch)):
+                self.bus.send(self.me, COORDINATOR, "catalog", msg, seq=seq0 + j)
+        self._enter("wait_acks")
+
+    def handle(self, msg: dict) -> None:
+        """Nothing comes to a gathering source from other agents."""
+
+    def settle(self) -> None:
+        """Once the catalog is acknowledged (at once without one): the statistics, then wait for ``finish``."""
+        if self.state == "wait_acks" and self.bus.unacknowledged(self.me) == 0:
+            self._enter("wait_finish")
+            stats = dict(self.times)
+            stats["cpu_s"] = time.process_time() - self.cpu0
+            stats["host"] = float(self.home)
+            stats["features"] = float(len(self.features))
+            if self.me == self.home:  # the process's counters, reported once
+                rejected, duplicates, resent = self.bus.meter.counters()
+                for reason, count in rejected.items():
+                    stats[f"rejected:{reason}"] = float(count)
+                stats["duplicates"] = float(duplicates)
+                stats["resent"] = float(resent)
+            stats.update(self.bus.meter.as_stats(src=self.me))
+            self.bus.send_single(self.me, COORDINATOR, "stats", values=stats)
+
+    def check_timeout(self) -> None:
+        """A catalog unacknowledged for longer than the phase timeout ends the process (TimeoutError)."""
+        if self.state == "wait_acks" and time.monotonic() - self.phase_started > self.phase_timeout_s:
+            raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s for the coordinator "
+                               "to acknowledge its catalog")
+
+
 class AgentHost:
     """One agent process: its own agent (``home``) and any lost agents' cells the coordinator gave it.
 
@@ -103,7 +176,10 @@ class AgentHost:
         self.features: Dict[int, sources.AgentFeatures] = {
             home: own if own is not None else load_agent_features(paths[home], home)}
         bus.dim = self.features[home].descriptors.shape[1]
-        self.slots: Dict[int, AgentDriver] = {}
+        self.slots: Dict[int, object] = {}  # AgentDriver, or GatherSource in a gather job
+        #: the configuration of the running epoch: ``cfg`` with, when ``cfg.mode`` is auto, the coordinator's pick
+        self.job_cfg = cfg
+        self.ran = False  # whether an epoch of a mode that computes has started (fault injection: the first)
         self.epoch = -1
         self.seed: Optional[int] = None
         self.done = False
@@ -126,6 +202,15 @@ class AgentHost:
                 raise Refused(f"cannot take over agent {agent}: {exc}") from None
         return self.features[agent]
 
+    def job_config(self, params: str) -> DQMConfig:
+        """This process's configuration for a ``start`` whose parameter text is ``params``: its own, except
+        that a process started with mode auto takes the mode the coordinator names (auto while it measures,
+        then gather, lean or balanced); the parameter check that follows compares everything else."""
+        if self.cfg.mode != "auto":
+            return self.cfg
+        theirs = parse_params(params).get("mode", "").strip("'\"")
+        return self.cfg.but(mode=theirs) if theirs in AUTO_MODES + ("auto",) else self.cfg
+
     def _refuse(self, reason: str, param: str = "") -> None:
         self.bus.send_single(self.home, -1, "refuse", reason=reason, param=param)
         raise Refused(reason)
@@ -137,7 +222,8 @@ class AgentHost:
                 return  # a repeated start of this epoch
             self.bus.set_epoch(msg["epoch"])
             self.bus.set_owners(msg["owners"])
-            mine = self.cfg.params_text()
+            cfg = self.job_config(msg["params"])
+            mine = cfg.params_text()
             if msg["params_hash"] != params_hash(mine) or msg["agents"] != self.cfg.agents:
                 name, ours, theirs = differing_param(mine, msg["params"]) or ("params", "?", "?")
                 self._refuse(f"parameter {name} differs: this agent has {name}={ours}, the coordinator "
@@ -157,19 +243,33 @@ class AgentHost:
             self.bus.host(hosted)
             self.epoch = msg["epoch"]
             self.seed = msg["seed"]
-            first = self.epoch == 0  # faults are injected into the first run only
-            self.slots = {a: AgentDriver(a, self.cfg, self.bus, f.ids, f.image_ids, f.descriptors,
-                                         phase_timeout_s=self.phase_timeout_s, epoch=self.epoch, home=self.home,
-                                         catalog=f.catalog if msg["catalog"] else None,
-                                         on_state=self.on_state if first and a == self.home else None)
-                          for a, f in feats.items()}
-            if self.epoch > 0:
+            previous, self.job_cfg = self.job_cfg.mode, cfg
+            if "auto" in (cfg.mode, previous):
+                log.info("epoch %d: mode %s", self.epoch, cfg.mode)
+            if cfg.mode == "auto":  # the coordinator measures the links, then starts the mode it picked
+                self.slots = {}
+            elif cfg.mode == "gather":
+                self.slots = {a: GatherSource(a, cfg, self.bus, f, self.epoch, self.home, bool(msg["catalog"]),
+                                              self.phase_timeout_s) for a, f in feats.items()}
+            else:
+                first = not self.ran  # faults are injected into the first run only
+                self.slots = {a: AgentDriver(a, cfg, self.bus, f.ids, f.image_ids, f.descriptors,
+                                             phase_timeout_s=self.phase_timeout_s, epoch=self.epoch, home=self.home,
+                                             catalog=f.catalog if msg["catalog"] else None,
+                                             on_state=self.on_state if first and a == self.home else None)
+                              for a, f in feats.items()}
+                self.ran = True
+            if self.epoch > 0 and previous != "auto":  # a restart (not the start of the mode auto picked)
                 log.warning("epoch %d: hosting agents %s", self.epoch, hosted)
             self.bus.send_single(self.home, COORDINATOR, "ready", **ready_fields(
                 self.features[self.home].descriptors, hosted, sum(len(f) for f in feats.values())))
         elif kind == "go" and msg["epoch"] == self.epoch:
             for slot in self.slots.values():
                 slot.begin(self.seed)
+        elif kind == "probe":  # --mode auto: the coordinator times its link to this process; answer at once
+            self.bus.send(self.home, COORDINATOR, "probe", messages.encode(
+                "probe", self.cfg.job, self.home, epoch=msg["epoch"], token=msg["token"], reply=0,
+                data=probe_answer(msg["reply"], msg["_t"])))
         elif kind == "abort":
             raise JobAborted(f"the coordinator aborted the job: {msg['reason']}")
         elif kind == "finish":

@@ -18,9 +18,23 @@ It also keeps the job alive when agent processes die (docs/runtime.md):
 * more than ``max_lost`` lost processes (default: half of them, at least 1),
   or none left, ends the job with one paragraph saying what failed, which
   agent, in which phase and what to do.
+
+Two modes are the coordinator's own (docs/runtime.md):
+
+* ``gather``: the agents send their features (``gather`` messages,
+  :mod:`dqm.runtime.gather`) and the coordinator runs :func:`dqm.quickmatch`
+  with the job's kernel and rho; the report has the same fields as a
+  distributed job's;
+* ``auto``: once every process is ready (``start`` with mode auto), the
+  coordinator times its link to each process (``probe`` messages,
+  :mod:`dqm.runtime.measure`), picks gather, lean or balanced with
+  :mod:`dqm.distributed.costmodel`, says which and why, and starts the job
+  again (the next epoch) in the mode it picked; the report's ``auto`` block
+  holds the rates, the pick, the predictions and the reason.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import signal
@@ -29,18 +43,21 @@ import sys
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
 
 from .. import io
-from ..distributed import keys, protocol, sources
+from ..distributed import costmodel, keys, messages, protocol, sources
 from ..distributed.config import DQMConfig
 from ..distributed.driver import start_fields
 from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
+from ..validation import InputError
+from . import measure
 from .agent import Terminated, _on_sigterm
 from .bus import AccessDenied, Bus, check_job_free, open_client
+from .gather import GatheredParts, match_gathered
 
 log = logging.getLogger("dqm.runtime")
 
@@ -99,9 +116,24 @@ class _Lost(Exception):
 class Coordinator:
     def __init__(self, bus: Bus, cfg: DQMConfig, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
                  max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0,
-                 catalog: bool = False):
+                 catalog: bool = False, host_cores: Optional[float] = None, gather_cores: Optional[float] = None,
+                 announce: Optional[Callable[[str], None]] = None):
         self.bus = bus
+        #: the mode the job was started with (``auto``: :meth:`_decide` picks the one :attr:`cfg` runs)
+        self.requested = cfg
         self.cfg = cfg
+        #: auto: the cores of each agent host, and those this host gives a gather, for the cost model (None:
+        #: this host's, :func:`measure.host_cores`)
+        self.host_cores, self.gather_cores = host_cores, gather_cores
+        self.announce = announce or (lambda text: log.info("%s", text))
+        #: auto: the report's ``auto`` block once the mode is picked
+        self.auto: Optional[dict] = None
+        self.probe_answers: Dict[int, float] = {}
+        #: gather: the agents' features as they arrive
+        self.gathered: Optional[GatheredParts] = None
+        self.match_s = 0.0
+        self._probes: Optional[measure.ProbeEncoder] = None
+        self.runs = 0
         self.job = cfg.job
         self.m = cfg.agents
         self.seed = cfg.seed
@@ -184,6 +216,12 @@ class Coordinator:
             self.stats[src] = msg["values"]
             # the stats message itself was sent after the agent's meter snapshot
             self.stats_bytes[src] = msg["_bytes"] + len(msg["_key"])
+        elif kind == "gather" and self.phase == "running" and self.gathered is not None:
+            self.gathered.take(msg)
+        elif kind == "probe" and self.phase == "probe":
+            # when the process received the probe, by its own clock (else: when its answer arrived here)
+            stamp = measure.answer_stamp(msg["data"])
+            self.probe_answers[msg["token"]] = msg["_t"] if stamp is None else stamp
 
     def _deaths(self) -> List[int]:
         return [p for p in range(self.m) if p not in self.dead and self.bus.agent_alive(p) is False]
@@ -272,15 +310,16 @@ class Coordinator:
                 self._reassign()
                 return
 
-    def _epoch(self) -> None:
-        """Start the current epoch and run it to the end; raises _Lost when a process owing work dies."""
+    def _start(self, cfg: DQMConfig) -> List[int]:
+        """Send the current epoch's ``start`` (``cfg``'s parameters) to every live process hosting agents and
+        wait until every one is ready with descriptors of one dimension and type; returns those processes."""
         self.bus.set_epoch(self.epoch)
         self.bus.set_owners(self.owners)
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
         self.phase = "start"
         hosts = self._hosts()
-        start = start_fields(self.cfg, self.owners, self.catalog)
+        start = start_fields(cfg, self.owners, self.catalog)
         for p in hosts:
             self._send(p, "start", **start)
         t = time.monotonic()
@@ -299,13 +338,83 @@ class Coordinator:
                     self.fail(JobFailed(f"agent {p} holds descriptors of {name} {self.ready[p][field]}, agent "
                                         f"{hosts[0]} of {name} {ref[field]}", p, "start",
                                         "Give every agent FEATURES of the same descriptor type.", refused=True))
+        return hosts
+
+    def _epoch(self) -> None:
+        """Start the current epoch and run it to the end; raises _Lost when a process owing work dies."""
+        self.runs += 1
+        hosts = self._start(self.cfg)
+        self.gathered = GatheredParts(range(self.m)) if self.cfg.mode == "gather" else None
         for p in hosts:
             self._send(p, "go")
         self.phase = "running"
-        while len(self.stats) < self.m or not all(self._catalog_done(a) for a in range(self.m)):
+        while (len(self.stats) < self.m or not all(self._catalog_done(a) for a in range(self.m))
+               or (self.gathered is not None and not self.gathered.complete())):
             self._poll()
             self._check_deaths()
             self._check_time()
+
+    # ------------------------------------------------------------------ --mode auto
+    def _probe_pair(self, p: int, token_a: int, token_b: int, nbytes: int) -> None:
+        """Send process ``p`` two probes of ``nbytes`` filler bytes back to back, both encoded first (not
+        numbered: a probe is answered, not acknowledged)."""
+        payloads = [self._probes.encode(t, nbytes) for t in (token_a, token_b)]  # both ready before the first put
+        for payload in payloads:
+            self.bus.send(COORDINATOR, p, "probe", payload)
+
+    def _probe_answer(self, token: int, timeout_s: float) -> float:
+        """When the process received probe ``token`` (its clock, from the answer's stamp), polling meanwhile."""
+        t = time.monotonic()
+        while token not in self.probe_answers:
+            self._poll()
+            self._check_deaths()
+            self._check_time()
+            if time.monotonic() - t > timeout_s:
+                self.fail(JobFailed(f"an agent process did not answer the link probe within {timeout_s:.0f} s",
+                                    None, "probe", "Check the agents' logs; every process of a --mode auto job "
+                                    "must be started with --mode auto."))
+        return self.probe_answers.pop(token)
+
+    def _decide(self) -> None:
+        """--mode auto: start every process in mode auto, time the link to each, pick the mode the job runs."""
+        hosts = self._start(self.requested)
+        self.phase = "probe"
+        t0 = time.monotonic()
+        epoch = self.bus.epoch
+        self._probes = measure.ProbeEncoder(lambda token, data: messages.encode(
+            "probe", self.job, COORDINATOR, epoch=epoch, token=token, reply=measure.STAMP_BYTES, data=data))
+        tokens: Iterator[int] = itertools.cycle((1, 2))
+        rates: Dict[int, measure.LinkRate] = {}
+        start = measure.START_PROBE_BYTES
+        for p in hosts:
+            rates[p] = measure.measure_link(p, self._probe_pair, self._probe_answer, tokens, time.monotonic, start)
+            start = measure.next_start_bytes(rates[p])
+        probe_s = time.monotonic() - t0
+        ref = self.ready[hosts[0]]
+        n = int(sum(self.ready[p]["features"] for p in hosts))
+        dtype = np.dtype(ref["dtype"])
+        own = self.gather_cores or measure.host_cores()
+        cores = self.host_cores or own
+        try:
+            job = costmodel.JobShape(n=max(1, n), agents=self.m, dim=int(ref["dim"]), itemsize=dtype.itemsize)
+            choice = costmodel.choose(job, costmodel.Hosts.of([rates[p].bytes_s for p in hosts], cores,
+                                                              gather_cores=own), started=True,
+                                      modes=self.requested.auto_choices)
+        except InputError as exc:
+            self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
+                                "Give the job's mode explicitly (--mode balanced, lean or gather)."))
+        self.cfg = self.requested.but(mode=choice.mode)
+        self.auto = {
+            "rates_bytes_s": {str(p): round(rates[p].bytes_s, 1) for p in hosts},
+            "picked": choice.mode, "predicted_s": choice.predicted_s, "reason": choice.reason,
+            "probe_s": probe_s,
+            "probe_pairs": {str(p): [list(x) for x in rates[p].pairs] for p in hosts},
+            "cores_per_host": cores, "gather_cores": own, "features": n,
+        }
+        mbit = ", ".join(f"{p}: {costmodel.mbit_text(rates[p].bytes_s)}" for p in hosts)
+        self.announce(f"--mode auto picked {choice.reason} [measured Mbit/s per process {mbit}; "
+                      f"{probe_s:.2f} s of probes]")
+        self.epoch += 1  # the picked mode runs in the next epoch (every process starts it afresh)
 
     def run(self, tcp_port: Optional[int] = None) -> dict:
         self.t0 = t0 = time.monotonic()
@@ -313,14 +422,19 @@ class Coordinator:
         t_ready = time.monotonic()
         while True:
             try:
+                if self.requested.mode == "auto" and self.auto is None:
+                    self._decide()
                 self._epoch()
                 break
             except _Lost:
                 self._reassign()
+        if self.cfg.mode == "gather":
+            ids, labels = self._match()
+        else:
+            ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
+                                                   for a in range(self.m)])
         t_done = time.monotonic()
         wire = tcp_bytes_received(tcp_port) if tcp_port else None
-        ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
-                                               for a in range(self.m)])
         if len(np.unique(ids)) != len(ids):
             self.fail(JobFailed("two agents reported the same feature (feature ids must be unique across the "
                                 "job: give each FEATURES file its own feature_ids, or none)", None, "result"))
@@ -338,6 +452,17 @@ class Coordinator:
             self.view.close()
         return self.report(ids, labels, t_ready - t0, t_done - t_ready, wire)
 
+    def _match(self):
+        """gather: :func:`dqm.quickmatch` of every agent's features at this host (the job's kernel and rho)."""
+        t = time.monotonic()
+        self.phase = "match"
+        try:
+            out = match_gathered(*self.gathered.features(), self.cfg.params)
+        except ValueError as exc:  # InputError included: duplicate ids, mixed types, over the memory budget
+            self.fail(JobFailed(f"the gathered features cannot be matched: {exc}", None, "match"))
+        self.match_s = time.monotonic() - t
+        return out
+
     def _rejected(self) -> Dict[str, float]:
         """Messages refused, per reason, summed over the agent processes and the coordinator."""
         out: Dict[str, float] = defaultdict(float)
@@ -350,21 +475,28 @@ class Coordinator:
         return dict(out)
 
     def report(self, ids, labels, t_ready, t_run, wire) -> dict:
-        ledger = TrafficLedger()  # what every agent said it sent, its stats message, and the coordinator's sends
+        everything = TrafficLedger()  # what every agent said it sent, its stats message, and the coordinator's sends
         for a, st in self.stats.items():
-            ledger.add_stats(a, st)
+            everything.add_stats(a, st)
         for a, b in self.stats_bytes.items():
-            ledger.add(a, COORDINATOR, "stats", b)
+            everything.add(a, COORDINATOR, "stats", b)
         for (src, dst, kind), (b, c) in self.bus.meter.entries().items():
-            ledger.add(src, dst, kind, b, c)
+            everything.add(src, dst, kind, b, c)
+        ledger = TrafficLedger()  # --mode auto's link probes are not the job's traffic: they go to the auto block
+        probe_bytes = 0
+        for (src, dst, kind), (b, c) in everything.entries().items():
+            if kind == "probe":
+                probe_bytes += b
+            else:
+                ledger.add(src, dst, kind, b, c)
         traffic = ledger.report()
         agents = {str(a): TrafficLedger.strip_stats(st) for a, st in self.stats.items()}
-        return {
-            "job": self.job, "agents": self.m, "seed": self.seed, "features": int(len(ids)),
+        out = {
+            "job": self.job, "agents": self.m, "seed": self.seed, "mode": self.cfg.mode, "features": int(len(ids)),
             "clusters": int(labels.max() + 1) if len(labels) else 0,
             "ids": ids.tolist(), "labels": labels.tolist(),
             "time_ready_s": t_ready, "time_run_s": t_run,
-            "epochs": self.epoch + 1, "lost": self.lost, "owners": [int(o) for o in self.owners],
+            "epochs": self.runs, "lost": self.lost, "owners": [int(o) for o in self.owners],
             "images_note": self.clusters.note if self.clusters is not None else "",
             **traffic, "wire_bytes_received_by_router": wire,
             "rejected": self._rejected(),
@@ -372,6 +504,11 @@ class Coordinator:
                               + self.bus.meter.counters()[1]),
             "per_agent": agents,
         }
+        if self.cfg.mode == "gather":
+            out["match_s"] = self.match_s
+        if self.auto is not None:
+            out["auto"] = {**self.auto, "probe_bytes": probe_bytes}
+        return out
 
 
 #: exit codes of ``dqm coordinator`` (docs/runtime.md)
@@ -401,9 +538,11 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
                      tcp_port: Optional[int] = None, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
                      connect_timeout_s: float = 5.0, max_lost: Optional[int] = None,
                      progress_fd: Optional[int] = None, phase_timeout_s: float = 120.0,
-                     clusters: Optional[str] = None) -> int:
+                     clusters: Optional[str] = None, host_cores: Optional[float] = None,
+                     gather_cores: Optional[float] = None) -> int:
     """Entry point of ``dqm coordinator``: returns the process exit code. ``out``: the report JSON;
-    ``clusters``: the CLUSTERS file to write (the agents then send their catalogs)."""
+    ``clusters``: the CLUSTERS file to write (the agents then send their catalogs); ``host_cores``,
+    ``gather_cores``: --mode auto's cores per agent host and at this host (None: this host's)."""
     from .console import JobView
     from .lifeline import watch_parent
 
@@ -421,7 +560,9 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
         bus.close()
         raise
     coord = Coordinator(bus, cfg, ready_timeout_s, job_timeout_s, max_lost=max_lost, view=view,
-                        phase_timeout_s=phase_timeout_s, catalog=clusters is not None)
+                        phase_timeout_s=phase_timeout_s, catalog=clusters is not None, host_cores=host_cores,
+                        gather_cores=gather_cores,
+                        announce=lambda text: print(text, flush=True))
     try:
         rep = coord.run(tcp_port=tcp_port)
         if clusters:  # before the report: a report names a CLUSTERS file that exists
@@ -432,7 +573,8 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
                 log.warning("%s", coord.clusters.note)
         if out:
             _write_json(Path(out), rep)
-        print(f"{rep['features']} features -> {rep['clusters']} clusters, {rep['total_bytes']} bytes metered"
+        print(f"{rep['features']} features -> {rep['clusters']} clusters ({rep['mode']} mode), {rep['total_bytes']} "
+              "bytes metered"
                   + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else "")
                   + (f"; wrote {clusters}" if clusters else ""))
         time.sleep(0.2)  # let the finish messages leave before closing

@@ -1,12 +1,21 @@
 """Gather: every source sends its features to one host, which runs centralized QuickMatch.
 
-The baseline that the distributed modes must beat on real links (``scripts/bench_hosts.py``):
-sources put their features as ``gather`` messages (parts of at most 1 MiB, BLOCK congestion
-control) on ``dqm/<job>/gather/from/<src>`` once the gathering host's liveliness token
-(``dqm/<job>/alive/gather``) is present; the gathering host, itself source 0, takes its own
-features from disk, waits until every part of every source is in (each part is checked like
-every message, and the key must name the part's sender) and runs :func:`dqm.quickmatch` on the
-whole set: the quadratic kernel by default, so that its clusters are the balanced mode's.
+Two users share the functions here: the stand-alone baseline that the distributed modes must beat on
+real links (``scripts/bench_hosts.py``, the command lines below) and the coordinator of a ``dqm run``
+job in ``--mode gather`` (or ``auto`` when it picks gather), whose agents send the same ``gather``
+messages on their own keys to the coordinator (:mod:`dqm.runtime.coordinator`, :mod:`dqm.runtime.agent`).
+
+* :func:`gather_messages` (:func:`gather_slices`): one source's ``gather`` messages (parts of at most 1 MiB);
+* :class:`GatheredParts`: the parts received per source, their completeness, the features by id;
+* :func:`match_gathered`: :func:`dqm.quickmatch` on the gathered features in feature-id order, labels
+  numbered canonically (as :func:`dqm.distributed.sources.assemble_labels` numbers a distributed job's):
+  with the quadratic kernel the balanced mode's labels exactly.
+
+Stand-alone, sources put their parts (BLOCK congestion control) on ``dqm/<job>/gather/from/<src>``
+once the gathering host's liveliness token (``dqm/<job>/alive/gather``) is present; the gathering host,
+itself source 0, takes its own features from disk, waits until every part of every source is in (each
+part is checked like every message, and the key must name the part's sender) and matches the whole set:
+the quadratic kernel by default, so that its clusters are the balanced mode's.
 
     python -m dqm.runtime.gather receive --sources 4 --connect tcp/R:7447 --job J --out r.json own.npz
     python -m dqm.runtime.gather send --id 2 --connect tcp/R:7447 --job J agent2.npz
@@ -21,21 +30,99 @@ import json
 import queue
 import sys
 import time
-from typing import Dict, List, Optional
+from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from ..distributed import keys, messages
-from ..core.params import FINITE_KERNEL
+from ..distributed import keys, messages, protocol
+from ..core.params import FINITE_KERNEL, QuickMatchParams
 from ..validation import InputError
 
 #: rows of one ``gather`` part: at most about this many bytes of descriptors
 PART_BYTES = 1 << 20
 
 
-def _parts(n: int, row_bytes: int) -> List[slice]:
-    rows = max(1, PART_BYTES // max(1, row_bytes))
+def gather_slices(descriptors) -> List[slice]:
+    """The rows of each ``gather`` part of these descriptors: at most :data:`PART_BYTES` per part (with the
+    ids), one (empty) part when there are none."""
+    d = protocol.wire_descriptors(descriptors)
+    rows = max(1, PART_BYTES // max(1, d.shape[1] * d.itemsize + 16))
+    n = len(d)
     return [slice(i, min(n, i + rows)) for i in range(0, max(n, 1), rows)]
+
+
+def gather_messages(job: str, src: int, ids, image_ids, descriptors, epoch: int = 0, seq0: int = 0) -> List[bytes]:
+    """Source ``src``'s features as ``gather`` messages, one per :func:`gather_slices` part, numbered
+    ``seq0, seq0 + 1, ...`` (``part`` 0, 1, ...); descriptors as they travel (uint8, or float32)."""
+    d = protocol.wire_descriptors(descriptors)
+    ids, image_ids = np.asarray(ids, np.int64), np.asarray(image_ids, np.int64)
+    parts = gather_slices(d)
+    return [messages.encode("gather", job, src, seq=seq0 + k, epoch=epoch, part=k, parts=len(parts), ids=ids[sl],
+                            image_ids=image_ids[sl], descriptors=np.ascontiguousarray(d[sl]))
+            for k, sl in enumerate(parts)]
+
+
+class GatheredParts:
+    """The ``gather`` parts received, per source: complete when every expected source's parts are in."""
+
+    def __init__(self, sources: Iterable[int]):
+        self.sources = sorted(set(int(s) for s in sources))
+        self.parts: Dict[int, Dict[int, dict]] = {}
+        self.expected: Dict[int, int] = {}
+
+    def take(self, msg: dict) -> None:
+        """Keep one decoded ``gather`` message of an expected source (a repeated part replaces itself)."""
+        src = int(msg["src"])
+        if src not in self.sources:
+            raise ValueError(f"a gather message of source {src}, which is not among {self.sources}")
+        self.expected[src] = msg["parts"]
+        self.parts.setdefault(src, {})[msg["part"]] = msg
+
+    def done(self, src: int) -> bool:
+        """Whether every part of source ``src`` is in."""
+        return src in self.expected and len(self.parts[src]) == self.expected[src]
+
+    def complete(self) -> bool:
+        return all(self.done(s) for s in self.sources)
+
+    def progress(self) -> Dict[int, str]:
+        """Parts in per source, ``got/expected`` (``?``: none yet), for a message."""
+        return {s: f"{len(self.parts.get(s, {}))}/{self.expected.get(s, '?')}" for s in self.sources}
+
+    def features(self, own=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, image_ids, descriptors) of every source (and ``own``: an object with ``ids``, ``image_ids``
+        and ``descriptors``, the gathering host's own features), ordered by feature id."""
+        blocks = [] if own is None else [(own.ids, own.image_ids, protocol.wire_descriptors(own.descriptors))]
+        for s in sorted(self.parts):
+            for k in sorted(self.parts[s]):
+                m = self.parts[s][k]
+                blocks.append((m["ids"], m["image_ids"], m["descriptors"]))
+        if not blocks:
+            raise ValueError("nothing was gathered")
+        dtypes = {b[2].dtype for b in blocks if len(b[2])}
+        if len(dtypes) > 1:
+            raise ValueError(f"the sources sent descriptors of different types {sorted(map(str, dtypes))}")
+        ids, image_ids, X = (np.concatenate([b[i] for b in blocks]) for i in range(3))
+        order = np.argsort(ids, kind="stable")
+        return ids[order], image_ids[order], X[order]
+
+
+def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarray,
+                   params: Optional[QuickMatchParams] = None, approximate: bool = False
+                   ) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`dqm.quickmatch` of the gathered features (in feature-id order, as :meth:`GatheredParts.features`
+    gives them) with ``params`` (default: the quadratic kernel, the rest QuickMatch's defaults; a distributed
+    job's :attr:`~dqm.distributed.config.DQMConfig.params`): ``(ids, labels)``, labels numbered canonically.
+    Feature ids must be unique."""
+    import dqm
+    from ..distributed.sources import assemble_labels
+
+    if len(np.unique(ids)) != len(ids):
+        raise ValueError("two sources sent the same feature id (feature ids must be unique across the job: give "
+                         "each FEATURES file its own feature_ids, or none)")
+    r = dqm.quickmatch(descriptors, image_ids, params=params or QuickMatchParams(kernel=FINITE_KERNEL),
+                       approximate=approximate)
+    return assemble_labels([(ids, r.labels)])
 
 
 def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
@@ -51,7 +138,11 @@ def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
         if not watch.wait(wait_s):
             raise TimeoutError(f"no gathering host of job {job!r} appeared within {wait_s:g} s "
                                f"({keys.alive_gather(job)})")
-        sent = _put_parts(session, job, me, features, zenoh.CongestionControl.BLOCK)
+        key = keys.gather_from(job, me)
+        sent = 0
+        for payload in gather_messages(job, me, features.ids, features.image_ids, features.descriptors):
+            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            sent += len(payload) + len(key)
         t0 = time.monotonic()
         while watch.present:
             if time.monotonic() - t0 > wait_s:
@@ -62,27 +153,14 @@ def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
         watch.close()
 
 
-def _put_parts(session, job: str, me: int, features, congestion) -> int:
-    d = features.descriptors
-    key = keys.gather_from(job, me)
-    parts = _parts(len(d), d.shape[1] * d.itemsize + 16)
-    sent = 0
-    for k, sl in enumerate(parts):
-        payload = messages.encode("gather", job, me, seq=k, part=k, parts=len(parts), ids=features.ids[sl],
-                                  image_ids=features.image_ids[sl], descriptors=np.ascontiguousarray(d[sl]))
-        session.put(key, payload, congestion_control=congestion)
-        sent += len(payload) + len(key)
-    return sent
-
-
 class Gathering:
-    """The gathering host's inbox: every part of every source, checked; :meth:`wait` until complete."""
+    """The stand-alone gathering host's inbox (it is source 0): every part of sources 1 .. ``sources - 1``
+    on the gather keys, checked; :meth:`wait` until complete."""
 
     def __init__(self, session, job: str, sources: int, dim: Optional[int] = None):
         self.job, self.sources, self.dim = job, sources, dim
         self.inbox: "queue.Queue" = queue.Queue()
-        self.parts: Dict[int, Dict[int, dict]] = {}
-        self.expected: Dict[int, int] = {}
+        self.gathered = GatheredParts(range(1, sources))
         self.bytes = 0
         self.rejected: List[str] = []
         self.sub = session.declare_subscriber(
@@ -103,33 +181,26 @@ class Gathering:
             self.rejected.append(f"a {msg['kind']} message of source {sender} on the gather key")
             return
         self.bytes += len(raw) + len(key)
-        self.expected[sender] = msg["parts"]
-        self.parts.setdefault(sender, {})[msg["part"]] = msg
+        self.gathered.take(msg)
 
     def complete(self) -> bool:
-        return len(self.expected) == self.sources - 1 and all(
-            len(self.parts[s]) == n for s, n in self.expected.items())
+        return self.gathered.complete()
 
     def wait(self, timeout_s: float) -> None:
         t0 = time.monotonic()
         while not self.complete():
             left = timeout_s - (time.monotonic() - t0)
             if left <= 0:
-                have = {s: f"{len(self.parts.get(s, {}))}/{self.expected.get(s, '?')}" for s in range(1, self.sources)}
-                raise TimeoutError(f"gathering incomplete after {timeout_s:g} s: parts per source {have}")
+                raise TimeoutError(f"gathering incomplete after {timeout_s:g} s: parts per source "
+                                   f"{self.gathered.progress()}")
             try:
                 self._take(*self.inbox.get(timeout=min(0.2, left)))
             except queue.Empty:
                 continue
 
     def features(self, own) -> tuple:
-        """(ids, image_ids, descriptors) of every source, own first, then by source and part."""
-        blocks = [(own.ids, own.image_ids, own.descriptors)]
-        for s in sorted(self.parts):
-            for k in sorted(self.parts[s]):
-                m = self.parts[s][k]
-                blocks.append((m["ids"], m["image_ids"], m["descriptors"]))
-        return tuple(np.concatenate([b[i] for b in blocks]) for i in range(3))
+        """(ids, image_ids, descriptors) of every source, its own included, ordered by feature id."""
+        return self.gathered.features(own)
 
     def close(self) -> None:
         for obj in (self.token, self.sub):
@@ -168,17 +239,15 @@ def _main(argv=None) -> int:
             sent = send(session, args.job, me, own, wait_s=args.timeout)
             print(json.dumps({"source": me, "bytes": sent, "features": len(own.ids)}))
             return 0
-        import dqm
-
         g = Gathering(session, args.job, args.sources, dim=own.descriptors.shape[1])
         try:
             g.wait(args.timeout)
         finally:
             g.close()
         t_gathered = time.monotonic()
-        ids, image_ids, X = g.features(own)
-        r = dqm.quickmatch(X, image_ids, kernel=args.kernel, approximate=args.approximate)
-        out = {"ids": ids.tolist(), "labels": r.labels.tolist(), "features": int(len(ids)),
+        ids, labels = match_gathered(*g.features(own), QuickMatchParams(kernel=args.kernel),
+                                     approximate=args.approximate)
+        out = {"ids": ids.tolist(), "labels": labels.tolist(), "features": int(len(ids)),
                "bytes": g.bytes, "rejected": g.rejected, "gather_s": t_gathered - t_start,
                "match_s": time.monotonic() - t_gathered}
         if args.out:
@@ -188,6 +257,9 @@ def _main(argv=None) -> int:
     except TimeoutError as exc:
         print(f"gather: error: {exc}", file=sys.stderr)
         return 3
+    except ValueError as exc:  # the sources' features do not fit together
+        print(f"gather: error: {exc}", file=sys.stderr)
+        return 2
     finally:
         session.close()
 

@@ -258,8 +258,11 @@ def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -
 
 def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: float,
                      ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None,
-                     clusters: Optional[str] = None) -> List[str]:
-    """Command-line options of the coordinator of ``cfg``'s job (``clusters``: its CLUSTERS file, or none)."""
+                     clusters: Optional[str] = None, host_cores: Optional[float] = None,
+                     gather_cores: Optional[float] = None) -> List[str]:
+    """Command-line options of the coordinator of ``cfg``'s job (``clusters``: its CLUSTERS file, or none;
+    ``host_cores``, ``gather_cores``: --mode auto's cores per agent host and at the coordinator's host, or
+    the coordinator's default: its own host's)."""
     args = ["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed), "--connect", connect,
             "--out", str(report), "--job-timeout", str(job_timeout_s), *config_args(cfg)]
     args += ["--clusters", str(clusters)] if clusters else ["--no-clusters"]
@@ -267,6 +270,10 @@ def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: 
         args += ["--ready-timeout", str(ready_timeout_s)]
     if max_lost is not None:
         args += ["--max-lost", str(max_lost)]
+    if host_cores is not None:
+        args += ["--host-cores", repr(float(host_cores))]
+    if gather_cores is not None:
+        args += ["--gather-cores", repr(float(gather_cores))]
     return args
 
 
@@ -312,7 +319,8 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
               client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
               phase_timeout_s: Optional[float] = 60.0, tag: str = "", clusters: Optional[Path] = None,
               threads_per_agent: Optional[int] = 1, ready_timeout_s: Optional[float] = None,
-              max_lost: Optional[int] = None, pass_fds: Sequence[int] = ()) -> Job:
+              max_lost: Optional[int] = None, pass_fds: Sequence[int] = (), host_cores: Optional[float] = None,
+              gather_cores: Optional[float] = None) -> Job:
     """Start the agents and the coordinator of one job (the router is already running): the one start
     path of ``dqm run`` (:func:`run_job`), the multi-host demo and the tests.
 
@@ -320,9 +328,12 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     ``ip netns exec NS``) and extra options (TLS, test hooks) of agent ``a``; ``a = -1`` is the
     coordinator. ``clusters``: the CLUSTERS file the coordinator writes (none by default).
     ``phase_timeout_s``: the agents' phase timeout (None: their default). ``threads_per_agent``:
-    worker threads of each agent unless ``env`` says otherwise (None: all cores).
+    worker threads of each agent unless ``env`` says otherwise (None: all cores); the coordinator
+    keeps ``env``'s (it computes only in a gather job, once the agents have sent everything).
+    ``host_cores``, ``gather_cores``: the coordinator's --host-cores and --gather-cores (--mode auto).
     """
-    env = dict(os.environ if env is None else env)
+    coordinator_env = dict(os.environ if env is None else env)
+    env = dict(coordinator_env)
     if threads_per_agent is not None:
         for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             env.setdefault(var, str(threads_per_agent))
@@ -333,8 +344,9 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
     coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s, ready_timeout_s, max_lost,
-                                           None if clusters is None else str(clusters)), *client_args(-1)],
-                        workdir / f"{tag}coordinator.log", env, prefix=prefix(-1), pass_fds=pass_fds)
+                                           None if clusters is None else str(clusters), host_cores, gather_cores),
+                         *client_args(-1)],
+                        workdir / f"{tag}coordinator.log", coordinator_env, prefix=prefix(-1), pass_fds=pass_fds)
     return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
 
 
@@ -361,6 +373,14 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
     return report
 
 
+def _local_host_cores(agents: int) -> float:
+    """--mode auto on this one host: every agent process gets its share of this host's cores (the coordinator,
+    which gathers, reads all of them itself)."""
+    from .measure import host_cores
+
+    return host_cores() / max(1, agents)
+
+
 def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
             env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
             ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False,
@@ -376,7 +396,7 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     certificates (one per process, made in the work folder) and a router that enforces the job's
     roster (:func:`dqm.runtime.roster.job_roster`): every process may use only its own keys.
     """
-    cfg = cfg.validated(len(features) if features is not None else len(descriptors))
+    cfg = cfg.validated(len(features) if features is not None else len(descriptors), runtime=True)
     remove_stale_workdirs()
     tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
     wd = Path(tmp)
@@ -392,10 +412,10 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
         identity = lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}")  # noqa: E731
     procs = Processes()
     env = dict(os.environ if env is None else env)
-    # balanced: all agents compute at once: share this host's cores instead of oversubscribing them.
-    # lean / paper: every agent may use all cores, the hand-down cascade runs one agent at a time
-    # (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
-    share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode == "balanced" else None
+    # balanced (and auto, which may pick it): all agents compute at once: share this host's cores instead of
+    # oversubscribing them. lean / paper: every agent may use all cores, the hand-down cascade runs one agent
+    # at a time (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
+    share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode in ("balanced", "auto") else None
     tty = os.dup(2) if progress and sys.stderr.isatty() else None
     try:
         router = procs.start(["router", "--listen", endpoint, *router_extra], wd / "router.log", env)
@@ -406,7 +426,8 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
                         env=env,
                         job_timeout_s=timeout_s, phase_timeout_s=None, threads_per_agent=share,
                         clusters=None if clusters is None else Path(clusters).resolve(),
-                        ready_timeout_s=ready_timeout_s, max_lost=max_lost, pass_fds=[tty] if tty is not None else [])
+                        ready_timeout_s=ready_timeout_s, max_lost=max_lost, pass_fds=[tty] if tty is not None else [],
+                        host_cores=_local_host_cores(cfg.agents) if cfg.mode == "auto" else None)
         if on_started is not None:
             on_started({"router": router, "agents": job.agents, "coordinator": job.coordinator, "workdir": wd,
                         "port": port})

@@ -309,7 +309,7 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
     the job's roster (:func:`dqm.runtime.roster.job_roster`: each process only its own keys).
     """
     log = log or (lambda text: None)
-    cfg = cfg.validated(len(descriptors))
+    cfg = cfg.validated(len(descriptors), runtime=True)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(descriptors, image_ids, cfg.agents, workdir)
@@ -348,22 +348,24 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
     return MultihostResult(report, placement, counters, names)
 
 
-#: what :func:`run_on_hosts` runs: the distributed modes, and every source's features gathered to one
-#: host that runs centralized QuickMatch (exact, or approximate)
-HOST_MODES = ("gather", "gather-approx", "lean", "balanced")
+#: what :func:`run_on_hosts` runs: the distributed modes, every source's features gathered to one
+#: host that runs centralized QuickMatch (exact, or approximate), and ``dqm run``'s --mode auto (the
+#: coordinator measures the links and picks gather, lean or balanced)
+HOST_MODES = ("gather", "gather-approx", "lean", "balanced", "auto")
 
 
 @dataclass
 class HostRun:
     """One mode's run on emulated hosts: time to result (processes started to labels), bytes moved,
-    and the labels ordered by feature id."""
+    the labels ordered by feature id, and timings (``job_s``, ``gather_s``, ``match_s``; auto: also
+    ``picked``, the mode it picked, and ``probe_s``)."""
 
     mode: str
     seconds: float
     bytes: int
     ids: "object"
     labels: "object"
-    detail: Dict[str, float] = field(default_factory=dict)
+    detail: Dict[str, object] = field(default_factory=dict)
 
 
 def _by_id(ids, labels) -> tuple:
@@ -379,19 +381,24 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                  timeout_s: float = 600.0) -> HostRun:
     """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
     router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
-    agent per host); the coordinator, or the gathering host, is host 0."""
+    agent per host); the coordinator, or the gathering host, is host 0 (``auto``: told that every host has
+    the hosts' CPU quota, which it cannot read inside a namespace)."""
     m = cfg.agents
     connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
     procs = Processes()
     tag = f"{mode}-"
     try:
-        if mode in ("lean", "balanced"):
+        if mode in ("lean", "balanced", "auto"):
             job = start_job(procs, cfg.but(mode=mode), files, workdir,
                             connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)), job_timeout_s=timeout_s,
-                            tag=tag, threads_per_agent=None)
+                            tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores, gather_cores=nss.cpu_cores)
             rep = finish_job(job, timeout_s + 15)
-            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]),
-                           {"job_s": rep["time_run_s"]})
+            detail: Dict[str, object] = {"job_s": rep["time_run_s"]}
+            if "auto" in rep:
+                detail.update(picked=rep["auto"]["picked"], probe_s=rep["auto"]["probe_s"],
+                              rates_mbit={p: r * 8 / 1e6 for p, r in rep["auto"]["rates_bytes_s"].items()},
+                              predicted_s=rep["auto"]["predicted_s"], probe_pairs=rep["auto"]["probe_pairs"])
+            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]), detail)
         if mode not in ("gather", "gather-approx"):
             raise ValueError(f"unknown mode {mode!r}; one of {', '.join(HOST_MODES)}")
         out = workdir / f"{tag}result.json"

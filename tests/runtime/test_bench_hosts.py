@@ -1,6 +1,8 @@
 """Emulated hosts (network namespaces in CPU quotas, links capped with tc tbf): every mode of
 scripts/bench_hosts.py gives its documented result through them (a small version: 2 hosts, one rate)."""
+import importlib.util
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,7 +36,7 @@ def runs(tmp_path_factory):
             try:
                 start_router(procs, [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(2)], wd,
                              _wait_ready_file, prefix=nss.prefix(nss.router_ns))
-                for mode in ("gather", "balanced", "lean"):
+                for mode in ("gather", "balanced", "lean", "auto"):
                     out[mode] = run_on_hosts(nss, mode, cfg, files, wd, timeout_s=120)
             finally:
                 procs.stop_all()
@@ -64,3 +66,36 @@ def test_gather_moves_about_one_copy_and_balanced_more(runs):
     assert 0.4 * raw < runs["gather"].bytes < 0.7 * raw
     assert runs["balanced"].bytes > runs["gather"].bytes
     assert all(runs[m].seconds > 0 for m in ("gather", "balanced", "lean"))
+
+
+def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
+    a, g = runs["auto"], runs["gather"]
+    assert a.detail["picked"] in ("gather", "balanced", "lean")
+    assert np.array_equal(a.ids, g.ids)
+    assert evaluation.comembership_scores(a.labels, g.labels).f1 >= (0.99 if a.detail["picked"] == "lean" else 1.0)
+    # the links are capped at 100 Mbit/s: the probes see about that
+    assert all(50 < r < 200 for r in a.detail["rates_mbit"].values()), a.detail["rates_mbit"]
+    assert 0 < a.detail["probe_s"] < 5 and a.detail["job_s"] >= a.detail["probe_s"]
+
+
+def _bench_script():
+    spec = importlib.util.spec_from_file_location(
+        "bench_hosts", Path(__file__).resolve().parents[2] / "scripts" / "bench_hosts.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_table_says_what_auto_picked_and_its_time_over_the_best():
+    bench = _bench_script()
+    base = {"data": "d", "n": 10, "m": 2, "rate_mbit": 100.0, "bytes_over_raw": 1.0}
+    rows = [dict(base, mode="gather", seconds=4.0, gather_s=1.0, match_s=2.0),
+            dict(base, mode="gather-approx", seconds=1.0, gather_s=0.5, match_s=0.2),
+            dict(base, mode="balanced", seconds=2.0, job_s=1.0),
+            dict(base, mode="auto", seconds=2.5, job_s=1.2, picked="balanced"),
+            dict(base, rate_mbit=10.0, mode="auto", seconds=9.0, error="lost")]
+    lines = bench.table(rows).splitlines()
+    assert lines[0].endswith("| auto picked | auto / best |")
+    auto = next(ln for ln in lines if "| auto | 2.5 |" in ln)
+    assert auto.endswith("| balanced | 1.25 |")  # over balanced's 2.0: gather-approx is not among the picks
+    assert all(ln.count("|") == lines[0].count("|") for ln in lines)

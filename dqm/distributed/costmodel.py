@@ -1,0 +1,340 @@
+"""Predicted time to result of gather, lean and balanced: what ``--mode auto`` picks from.
+
+Pure (numpy only, no I/O). The coordinator of a ``--mode auto`` job knows, once every agent process
+is ready, the number of features ``n``, the agents ``M``, the descriptor dimension and item size; it
+measures the link rate to each process (:mod:`dqm.runtime.measure`) and knows the cores of the hosts.
+:func:`predict` turns these into seconds per mode, :func:`choose` picks the fastest available mode.
+
+The model follows the mechanisms, with constants fitted to the emulated-host benchmark
+(``docs/bench_hosts_graf.json``, ``docs/bench_hosts_100k.json``; ``scripts/fit_costmodel.py``).
+With ``raw = n * dim * itemsize`` (the descriptor bytes), ``W = n (n - 1) / 2 * dim`` (the pair work
+of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` a link rate (bytes/s):
+
+* **gather** (every source sends its features to one host, which runs centralized QuickMatch):
+  ``t = start + gather_link_factor * max(B / r_g, max_p B_p / r_p) + (pair_cpu_s * W + match_fixed_cpu_s) / c_g``
+  with ``B = raw * (1 + ROW_BYTES / (dim * itemsize))``
+  (ids and image ids travel with each row) times the share of the features not already on the
+  gathering host, all of it into the gathering host's link ``r_g`` (the median measured rate);
+  ``B_p``: one source's part;
+* **balanced** (cells; each agent computes about ``1/M`` of the pairs, times an imbalance):
+  ``t = start + balanced_fixed_s + balanced_link_factor * b * raw / M / r_min
+  + (balanced_imbalance * pair_cpu_s * W / M * k + balanced_fixed_cpu_s) / c_min`` with ``b`` the bytes
+  over raw of a balanced job (``balanced_bytes_per_agent * M`` unless given), spread over the ``M``
+  links and gated by the slowest one ``r_min``, and ``k`` the agents of the busiest process;
+* **lean** (the hand-down cascade: the work gathers at agent 0):
+  ``t = start + lean_fixed_s + lean_link_factor * l * raw / r_0
+  + (lean_work_share * pair_cpu_s * W + lean_fixed_cpu_s) / c_0`` with ``l`` its bytes over raw
+  (``lean_bytes * (M - 1) / M`` unless given), into agent 0's link ``r_0`` (its rate, at most the
+  median).
+
+``start`` is the processes' start-up: ``run_start_cpu_s / c_0`` for a job of ``dqm run`` /
+``dqm coordinator`` (host 0 holds agent 0 and the coordinator, gather included),
+``(gather_start_cpu_s + gather_skew_cpu_s) / c_g`` for the stand-alone gathering of
+``dqm.runtime.gather`` (its own start-up, and its wait for the last source to start); 0 when the
+processes are already running (``started=True``: the coordinator's case, whose start-up is paid
+whatever it picks).
+
+**Balanced is unavailable** when one link's share of its bytes (``b * raw / M``) takes longer than
+``starve_s`` at the slowest measured rate: its keep-alives then queue behind its own bulk traffic for
+longer than the 2-s liveliness lease and the router declares processes lost (measured: 100k features
+at M = 8 over 10 Mbit/s, about 9.8 MB per link, 7.8 s, failed; graf's 1.7-2.1 MB per link, at most
+1.7 s, never did). ``starve_s = 4`` lies between the two, about twice the lease.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..validation import InputError
+
+#: the modes :func:`choose` picks from, in the order that breaks an exact tie
+AUTO_MODES = ("gather", "balanced", "lean")
+#: bytes per feature row besides its descriptor on the wire of a gather: the feature id and image id (int64)
+ROW_BYTES = 16
+
+
+@dataclass(frozen=True)
+class CostConstants:
+    """The model's constants (seconds, CPU-seconds at one core, and factors).
+
+    Fitted by ``.venv/bin/python scripts/fit_costmodel.py`` (non-negative least squares per mechanism
+    on the rows of docs/bench_hosts_graf.json and docs/bench_hosts_100k.json, 2-core AMD EPYC,
+    uint8 SIFT descriptors of 128 dimensions); ``starve_s`` is set from the balanced failure (above).
+    """
+
+    #: CPU-seconds per pair-dimension of the centralized all-pairs pass (uint8, the VNNI tile kernel)
+    pair_cpu_s: float = 5.407e-11
+    #: CPU-seconds of a centralized match beyond its pairs (imports, sigma, tree)
+    match_fixed_cpu_s: float = 0.1697
+    #: CPU-seconds a stand-alone gathering host waits for its sources to start (start-up skew)
+    gather_skew_cpu_s: float = 0.08300
+    #: the gathered bytes' time over bytes / rate
+    gather_link_factor: float = 1.219
+    #: CPU-seconds a stand-alone gathering process spends starting
+    gather_start_cpu_s: float = 0.8731
+    #: CPU-seconds of host 0's start-up in a dqm run job (agent 0, the coordinator, the ready handshake)
+    run_start_cpu_s: float = 2.004
+    #: seconds of a balanced job beyond its work and bytes (the set-up's and the rounds' round trips)
+    balanced_fixed_s: float = 0.5638
+    #: the busiest agent's pair work over the centralized pass's / M (cells and ghost copies)
+    balanced_imbalance: float = 1.340
+    #: CPU-seconds of a balanced agent beyond its pairs (set-up, sketches, rounds)
+    balanced_fixed_cpu_s: float = 0.1508
+    #: one link's share of the balanced bytes: its time over bytes / rate (rounds wait for each other)
+    balanced_link_factor: float = 2.023
+    #: balanced bytes over raw, per agent (graf 0.77, 0.76, 0.62 at M = 2, 4, 8; 100k 0.76 at M = 8)
+    balanced_bytes_per_agent: float = 0.7254
+    #: seconds of a lean job beyond its work and bytes
+    lean_fixed_s: float = 1.101
+    #: agent 0's pair work in a lean job over the centralized pass's (the cascade gathers it there)
+    lean_work_share: float = 1.048
+    #: CPU-seconds of lean's agent 0 beyond its pairs
+    lean_fixed_cpu_s: float = 0.0
+    #: lean's bytes (into agent 0's link): their time over bytes / rate
+    lean_link_factor: float = 1.049
+    #: lean bytes over raw, times M / (M - 1) (graf 1.20, 2.09, 2.32 at M = 2, 4, 8; 100k 2.23 at M = 8)
+    lean_bytes: float = 2.609
+    #: balanced is unavailable when one link's share of its bytes takes longer than this (seconds)
+    starve_s: float = 4.0
+
+
+#: the fitted constants (see :class:`CostConstants`)
+FITTED = CostConstants()
+
+
+@dataclass(frozen=True)
+class JobShape:
+    """What the coordinator knows of a job once every process is ready."""
+
+    n: int  #: features
+    agents: int  #: agents M
+    dim: int  #: descriptor dimension
+    itemsize: int = 1  #: bytes per descriptor element (1: uint8, 4: float32)
+
+    @property
+    def raw_bytes(self) -> float:
+        """The descriptors' bytes."""
+        return float(self.n) * self.dim * self.itemsize
+
+    @property
+    def pair_work(self) -> float:
+        """Pair-dimensions of the all-pairs pass: n (n - 1) / 2 * dim."""
+        return self.n * (self.n - 1) / 2.0 * self.dim
+
+
+@dataclass(frozen=True)
+class Hosts:
+    """The hosts of a job as the coordinator sees them.
+
+    ``rates``: the measured link rate (bytes/s) from the coordinator to each agent process (its
+    link, or the coordinator's if slower; links taken as symmetric); ``cores``: the cores of each
+    process's host (one number: every host); ``gather_cores``: the cores the gathering host gives
+    the centralized match (default: host 0's); ``gather_rate``: the rate into the gathering host
+    (default: the median measured: its own link bounds every path it measured, and the median is not
+    misled by one process whose probes read high, e.g. one sharing the coordinator's host and link).
+    Process 0 hosts agent 0.
+    """
+
+    rates: Tuple[float, ...]
+    cores: Tuple[float, ...]
+    gather_cores: Optional[float] = None
+    gather_rate: Optional[float] = None
+
+    @classmethod
+    def of(cls, rates: Sequence[float], cores, gather_cores: Optional[float] = None,
+           gather_rate: Optional[float] = None) -> "Hosts":
+        """Hosts from a rate per process and the cores (one number, or one per process), checked."""
+        rates = tuple(_positive(r, f"link rate of process {p}") for p, r in enumerate(_seq(rates, "rates")))
+        if not rates:
+            raise InputError("the cost model needs the link rate of at least one process")
+        if isinstance(cores, (int, float, np.integer, np.floating)) and not isinstance(cores, bool):
+            cores = (cores,) * len(rates)
+        cores = tuple(_positive(c, f"cores of process {p}") for p, c in enumerate(_seq(cores, "cores")))
+        if len(cores) != len(rates):
+            raise InputError(f"the cost model got {len(rates)} link rates but cores for {len(cores)} processes")
+        return cls(rates, cores, None if gather_cores is None else _positive(gather_cores, "gather_cores"),
+                   None if gather_rate is None else _positive(gather_rate, "gather_rate"))
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """One mode's predicted time to result and its parts (seconds), its bytes, and whether it can run."""
+
+    mode: str
+    seconds: float
+    parts: Dict[str, float]
+    bytes: float
+    available: bool = True
+    why_not: str = ""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """:func:`choose`'s answer: the mode, every mode's prediction and a one-line reason."""
+
+    mode: str
+    predictions: Dict[str, Prediction] = field(default_factory=dict)
+    reason: str = ""
+
+    @property
+    def predicted_s(self) -> Dict[str, Optional[float]]:
+        """Seconds per mode (None: unavailable), rounded to milliseconds."""
+        return {m: (round(p.seconds, 3) if p.available else None) for m, p in self.predictions.items()}
+
+
+def _seq(values, name: str) -> list:
+    try:
+        return list(values)
+    except TypeError:
+        raise InputError(f"the cost model's {name} must be a sequence of numbers, got {values!r}") from None
+
+
+def _positive(value, name: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"the cost model's {name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise InputError(f"the cost model's {name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _count(value, name: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise InputError(f"the cost model's {name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def check_job(job: JobShape) -> JobShape:
+    """Refuse a job shape the model cannot use (one line, naming the field)."""
+    _count(job.n, "n (features)", 1)
+    _count(job.agents, "agents", 1)
+    _count(job.dim, "dim", 1)
+    _count(job.itemsize, "itemsize", 1)
+    return job
+
+
+def default_balanced_bytes(agents: int, constants: CostConstants = FITTED) -> float:
+    """Balanced bytes over raw at M agents (about ``balanced_bytes_per_agent * M`` on the benchmark)."""
+    return constants.balanced_bytes_per_agent * agents if agents > 1 else 0.0
+
+
+def default_lean_bytes(agents: int, constants: CostConstants = FITTED) -> float:
+    """Lean bytes over raw at M agents (``lean_bytes * (M - 1) / M``)."""
+    return constants.lean_bytes * (agents - 1) / agents
+
+
+def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, started: bool = False,
+            gather_from_all: bool = True, gather_bytes_over_raw: Optional[float] = None,
+            balanced_bytes_over_raw: Optional[float] = None, lean_bytes_over_raw: Optional[float] = None
+            ) -> Dict[str, Prediction]:
+    """Predicted time to result of gather, balanced and lean (:data:`AUTO_MODES` order).
+
+    ``started``: the processes are already running (start-up left out: the coordinator's case).
+    ``gather_from_all``: every agent sends its features to the gathering host (the coordinator of a
+    ``dqm run`` job, which holds none); False: the gathering host is source 0 and keeps its own
+    (``dqm.runtime.gather``, the benchmark's gather). ``gather_bytes_over_raw`` (when every source
+    sends), ``balanced_bytes_over_raw``, ``lean_bytes_over_raw``: the modes' bytes over the raw
+    descriptor bytes (default: ``1 + ROW_BYTES / (dim * itemsize)``, and the fitted
+    :func:`default_balanced_bytes` / :func:`default_lean_bytes`): what a change of the wire format
+    (compression) changes.
+    """
+    check_job(job)
+    k = constants
+    m, raw, W = job.agents, job.raw_bytes, job.pair_work
+    procs = len(hosts.rates)
+    rates, cores = np.asarray(hosts.rates, float), np.asarray(hosts.cores, float)
+    r_mid = float(np.median(rates))
+    r_min, c_min, r0, c0 = float(rates.min()), float(cores.min()), min(float(rates[0]), r_mid), float(cores[0])
+    c_g = hosts.gather_cores or c0
+    r_g = hosts.gather_rate or r_mid
+    b_bal = default_balanced_bytes(m, k) if balanced_bytes_over_raw is None else \
+        _nonnegative(balanced_bytes_over_raw, "balanced_bytes_over_raw")
+    b_lean = default_lean_bytes(m, k) if lean_bytes_over_raw is None else \
+        _nonnegative(lean_bytes_over_raw, "lean_bytes_over_raw")
+    run_start = 0.0 if started else k.run_start_cpu_s / c0
+
+    # gather: every source's rows into one host's link, then the centralized pass on its cores
+    share = 1.0 if gather_from_all else (m - 1) / m
+    g_all = (1.0 + ROW_BYTES / (job.dim * job.itemsize)) if gather_bytes_over_raw is None else \
+        _nonnegative(gather_bytes_over_raw, "gather_bytes_over_raw")
+    g_bytes = raw * g_all * share
+    senders = m if gather_from_all else max(1, m - 1)
+    per_source = max(g_bytes / senders / r for r in rates) if senders and g_bytes else 0.0
+    alone = not (gather_from_all or started)  # the stand-alone gathering's own start-up and its wait for sources
+    g_parts = {"start": run_start if gather_from_all else k.gather_start_cpu_s / c_g if alone else 0.0,
+               "fixed": k.gather_skew_cpu_s / c_g if alone and m > 1 else 0.0,
+               "transfer": k.gather_link_factor * max(g_bytes / r_g, per_source),
+               "compute": (k.pair_cpu_s * W + k.match_fixed_cpu_s) / c_g}
+    out = {"gather": Prediction("gather", sum(g_parts.values()), g_parts, g_bytes)}
+
+    # balanced: 1/M of the pairs per agent (times the imbalance), the bytes spread over M links
+    per_link = b_bal * raw / m
+    busiest = math.ceil(m / procs)
+    b_parts = {"start": run_start, "fixed": k.balanced_fixed_s,
+               "transfer": k.balanced_link_factor * per_link / r_min,
+               "compute": (k.balanced_imbalance * k.pair_cpu_s * W / m * busiest + k.balanced_fixed_cpu_s) / c_min}
+    starve = per_link / r_min
+    why = "" if starve <= k.starve_s else (
+        f"its {per_link / 1e6:.1f} MB per link take {starve:.1f} s at {r_min / 1e6:.3g} MB/s, more than "
+        f"{k.starve_s:g} s: keep-alives would starve behind its bulk traffic")
+    out["balanced"] = Prediction("balanced", sum(b_parts.values()), b_parts, b_bal * raw, not why, why)
+
+    # lean: the cascade gathers the work and the bytes at agent 0
+    l_parts = {"start": run_start, "fixed": k.lean_fixed_s,
+               "transfer": k.lean_link_factor * b_lean * raw / r0,
+               "compute": (k.lean_work_share * k.pair_cpu_s * W + k.lean_fixed_cpu_s) / c0}
+    out["lean"] = Prediction("lean", sum(l_parts.values()), l_parts, b_lean * raw)
+    return out
+
+
+def _nonnegative(value, name: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"the cost model's {name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise InputError(f"the cost model's {name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+def mbit_text(bytes_s: float) -> str:
+    """A link rate in Mbit/s for people, without the unit: ``1713``, ``95.4``, ``9.87``."""
+    mbit = bytes_s * 8 / 1e6
+    return f"{mbit:.0f}" if mbit >= 100 else f"{mbit:.3g}"
+
+
+def _rate_text(bytes_s: float) -> str:
+    return f"{mbit_text(bytes_s)} Mbit/s"
+
+
+def choose(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, started: bool = True,
+           modes: Sequence[str] = AUTO_MODES, **options) -> Choice:
+    """The available mode of ``modes`` with the least predicted time (ties: the order of :data:`AUTO_MODES`),
+    every mode's prediction and a one-line reason. Deterministic: the same inputs give the same answer.
+    ``options``: :func:`predict`'s (``gather_from_all``, the bytes over raw)."""
+    bad = [m for m in modes if m not in AUTO_MODES]
+    if bad or not modes:
+        raise InputError(f"the cost model picks from {', '.join(AUTO_MODES)}, got {list(modes)!r}")
+    preds = predict(job, hosts, constants, started=started, **options)
+    usable = [m for m in AUTO_MODES if m in modes and preds[m].available]
+    if not usable:  # only balanced asked for and it cannot run: still answer, saying so
+        usable = [m for m in AUTO_MODES if m in modes]
+    best = min(usable, key=lambda m: (round(preds[m].seconds, 9), AUTO_MODES.index(m)))
+    others = ", ".join(f"{m} {preds[m].seconds:.1f} s" if preds[m].available else f"{m} unavailable"
+                       for m in AUTO_MODES if m in modes and m != best)
+    rates = np.asarray(hosts.rates)
+    link = (_rate_text(float(rates.min())) if rates.min() == rates.max()
+            else f"{_rate_text(float(rates.min()))} to {_rate_text(float(rates.max()))}")
+    reason = (f"{best}: predicted {preds[best].seconds:.1f} s" + (f" against {others}" if others else "")
+              + f" ({job.n} features of {job.dim} x {job.itemsize} B on {job.agents} agents, links {link}, "
+              f"cores per host {min(hosts.cores):.3g})")
+    if not preds["balanced"].available and "balanced" in modes:
+        reason += f"; balanced ruled out: {preds['balanced'].why_not}"
+    return Choice(best, {m: preds[m] for m in AUTO_MODES if m in modes}, reason)

@@ -1,0 +1,182 @@
+#!/usr/bin/env python3
+"""Fit the constants of dqm.distributed.costmodel to the emulated-host benchmark, and check the model.
+
+Reads the rows of scripts/bench_hosts.py (docs/bench_hosts_graf.json, docs/bench_hosts_100k.json by
+default), fits each mechanism's constants by non-negative least squares on the quantities the rows
+measured, prints them as the ``CostConstants`` fields to paste into dqm/distributed/costmodel.py, then
+for every row the predicted against the measured time to result, and for every (data, M, rate) group
+the mode the model picks and whether that mode's measured time is within 10% of the best measured of
+gather, lean and balanced. Two picks: as the benchmark ran (every mode's own start-up; the gather of
+dqm.runtime.gather, whose gathering host keeps its own features), and as the coordinator of a
+``--mode auto`` job picks (processes already started, every agent sends to the coordinator) against
+the measured times after start-up.
+
+    .venv/bin/python scripts/fit_costmodel.py
+    .venv/bin/python scripts/fit_costmodel.py --json docs/bench_hosts_graf.json docs/bench_hosts_100k.json
+
+Rows from the documented log lines of an earlier 100k run (docs/distributed.md: lean, and balanced
+failing at 10 Mbit/s) are checked too (not fitted), marked "doc".
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+from scipy.optimize import nnls
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dqm.distributed import costmodel  # noqa: E402
+from dqm.distributed.costmodel import CostConstants, Hosts, JobShape  # noqa: E402
+
+DEFAULT_JSON = [ROOT / "docs" / "bench_hosts_graf.json", ROOT / "docs" / "bench_hosts_100k.json"]
+#: the modes auto picks from, as the benchmark names them
+MODES = ("gather", "balanced", "lean")
+#: docs/distributed.md, "Time to result on emulated hosts": an earlier invocation (--data 100000 --agents 8
+#: --rates 1000,100,10) of which only the log lines are left: time to result, bytes over raw; balanced failed
+#: at 10 Mbit/s (keep-alives starved)
+DOC_ROWS = [
+    {"data": "generated 100186 (doc)", "n": 100186, "m": 8, "rate_mbit": r, "cpu_per_host": 0.25, "mode": mode,
+     "seconds": s, "bytes_over_raw": b, "doc": True}
+    for r, mode, s, b in [(1000.0, "gather", 146.3, 0.97), (1000.0, "lean", 150.3, 2.23),
+                          (1000.0, "balanced", 33.1, 6.12), (100.0, "gather", 137.8, 0.97),
+                          (100.0, "lean", 161.2, 2.23), (100.0, "balanced", 31.2, 6.12),
+                          (10.0, "gather", 159.4, 0.97), (10.0, "lean", 177.5, 3.92)]
+] + [{"data": "generated 100186 (doc)", "n": 100186, "m": 8, "rate_mbit": 10.0, "cpu_per_host": 0.25,
+      "mode": "balanced", "error": "5 agent processes were lost", "doc": True}]
+
+DIM = 128  # every benchmark row: uint8 SIFT
+
+
+def bytes_s(r: dict) -> float:
+    return r["rate_mbit"] * 1e6 / 8
+
+
+def job_of(r: dict) -> JobShape:
+    return JobShape(n=int(r["n"]), agents=int(r["m"]), dim=DIM, itemsize=1)
+
+
+def fit(rows: List[dict]) -> CostConstants:
+    """Non-negative least squares per mechanism on what the rows measured."""
+    g = [r for r in rows if r["mode"] == "gather" and "error" not in r]
+    # the centralized pass: match_s at the host's cores = pair_cpu_s * W + match_fixed_cpu_s
+    (pair, match0), _ = nnls(np.array([[job_of(r).pair_work, 1.0] for r in g]),
+                             np.array([r["match_s"] * r["cpu_per_host"] for r in g]))
+    # the gathering: gather_s = the sources' start-up skew / cores + factor * bytes / rate (into the gathering host)
+    (g_skew, g_link), _ = nnls(np.array([[1.0 / r["cpu_per_host"], r["bytes"] / bytes_s(r)] for r in g]),
+                                np.array([r["gather_s"] for r in g]))
+    # start-up: the stand-alone gathering process, and dqm run's host 0 (CPU-seconds at one core)
+    g_start = float(np.mean([(r["seconds"] - r["gather_s"] - r["match_s"]) * r["cpu_per_host"] for r in g]))
+    run = [r for r in rows if r["mode"] in ("lean", "balanced") and "error" not in r]
+    run_start = float(np.mean([(r["seconds"] - r["job_s"]) * r["cpu_per_host"] for r in run]))
+    out = {}
+    for mode in ("balanced", "lean"):
+        rs = [r for r in rows if r["mode"] == mode and "error" not in r]
+        if mode == "balanced":  # 1/M of the pairs per agent; one link's share of the bytes
+            A = [[1.0, pair * job_of(r).pair_work / r["m"] / r["cpu_per_host"], 1 / r["cpu_per_host"],
+                  r["bytes"] / r["m"] / bytes_s(r)] for r in rs]
+        else:  # agent 0: all the pairs (times a share), all the bytes into its link
+            A = [[1.0, pair * job_of(r).pair_work / r["cpu_per_host"], 1 / r["cpu_per_host"],
+                  r["bytes"] / bytes_s(r)] for r in rs]
+        out[mode], _ = nnls(np.array(A), np.array([r["job_s"] for r in rs]))
+        per = [r["bytes_over_raw"] / (r["m"] if mode == "balanced" else (r["m"] - 1) / r["m"]) for r in rs]
+        out[mode + "_bytes"] = float(np.mean(per))
+    b, lean = out["balanced"], out["lean"]
+    return replace(costmodel.FITTED, pair_cpu_s=float(pair), match_fixed_cpu_s=float(match0),
+                   gather_skew_cpu_s=float(g_skew), gather_link_factor=float(g_link), gather_start_cpu_s=g_start,
+                   run_start_cpu_s=run_start, balanced_fixed_s=float(b[0]), balanced_imbalance=float(b[1]),
+                   balanced_fixed_cpu_s=float(b[2]), balanced_link_factor=float(b[3]),
+                   balanced_bytes_per_agent=out["balanced_bytes"], lean_fixed_s=float(lean[0]),
+                   lean_work_share=float(lean[1]), lean_fixed_cpu_s=float(lean[2]), lean_link_factor=float(lean[3]),
+                   lean_bytes=out["lean_bytes"])
+
+
+def hosts_of(r: dict) -> Hosts:
+    return Hosts.of([bytes_s(r)] * int(r["m"]), r["cpu_per_host"])
+
+
+def predicted(r: dict, k: CostConstants, started: bool = False) -> costmodel.Prediction:
+    """The row's mode as the benchmark ran it (the stand-alone gather keeps host 0's features there)."""
+    return costmodel.predict(job_of(r), hosts_of(r), k, started=started, gather_from_all=False)[r["mode"]]
+
+
+def after_start_up(r: dict) -> float:
+    return r["job_s"] if "job_s" in r else r["gather_s"] + r["match_s"]
+
+
+def report(rows: List[dict], k: CostConstants) -> bool:
+    """Print every row and every group's picks; True if every pick is within 10% of the best measured."""
+    print("\n| data | M | Mbit/s | mode | measured s | predicted s | pred / meas | start + fixed + transfer + "
+          "compute |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if r["mode"] not in MODES:
+            continue
+        p = predicted(r, k)
+        parts = " + ".join(f"{p.parts[x]:.1f}" for x in ("start", "fixed", "transfer", "compute"))
+        meas = "failed" if "error" in r else f"{r['seconds']:.1f}"
+        ratio = "" if "error" in r else f"{p.seconds / r['seconds']:.2f}"
+        avail = "" if p.available else " (unavailable)"
+        print(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {meas} | {p.seconds:.1f}{avail} | "
+              f"{ratio} | {parts} |")
+    groups: Dict[tuple, Dict[str, dict]] = {}
+    for r in rows:
+        if r["mode"] in MODES:
+            groups.setdefault((r["data"], r["m"], r["rate_mbit"]), {})[r["mode"]] = r
+    print("\n| data | M | Mbit/s | measured best | pick (as benchmarked) | pick / best | within 10% | "
+          "coordinator's pick (started) | after start-up: pick / best | within 10% |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    ok_all = True
+    for (data, m, rate), by_mode in groups.items():
+        ran = {mode: r for mode, r in by_mode.items() if "error" not in r}
+        if not ran:
+            continue
+        best = min(ran, key=lambda x: ran[x]["seconds"])
+        any_row = next(iter(by_mode.values()))
+        modes = tuple(x for x in MODES if x in by_mode)
+        pick = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=False, gather_from_all=False,
+                                modes=modes).mode
+        ratio = ran[pick]["seconds"] / ran[best]["seconds"] if pick in ran else float("inf")
+        ok = ratio <= 1.10
+        ok_all &= ok
+        coord = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=True, modes=modes).mode
+        warm = {x: after_start_up(r) for x, r in ran.items() if "job_s" in r or "gather_s" in r}
+        if warm and coord in warm:
+            w_ratio = warm[coord] / min(warm.values())
+            w_text, w_ok = f"{w_ratio:.2f}", ("yes" if w_ratio <= 1.10 else "NO")
+        else:
+            w_text, w_ok = ("failed" if coord not in ran else "n/a"), ("NO" if coord not in ran else "n/a")
+        print(f"| {data} | {m} | {rate:g} | {best} {ran[best]['seconds']:.1f} s | {pick} | {ratio:.2f} | "
+              f"{'yes' if ok else 'NO'} | {coord} | {w_text} | {w_ok} |")
+    return ok_all
+
+
+def constants_text(k: CostConstants) -> str:
+    return "\n".join(f"    {f.name}: float = {getattr(k, f.name):.4g}" for f in fields(k))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", nargs="+", default=[str(p) for p in DEFAULT_JSON], help="bench_hosts.py rows")
+    ap.add_argument("--no-doc-rows", action="store_true", help="leave out the documented 100k log lines")
+    args = ap.parse_args(argv)
+    rows = [r for f in args.json for r in json.loads(Path(f).read_text())]
+    k = fit(rows)
+    print("CostConstants fitted (paste into dqm/distributed/costmodel.py):")
+    print(constants_text(k))
+    differ = [f.name for f in fields(k) if not np.isclose(getattr(k, f.name), getattr(costmodel.FITTED, f.name),
+                                                            rtol=2e-3, atol=1e-12)]
+    print("costmodel.FITTED " + ("differs in: " + ", ".join(differ) if differ else "holds these constants"))
+    ok = report(rows + ([] if args.no_doc_rows else DOC_ROWS), k)
+    print(f"\nevery pick as benchmarked within 10% of the best measured mode: {'yes' if ok else 'no'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""The cost model behind --mode auto: deterministic picks, the calibration's verdicts, refusals, and the
+modes a runtime job may be started with."""
+import importlib.util
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dqm.distributed import DQMConfig, costmodel
+from dqm.distributed.config import MODES, RUNTIME_MODES
+from dqm.distributed.costmodel import FITTED, Hosts, JobShape, choose, predict
+from dqm.validation import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+MBIT = 1e6 / 8  # bytes/s per Mbit/s
+
+GRAF = JobShape(n=21691, agents=8, dim=128, itemsize=1)
+BIG = JobShape(n=100186, agents=8, dim=128, itemsize=1)
+
+
+def hosts(mbit, m=8, cores=0.25):
+    return Hosts.of([mbit * MBIT] * m, cores)
+
+
+def test_the_same_inputs_give_the_same_choice():
+    a = choose(GRAF, hosts(100), started=True)
+    b = choose(GRAF, hosts(100), started=True)
+    assert (a.mode, a.reason, a.predicted_s) == (b.mode, b.reason, b.predicted_s)
+    assert a.mode in costmodel.AUTO_MODES and "\n" not in a.reason
+    assert set(a.predicted_s) == set(costmodel.AUTO_MODES)
+    # the pick is the fastest available prediction
+    assert a.predicted_s[a.mode] == min(v for v in a.predicted_s.values() if v is not None)
+
+
+def test_gather_on_a_slow_link_with_few_features():
+    small = JobShape(n=5000, agents=8, dim=128)
+    for started in (True, False):
+        assert choose(small, hosts(10), started=started).mode == "gather"
+    assert choose(JobShape(n=21691, agents=2, dim=128), hosts(10, m=2, cores=1.0), started=True).mode == "gather"
+
+
+def test_balanced_at_large_n_on_fast_links_as_calibrated():
+    for mbit in (1000, 100):
+        c = choose(BIG, hosts(mbit), started=True)
+        assert c.mode == "balanced", c.reason
+        assert c.predicted_s["gather"] > 3 * c.predicted_s["balanced"]
+    # graf at M = 8: balanced was the measured best at 100 Mbit/s, and is picked
+    assert choose(GRAF, hosts(100), started=False, gather_from_all=False).mode == "balanced"
+
+
+def test_balanced_is_unavailable_where_its_keep_alives_starved():
+    c = choose(BIG, hosts(10), started=True)
+    assert c.mode == "gather" and c.predicted_s["balanced"] is None
+    assert "balanced ruled out" in c.reason and "keep-alives" in c.reason
+    # one slow host is enough: the rounds wait for the slowest link
+    mixed = Hosts.of([125e6] * 7 + [10 * MBIT], 0.25)
+    assert not predict(BIG, mixed)["balanced"].available
+    assert predict(GRAF, hosts(10))["balanced"].available  # graf's 2 MB per link passed at 10 Mbit/s
+    # where bytes per link shrink (a compact wire format), the threshold moves with them
+    assert predict(BIG, hosts(10), balanced_bytes_over_raw=2.0)["balanced"].available
+
+
+def test_predictions_follow_the_mechanisms():
+    slow, fast = predict(BIG, hosts(10)), predict(BIG, hosts(1000))
+    for mode in costmodel.AUTO_MODES:
+        assert slow[mode].parts["transfer"] > fast[mode].parts["transfer"]
+        assert slow[mode].parts["compute"] == fast[mode].parts["compute"]
+    started = predict(BIG, hosts(100), started=True)
+    assert all(p.parts["start"] == 0 for p in started.values())
+    more_cores = predict(BIG, hosts(100, cores=1.0))
+    assert more_cores["balanced"].parts["compute"] < predict(BIG, hosts(100))["balanced"].parts["compute"]
+    # gather's bytes: every row once with its ids, into one link; balanced's and lean's per the calibration
+    p = predict(GRAF, hosts(100))
+    assert p["gather"].bytes == pytest.approx(GRAF.raw_bytes * (1 + 16 / 128))
+    assert p["balanced"].bytes == pytest.approx(GRAF.raw_bytes * FITTED.balanced_bytes_per_agent * 8)
+
+
+def test_the_modes_to_pick_from_can_be_narrowed():
+    assert choose(BIG, hosts(100), modes=("gather", "lean")).mode == "gather"
+    only = choose(BIG, hosts(10), modes=("balanced",))  # asked for balanced alone: answered, with the warning
+    assert only.mode == "balanced" and "ruled out" in only.reason
+
+
+@pytest.mark.parametrize("make,needle", [
+    (lambda: predict(JobShape(n=0, agents=2, dim=128), hosts(100, m=2)), "n (features)"),
+    (lambda: predict(JobShape(n=10, agents=0, dim=128), hosts(100, m=2)), "agents"),
+    (lambda: predict(JobShape(n=10, agents=2, dim=1.5), hosts(100, m=2)), "dim"),
+    (lambda: Hosts.of([], 1.0), "at least one process"),
+    (lambda: Hosts.of([1e6, -5], 1.0), "link rate of process 1"),
+    (lambda: Hosts.of([1e6, float("nan")], 1.0), "link rate of process 1"),
+    (lambda: Hosts.of([1e6, 1e6], [1.0]), "cores for 1 processes"),
+    (lambda: Hosts.of([1e6], 0), "cores of process 0"),
+    (lambda: Hosts.of("fast", 1.0), "link rate of process 0"),
+    (lambda: choose(GRAF, hosts(100), modes=("paper",)), "picks from"),
+    (lambda: predict(GRAF, hosts(100), balanced_bytes_over_raw=-1), "balanced_bytes_over_raw"),
+])
+def test_invalid_inputs_are_refused_in_one_line(make, needle):
+    with pytest.raises(InputError) as err:
+        make()
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def _fit_script():
+    spec = importlib.util.spec_from_file_location("fit_costmodel", ROOT / "scripts" / "fit_costmodel.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_constants_are_the_ones_the_fit_script_fits_and_every_pick_is_near_the_best(capsys):
+    fit = _fit_script()
+    rows = [r for f in fit.DEFAULT_JSON for r in json.loads(Path(f).read_text())]
+    fitted = fit.fit(rows)
+    for f in fields(FITTED):
+        assert getattr(fitted, f.name) == pytest.approx(getattr(FITTED, f.name), rel=2e-3, abs=1e-12), f.name
+    assert fit.report(rows + fit.DOC_ROWS, FITTED)  # every pick within 10% of the best measured mode
+    out = capsys.readouterr().out
+    assert "| graf (21691) | 8 | 100 | balanced 9.0 s | balanced |" in out
+    # the 100k rows are predicted within 10%
+    for r in rows:
+        if r["n"] > 50000:
+            assert fit.predicted(r, FITTED).seconds == pytest.approx(r["seconds"], rel=0.10)
+
+
+def test_modes_gather_and_auto_run_only_in_the_runtime():
+    assert set(RUNTIME_MODES) == set(MODES) | {"gather", "auto"}
+    for mode in ("gather", "auto"):
+        with pytest.raises(InputError, match="runs only in the runtime"):
+            DQMConfig(agents=2, mode=mode).validated()
+        assert DQMConfig(agents=2, mode=mode).validated(runtime=True).mode == mode
+    with pytest.raises(InputError, match="auto_modes"):
+        DQMConfig(agents=2, mode="auto", auto_modes="gather,paper").validated(runtime=True)
+    with pytest.raises(InputError, match="auto_modes"):
+        DQMConfig(agents=2, mode="auto", auto_modes="").validated(runtime=True)
+    # auto may pick balanced, which needs the finite kernel; without balanced a Gaussian job may run
+    with pytest.raises(InputError, match="may pick balanced"):
+        DQMConfig(agents=2, mode="auto", kernel="gaussian").validated(runtime=True)
+    assert DQMConfig(agents=2, mode="auto", kernel="gaussian", auto_modes="gather,lean").validated(runtime=True)
+    assert DQMConfig(agents=2, mode="gather", kernel="gaussian").validated(runtime=True)
+    assert DQMConfig(agents=2, auto_modes=" lean , gather").auto_choices == ("lean", "gather")
+    # not a shared parameter: agents need not agree on it
+    assert "auto_modes" not in DQMConfig(agents=2).params_text()
+    assert np.all([m in costmodel.AUTO_MODES for m in DQMConfig(agents=2).auto_choices])

@@ -1,0 +1,175 @@
+"""--mode auto and --mode gather in the runtime: the link probes, the coordinator's pick and its report,
+agents that run the mode it picked, and the gather path inside dqm run (labels identical to centralized)."""
+import json
+import subprocess
+import sys
+from itertools import count
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import dqm
+from dqm import io
+from dqm.distributed import DQMConfig, costmodel, simulate
+from dqm.runtime import measure
+from runtime_helpers import job_data
+
+MBIT = 1e6 / 8
+
+
+@pytest.fixture(scope="module")
+def data():
+    return job_data()
+
+
+# ---------------------------------------------------------------------- the probes, on a simulated link
+class TokenBucketLink:
+    """A link as tc tbf shapes it: ``rate`` bytes/s, a bucket of ``burst`` bytes that fills while idle, and
+    ``latency`` seconds each way; the process answers at once. Time is simulated."""
+
+    def __init__(self, rate: float, burst: float, latency: float = 2e-4):
+        self.rate, self.burst, self.latency = rate, burst, latency
+        self.now = 0.0
+        self.tokens, self.t_tokens, self.free = burst, 0.0, 0.0
+        self.arrivals = {}
+
+    def _deliver(self, nbytes: int, t: float) -> float:
+        t = max(t, self.free)
+        self.tokens = min(self.burst, self.tokens + self.rate * (t - self.t_tokens))
+        if nbytes <= self.tokens:
+            self.tokens -= nbytes
+            done = t
+        else:
+            done = t + (nbytes - self.tokens) / self.rate
+            self.tokens = 0.0
+        self.t_tokens = self.free = done
+        return done
+
+    def send_pair(self, process, a, b, nbytes):
+        for token in (a, b):
+            self.arrivals[token] = self._deliver(nbytes, self.now + self.latency) + 2 * self.latency
+
+    def await_reply(self, token, timeout_s):
+        t = self.arrivals.pop(token)
+        self.now = max(self.now, t)
+        return t
+
+    def clock(self):
+        return self.now
+
+
+@pytest.mark.parametrize("mbit", [10, 100, 1000, 20000])
+def test_probe_pairs_measure_the_sustained_rate_past_the_burst(mbit):
+    rate = mbit * MBIT
+    burst = max(96 * 1024, rate / 250)  # as EmulatedHosts shapes its links
+    link = TokenBucketLink(rate, burst)
+    tokens = count(1)
+    start, total = measure.START_PROBE_BYTES, 0.0
+    for p in range(8):
+        r = measure.measure_link(p, link.send_pair, link.await_reply, tokens, link.clock, start)
+        start = measure.next_start_bytes(r)
+        total += r.seconds
+        if mbit <= 1000:  # a link the largest probe can fill for long enough
+            assert r.bytes_s == pytest.approx(rate, rel=0.05), (p, r)
+        else:  # faster than 8 MiB / MIN_SPREAD_S: at least that
+            assert r.bytes_s > 0.5 * rate and r.probe_bytes == measure.MAX_PROBE_BYTES
+    assert total < 2.5, total  # a second or two for 8 processes, even at 10 Mbit/s
+
+
+def test_cgroup_quota_is_read_along_the_path(tmp_path):
+    v1 = tmp_path / "cpu"
+    (v1 / "a" / "b").mkdir(parents=True)
+    for d, quota in ((v1, -1), (v1 / "a", 150000), (v1 / "a" / "b", 300000)):
+        (d / "cpu.cfs_quota_us").write_text(f"{quota}\n")
+        (d / "cpu.cfs_period_us").write_text("100000\n")
+    cg = tmp_path / "cgroup"
+    cg.write_text("4:memory:/x\n1:cpu:/a/b\n")
+    assert measure._cgroup_quota(tmp_path, cg) == pytest.approx(1.5)  # the parent's is the tighter
+    (tmp_path / "u" / "s").mkdir(parents=True)
+    (tmp_path / "u" / "s" / "cpu.max").write_text("50000 100000\n")
+    cg.write_text("0::/s\n")
+    assert measure._cgroup_quota(tmp_path / "u", cg) == pytest.approx(0.5)
+    cg.write_text("1:cpu:/nowhere\n")
+    assert measure._cgroup_quota(tmp_path / "empty", cg) is None
+    assert 0 < measure.host_cores() <= 4096
+
+
+# ---------------------------------------------------------------------- an agent started with mode auto
+def test_an_auto_agent_takes_the_mode_the_coordinator_names(data):
+    from dqm.distributed.sources import agent_features
+    from dqm.runtime.agent import AgentHost
+
+    X, ids = data
+    own = agent_features([io.FeatureSet(X[:10], ids[:10])], 0)
+    bus = SimpleNamespace(dim=None)
+    auto = AgentHost(0, DQMConfig(agents=2, mode="auto", job="j"), bus, {}, own=own)
+    for mode in ("auto", "gather", "lean", "balanced"):
+        assert auto.job_config(DQMConfig(agents=2, mode=mode, job="j").params_text()).mode == mode
+    # a mode auto never picks stays a difference the parameter check names
+    assert auto.job_config(DQMConfig(agents=2, mode="paper").params_text()).mode == "auto"
+    fixed = AgentHost(0, DQMConfig(agents=2, mode="balanced", job="j"), bus, {}, own=own)
+    assert fixed.job_config(DQMConfig(agents=2, mode="auto").params_text()).mode == "balanced"
+
+
+# ---------------------------------------------------------------------- jobs
+def test_dqm_run_mode_auto_picks_records_and_matches_centralized(data, tmp_path):
+    X, ids = data
+    features = tmp_path / "f.npz"
+    io.save_features(features, io.FeatureSet(X, ids))
+    report, out = tmp_path / "r.json", tmp_path / "c.npz"
+    p = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "3", "--mode", "auto", "--features",
+                        str(features), "--job", "auto-cli", "--report", str(report), "--out", str(out)],
+                       capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rep = json.loads(report.read_text())
+    auto = rep["auto"]
+    assert set(auto["rates_bytes_s"]) == {"0", "1", "2"} and all(r > 0 for r in auto["rates_bytes_s"].values())
+    assert auto["picked"] == rep["mode"] and auto["picked"] in costmodel.AUTO_MODES
+    assert set(auto["predicted_s"]) == set(costmodel.AUTO_MODES) and auto["reason"].startswith(auto["picked"])
+    assert auto["probe_bytes"] > 0 and "probe" not in rep["kinds"]  # probes are not the job's traffic
+    assert rep["epochs"] == 1 and rep["agent_exit_codes"] == [0, 0, 0]
+    line = next(ln for ln in p.stdout.splitlines() if ln.startswith("--mode auto picked"))
+    assert auto["reason"] in line and "Mbit/s per process" in line
+    assert f"({auto['picked']} mode" in p.stdout
+    labels = np.asarray(rep["labels"])
+    np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
+    np.testing.assert_array_equal(labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
+    np.testing.assert_array_equal(io.load_clusters(out)["labels"], labels)
+
+
+def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
+    from dqm.runtime.launcher import run_job
+
+    X, ids = data
+    cfg = DQMConfig(agents=2, seed=3, mode="auto", auto_modes="balanced", job="auto-balanced")
+    rep = run_job(X, ids, cfg, timeout_s=120)
+    assert rep["mode"] == rep["auto"]["picked"] == "balanced"
+    sim = simulate(X, ids, cfg.but(mode="balanced"))
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
+    # the same messages as the balanced job, but the start / ready of the measuring epoch
+    skip = ("stats", "progress", "start", "ready")
+    assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k not in skip} == \
+        {k: v for k, v in sim.traffic.per_kind().items() if k not in skip}
+    assert rep["kinds"]["start"]["messages"] == 2 * sim.traffic.per_kind()["start"][1]
+
+
+@pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
+def test_gather_inside_dqm_run_equals_centralized(data, tmp_path, kernel):
+    from dqm.runtime.launcher import run_job
+
+    X, ids = data
+    cfg = DQMConfig(agents=3, seed=2, mode="gather", kernel=kernel, job=f"gather-{kernel}")
+    out = tmp_path / "c.npz"
+    rep = run_job(X, ids, cfg, timeout_s=120, clusters=str(out) if kernel == "quadratic" else None)
+    assert rep["mode"] == "gather" and "auto" not in rep and rep["agent_exit_codes"] == [0, 0, 0]
+    labels = np.asarray(rep["labels"])
+    np.testing.assert_array_equal(labels, dqm.quickmatch(X, ids, params=cfg.params).labels)
+    # the report a distributed job writes: ids, labels, bytes per link and kind, times, per-agent stats
+    assert rep["features"] == len(X) and rep["clusters"] == labels.max() + 1
+    assert rep["kinds"]["gather"]["messages"] >= 3 and rep["total_bytes"] > X.size * 0.5
+    assert {e["src"] for e in rep["links"] if e["dst"] == "coordinator"} == {"agent0", "agent1", "agent2"}
+    assert set(rep["per_agent"]) == {"0", "1", "2"} and rep["time_run_s"] > 0 and rep["match_s"] > 0
+    if kernel == "quadratic":
+        np.testing.assert_array_equal(labels, simulate(X, ids, cfg.but(mode="balanced")).labels)
+        np.testing.assert_array_equal(io.load_clusters(out)["labels"], labels)
