@@ -1,16 +1,13 @@
 """scripts/dqm_frontier.py at a small size: the table, the figure and the docs block it writes."""
-import importlib.util
 import json
 from pathlib import Path
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("dqm_frontier", ROOT / "scripts" / "dqm_frontier.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("dqm_frontier")
 
 
 def test_frontier_script_small(tmp_path, capsys):

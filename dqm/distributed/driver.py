@@ -387,11 +387,7 @@ class AgentDriver:
         stats["cpu_s"] = time.process_time() - self.cpu0
         stats["host"] = float(self.home)
         if self.me == self.home:  # the process's counters, reported once
-            rejected, duplicates, resent = self.bus.meter.counters()
-            for reason, count in rejected.items():
-                stats[f"rejected:{reason}"] = float(count)
-            stats["duplicates"] = float(duplicates)
-            stats["resent"] = float(resent)
+            stats.update(self.bus.meter.counter_stats())
         stats.update(self.bus.meter.as_stats(src=self.me))
         self._send_single("stats", COORDINATOR, values=stats)
         self._enter("wait_finish")

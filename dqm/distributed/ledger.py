@@ -153,3 +153,11 @@ class Meter(TrafficLedger):
         """``(rejected per reason, duplicates, resent)`` copied under the lock."""
         with self.lock:
             return dict(self.rejected), self.duplicates, self.resent
+
+    def counter_stats(self) -> Dict[str, float]:
+        """The counters as an agent's ``stats`` entries: ``rejected:<reason>``, ``duplicates``, ``resent``
+        (a process reports them once, with its home agent's statistics)."""
+        rejected, duplicates, resent = self.counters()
+        out = {f"rejected:{reason}": float(count) for reason, count in rejected.items()}
+        out.update(duplicates=float(duplicates), resent=float(resent))
+        return out

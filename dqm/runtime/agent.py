@@ -138,11 +138,7 @@ class GatherSource:
             stats["host"] = float(self.home)
             stats["features"] = float(len(self.features))
             if self.me == self.home:  # the process's counters, reported once
-                rejected, duplicates, resent = self.bus.meter.counters()
-                for reason, count in rejected.items():
-                    stats[f"rejected:{reason}"] = float(count)
-                stats["duplicates"] = float(duplicates)
-                stats["resent"] = float(resent)
+                stats.update(self.bus.meter.counter_stats())
             stats.update(self.bus.meter.as_stats(src=self.me))
             self.bus.send_single(self.me, COORDINATOR, "stats", values=stats)
 

@@ -3,7 +3,6 @@ names become safe file names, bench_online --quick gives no verdict on the full-
 dqm evaluate's findings compare QuickMatch with the baselines (never with itself) under a header
 whose command line regenerates the run exactly.
 """
-import importlib.util
 import json
 import shlex
 import sys
@@ -17,6 +16,7 @@ from dqm import benchmark, synthetic
 from dqm.cli import build_parser, main
 from dqm.core.events import ClusterEvent
 from dqm.vision import scenes
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -87,10 +87,7 @@ def test_file_stem_is_safe_portable_and_unique():
 # 4. bench_online --quick ---------------------------------------------------------------------------
 
 def _bench_online():
-    spec = importlib.util.spec_from_file_location("bench_online", ROOT / "scripts" / "bench_online.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench_online")
 
 
 def test_bench_online_quick_says_the_target_is_for_the_full_size_only(capsys):

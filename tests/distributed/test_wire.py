@@ -137,3 +137,4 @@ def test_malformed_array_encodings_are_refused(enc, shape, dtype, match):
     body["ids"] = {"dtype": "<i8", "shape": [3], "data": np.zeros(3, np.int64).tobytes(), "extra": 1}
     with pytest.raises(messages.MessageError, match="is not an array"):
         messages.decode(messages.pack_body(body), job=JOB)
+

@@ -1,8 +1,6 @@
 """Emulated hosts (network namespaces in CPU quotas, links capped with tc tbf): every mode of
 scripts/bench_hosts.py gives its documented result through them (a small version: 2 hosts, one rate)."""
-import importlib.util
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ from dqm.distributed import DQMConfig
 from dqm.runtime.launcher import Processes, write_agent_files
 from dqm.runtime.multihost import (ROUTER_PORT, EmulatedHosts, NamespacesUnavailable, _wait_ready_file,
                                    netns_unavailable_reason, run_on_hosts, start_router)
+from script_modules import load_script
 
 pytest.importorskip("zenoh")
 
@@ -79,11 +78,7 @@ def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
 
 
 def _bench_script():
-    spec = importlib.util.spec_from_file_location(
-        "bench_hosts", Path(__file__).resolve().parents[2] / "scripts" / "bench_hosts.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench_hosts")
 
 
 def test_the_table_says_what_auto_picked_and_its_time_over_the_best():

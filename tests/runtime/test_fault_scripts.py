@@ -1,20 +1,17 @@
 """Small versions of the fault soak and the message fuzzer (the full ones: scripts/soak_faults.py,
 scripts/fuzz_messages.py)."""
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from script_modules import load_script
 
 pytest.importorskip("zenoh")
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(name)
 
 
 def test_soak_small(tmp_path):
