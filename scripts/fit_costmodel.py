@@ -13,9 +13,6 @@ the measured times after start-up.
 
     .venv/bin/python scripts/fit_costmodel.py
     .venv/bin/python scripts/fit_costmodel.py --json docs/bench_hosts_graf.json docs/bench_hosts_100k.json
-
-Rows from the documented log lines of an earlier 100k run (docs/distributed.md: lean, and balanced
-failing at 10 Mbit/s) are checked too (not fitted), marked "doc".
 """
 from __future__ import annotations
 
@@ -38,19 +35,6 @@ from dqm.distributed.costmodel import CostConstants, Hosts, JobShape  # noqa: E4
 DEFAULT_JSON = [ROOT / "docs" / "bench_hosts_graf.json", ROOT / "docs" / "bench_hosts_100k.json"]
 #: the modes auto picks from, as the benchmark names them
 MODES = ("gather", "balanced", "lean")
-#: docs/distributed.md, "Time to result on emulated hosts": an earlier invocation (--data 100000 --agents 8
-#: --rates 1000,100,10) of which only the log lines are left: time to result, bytes over raw; balanced failed
-#: at 10 Mbit/s (keep-alives starved)
-DOC_ROWS = [
-    {"data": "generated 100186 (doc)", "n": 100186, "m": 8, "rate_mbit": r, "cpu_per_host": 0.25, "mode": mode,
-     "seconds": s, "bytes_over_raw": b, "doc": True}
-    for r, mode, s, b in [(1000.0, "gather", 146.3, 0.97), (1000.0, "lean", 150.3, 2.23),
-                          (1000.0, "balanced", 33.1, 6.12), (100.0, "gather", 137.8, 0.97),
-                          (100.0, "lean", 161.2, 2.23), (100.0, "balanced", 31.2, 6.12),
-                          (10.0, "gather", 159.4, 0.97), (10.0, "lean", 177.5, 3.92)]
-] + [{"data": "generated 100186 (doc)", "n": 100186, "m": 8, "rate_mbit": 10.0, "cpu_per_host": 0.25,
-      "mode": "balanced", "error": "5 agent processes were lost", "doc": True}]
-
 DIM = 128  # every benchmark row: uint8 SIFT
 
 
@@ -164,7 +148,6 @@ def constants_text(k: CostConstants) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", nargs="+", default=[str(p) for p in DEFAULT_JSON], help="bench_hosts.py rows")
-    ap.add_argument("--no-doc-rows", action="store_true", help="leave out the documented 100k log lines")
     args = ap.parse_args(argv)
     rows = [r for f in args.json for r in json.loads(Path(f).read_text())]
     k = fit(rows)
@@ -173,7 +156,7 @@ def main(argv=None) -> int:
     differ = [f.name for f in fields(k) if not np.isclose(getattr(k, f.name), getattr(costmodel.FITTED, f.name),
                                                             rtol=2e-3, atol=1e-12)]
     print("costmodel.FITTED " + ("differs in: " + ", ".join(differ) if differ else "holds these constants"))
-    ok = report(rows + ([] if args.no_doc_rows else DOC_ROWS), k)
+    ok = report(rows, k)
     print(f"\nevery pick as benchmarked within 10% of the best measured mode: {'yes' if ok else 'no'}")
     return 0
 

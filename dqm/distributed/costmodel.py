@@ -35,10 +35,12 @@ processes are already running (``started=True``: the coordinator's case, whose s
 whatever it picks).
 
 **Balanced is unavailable** when one link's share of its bytes (``b * raw / M``) takes longer than
-``starve_s`` at the slowest measured rate: its keep-alives then queue behind its own bulk traffic for
-longer than the 2-s liveliness lease and the router declares processes lost (measured: 100k features
-at M = 8 over 10 Mbit/s, about 9.8 MB per link, 7.8 s, failed; graf's 1.7-2.1 MB per link, at most
-1.7 s, never did). ``starve_s = 4`` lies between the two, about twice the lease.
+``starve_s`` at the slowest measured rate: its processes then wait behind seconds of bulk traffic, and
+beyond the liveliness lease the router takes them for lost. With the 2-s lease of issue 25, 100k
+features at M = 8 over 10 Mbit/s (about 9.8 MB per link, 7.8 s) failed; with the 8-s lease
+(dqm.runtime.bus.LEASE_MS) the same job (4.4x raw after compression, about 7 MB per link, 5.6 s)
+finished first of all modes. ``starve_s = 16``, twice the lease, is the rule; no job has been seen
+failing at this lease, so the threshold is a guard, not a measurement.
 """
 from __future__ import annotations
 
@@ -62,43 +64,44 @@ class CostConstants:
 
     Fitted by ``.venv/bin/python scripts/fit_costmodel.py`` (non-negative least squares per mechanism
     on the rows of docs/bench_hosts_graf.json and docs/bench_hosts_100k.json, 2-core AMD EPYC,
-    uint8 SIFT descriptors of 128 dimensions); ``starve_s`` is set from the balanced failure (above).
+    uint8 SIFT descriptors of 128 dimensions); ``starve_s`` is set from the lease (above).
     """
 
     #: CPU-seconds per pair-dimension of the centralized all-pairs pass (uint8, the VNNI tile kernel)
-    pair_cpu_s: float = 5.407e-11
+    pair_cpu_s: float = 4.365e-11
     #: CPU-seconds of a centralized match beyond its pairs (imports, sigma, tree)
-    match_fixed_cpu_s: float = 0.1697
+    match_fixed_cpu_s: float = 0.1282
     #: CPU-seconds a stand-alone gathering host waits for its sources to start (start-up skew)
-    gather_skew_cpu_s: float = 0.08300
+    gather_skew_cpu_s: float = 0.05747
     #: the gathered bytes' time over bytes / rate
-    gather_link_factor: float = 1.219
+    gather_link_factor: float = 1.132
     #: CPU-seconds a stand-alone gathering process spends starting
-    gather_start_cpu_s: float = 0.8731
+    gather_start_cpu_s: float = 0.7268
     #: CPU-seconds of host 0's start-up in a dqm run job (agent 0, the coordinator, the ready handshake)
-    run_start_cpu_s: float = 2.004
+    run_start_cpu_s: float = 1.553
     #: seconds of a balanced job beyond its work and bytes (the set-up's and the rounds' round trips)
-    balanced_fixed_s: float = 0.5638
+    balanced_fixed_s: float = 0.7002
     #: the busiest agent's pair work over the centralized pass's / M (cells and ghost copies)
-    balanced_imbalance: float = 1.340
+    balanced_imbalance: float = 1.351
     #: CPU-seconds of a balanced agent beyond its pairs (set-up, sketches, rounds)
-    balanced_fixed_cpu_s: float = 0.1508
+    balanced_fixed_cpu_s: float = 0.119
     #: one link's share of the balanced bytes: its time over bytes / rate (rounds wait for each other)
-    balanced_link_factor: float = 2.023
-    #: balanced bytes over raw, per agent (graf 0.77, 0.76, 0.62 at M = 2, 4, 8; 100k 0.76 at M = 8)
-    balanced_bytes_per_agent: float = 0.7254
+    balanced_link_factor: float = 1.066
+    #: balanced bytes over raw, per agent (graf 0.50, 0.52, 0.46 at M = 2, 4, 8; 100k 0.55 at M = 8,
+    #: 0.83 at 10 Mbit/s with resends)
+    balanced_bytes_per_agent: float = 0.53
     #: seconds of a lean job beyond its work and bytes
-    lean_fixed_s: float = 1.101
+    lean_fixed_s: float = 0.9853
     #: agent 0's pair work in a lean job over the centralized pass's (the cascade gathers it there)
     lean_work_share: float = 1.048
     #: CPU-seconds of lean's agent 0 beyond its pairs
-    lean_fixed_cpu_s: float = 0.0
+    lean_fixed_cpu_s: float = 0.02113
     #: lean's bytes (into agent 0's link): their time over bytes / rate
-    lean_link_factor: float = 1.049
-    #: lean bytes over raw, times M / (M - 1) (graf 1.20, 2.09, 2.32 at M = 2, 4, 8; 100k 2.23 at M = 8)
-    lean_bytes: float = 2.609
+    lean_link_factor: float = 0.5658
+    #: lean bytes over raw, times M / (M - 1) (graf 1.39, 1.73, 1.67 at M = 2, 4, 8; 100k 1.76-1.87 at M = 8)
+    lean_bytes: float = 1.647
     #: balanced is unavailable when one link's share of its bytes takes longer than this (seconds)
-    starve_s: float = 4.0
+    starve_s: float = 16
 
 
 #: the fitted constants (see :class:`CostConstants`)

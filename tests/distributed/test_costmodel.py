@@ -1,6 +1,5 @@
 """The cost model behind --mode auto: deterministic picks, the calibration's verdicts, refusals, and the
 modes a runtime job may be started with."""
-import importlib.util
 import json
 from dataclasses import fields
 from pathlib import Path
@@ -12,6 +11,7 @@ from dqm.distributed import DQMConfig, costmodel
 from dqm.distributed.config import MODES, RUNTIME_MODES
 from dqm.distributed.costmodel import FITTED, Hosts, JobShape, choose, predict
 from dqm.validation import InputError
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 MBIT = 1e6 / 8  # bytes/s per Mbit/s
@@ -38,7 +38,9 @@ def test_gather_on_a_slow_link_with_few_features():
     small = JobShape(n=5000, agents=8, dim=128)
     for started in (True, False):
         assert choose(small, hosts(10), started=started).mode == "gather"
-    assert choose(JobShape(n=21691, agents=2, dim=128), hosts(10, m=2, cores=1.0), started=True).mode == "gather"
+    # graf on two 1-core hosts at 10 Mbit/s: gather was the measured best, and is the pick as benchmarked
+    graf2 = JobShape(n=21691, agents=2, dim=128)
+    assert choose(graf2, hosts(10, m=2, cores=1.0), started=False, gather_from_all=False).mode == "gather"
 
 
 def test_balanced_at_large_n_on_fast_links_as_calibrated():
@@ -51,15 +53,17 @@ def test_balanced_at_large_n_on_fast_links_as_calibrated():
 
 
 def test_balanced_is_unavailable_where_its_keep_alives_starved():
-    c = choose(BIG, hosts(10), started=True)
-    assert c.mode == "gather" and c.predicted_s["balanced"] is None
+    # 100k at 10 Mbit/s: about 7 MB per link, 5.6 s, passed with the 8-s lease (balanced was the best)
+    assert choose(BIG, hosts(10), started=True).mode == "balanced"
+    c = choose(BIG, hosts(1), started=True)  # 1 Mbit/s: some 55 s per link, beyond twice the lease
+    assert c.mode != "balanced" and c.predicted_s["balanced"] is None
     assert "balanced ruled out" in c.reason and "keep-alives" in c.reason
     # one slow host is enough: the rounds wait for the slowest link
-    mixed = Hosts.of([125e6] * 7 + [10 * MBIT], 0.25)
+    mixed = Hosts.of([125e6] * 7 + [1 * MBIT], 0.25)
     assert not predict(BIG, mixed)["balanced"].available
-    assert predict(GRAF, hosts(10))["balanced"].available  # graf's 2 MB per link passed at 10 Mbit/s
-    # where bytes per link shrink (a compact wire format), the threshold moves with them
-    assert predict(BIG, hosts(10), balanced_bytes_over_raw=2.0)["balanced"].available
+    assert predict(GRAF, hosts(10))["balanced"].available
+    # where bytes per link shrink, the threshold moves with them
+    assert predict(BIG, hosts(1), balanced_bytes_over_raw=0.1)["balanced"].available
 
 
 def test_predictions_follow_the_mechanisms():
@@ -79,7 +83,7 @@ def test_predictions_follow_the_mechanisms():
 
 def test_the_modes_to_pick_from_can_be_narrowed():
     assert choose(BIG, hosts(100), modes=("gather", "lean")).mode == "gather"
-    only = choose(BIG, hosts(10), modes=("balanced",))  # asked for balanced alone: answered, with the warning
+    only = choose(BIG, hosts(1), modes=("balanced",))  # asked for balanced alone: answered, with the warning
     assert only.mode == "balanced" and "ruled out" in only.reason
 
 
@@ -103,10 +107,7 @@ def test_invalid_inputs_are_refused_in_one_line(make, needle):
 
 
 def _fit_script():
-    spec = importlib.util.spec_from_file_location("fit_costmodel", ROOT / "scripts" / "fit_costmodel.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("fit_costmodel")
 
 
 def test_the_constants_are_the_ones_the_fit_script_fits_and_every_pick_is_near_the_best(capsys):
@@ -115,12 +116,12 @@ def test_the_constants_are_the_ones_the_fit_script_fits_and_every_pick_is_near_t
     fitted = fit.fit(rows)
     for f in fields(FITTED):
         assert getattr(fitted, f.name) == pytest.approx(getattr(FITTED, f.name), rel=2e-3, abs=1e-12), f.name
-    assert fit.report(rows + fit.DOC_ROWS, FITTED)  # every pick within 10% of the best measured mode
+    assert fit.report(rows, FITTED)  # every pick within 10% of the best measured mode
     out = capsys.readouterr().out
-    assert "| graf (21691) | 8 | 100 | balanced 9.0 s | balanced |" in out
+    assert "| graf (21691) | 8 | 100 | balanced 7.9 s | balanced |" in out
     # the 100k rows are predicted within 10%
     for r in rows:
-        if r["n"] > 50000:
+        if r["n"] > 50000 and r["mode"] in fit.MODES:
             assert fit.predicted(r, FITTED).seconds == pytest.approx(r["seconds"], rel=0.10)
 
 
