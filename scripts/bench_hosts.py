@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -44,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 
 from dqm import evaluation, synthetic  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
-from dqm.runtime.launcher import Processes, write_agent_files  # noqa: E402
+from dqm.runtime.launcher import Processes, work_folder, write_agent_files  # noqa: E402
 from dqm.runtime.multihost import (HOST_MODES, ROUTER_PORT, EmulatedHosts, NamespacesUnavailable,  # noqa: E402
                                    _wait_ready_file, netns_unavailable_reason, run_on_hosts, start_router)
 
@@ -218,24 +216,21 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f"unknown mode {bad[0]!r}; the modes are {', '.join(HOST_MODES)}")
     rates = [float(r) for r in args.rates.split(",") if r]
-    wd = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dqm-hosts-"))
     rows = []
     try:
-        for name in [d for d in args.data.split(",") if d]:
-            data = load(name)
-            if data is None:
-                continue
-            label, X, ids = data
-            for m in [int(a) for a in args.agents.split(",") if a]:
-                bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
-                      lambda text: print(text, file=sys.stderr, flush=True), rows,
-                      lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)))
+        with work_folder(args.keep, "dqm-hosts-") as wd:
+            for name in [d for d in args.data.split(",") if d]:
+                data = load(name)
+                if data is None:
+                    continue
+                label, X, ids = data
+                for m in [int(a) for a in args.agents.split(",") if a]:
+                    bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
+                          lambda text: print(text, file=sys.stderr, flush=True), rows,
+                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)))
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2
-    finally:
-        if not args.keep:
-            shutil.rmtree(wd, ignore_errors=True)
     print(table(rows))
     if args.figure and rows:
         figure(rows, Path(args.figure))

@@ -19,9 +19,7 @@ Needs root (ip netns). Exit code 0: identical clusters; 1: different; 2: cannot 
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -32,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dqm import io, synthetic  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.distributed.protocol import traffic_table  # noqa: E402
+from dqm.runtime.launcher import work_folder  # noqa: E402
 from dqm.runtime.multihost import (NamespacesUnavailable, Namespaces, make_certs, netns_unavailable_reason,  # noqa: E402
                                    run_across_namespaces)
 from dqm.distributed import simulate  # noqa: E402
@@ -67,26 +66,23 @@ def main(argv=None) -> int:
         ds = synthetic.sift_like(n_images=args.images, n_points=args.points, seed=0)
         X, ids = ds.descriptors, ds.image_ids
     cfg = DQMConfig(agents=args.agents, seed=args.seed, partition=args.partition, job=args.job).validated(len(X))
-    wd = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dqm-multihost-"))
     t0 = time.perf_counter()
     try:
-        certs = None
-        if args.tls:
-            router_names = [Namespaces(hosts=args.hosts).router_addr(h) for h in range(args.hosts)]
-            certs = make_certs(wd / "certs", router_names, [f"agent{a}" for a in range(cfg.agents)] + ["coordinator"])
-            print(f"  certificates (CA, router naming {', '.join(router_names)}, clients) in {certs}")
-        res = run_across_namespaces(X, ids, cfg, wd, hosts=args.hosts, timeout_s=args.timeout, tls_certs=certs,
-                                    acl=args.acl,
-                                    log=lambda t: print(f"  {t}", flush=True))
+        with work_folder(args.keep, "dqm-multihost-") as wd:
+            certs = None
+            if args.tls:
+                router_names = [Namespaces(hosts=args.hosts).router_addr(h) for h in range(args.hosts)]
+                certs = make_certs(wd / "certs", router_names,
+                                   [f"agent{a}" for a in range(cfg.agents)] + ["coordinator"])
+                print(f"  certificates (CA, router naming {', '.join(router_names)}, clients) in {certs}")
+            res = run_across_namespaces(X, ids, cfg, wd, hosts=args.hosts, timeout_s=args.timeout, tls_certs=certs,
+                                        acl=args.acl, log=lambda t: print(f"  {t}", flush=True))
     except NamespacesUnavailable as exc:
         print(f"multihost_demo: cannot run here: {exc}", file=sys.stderr)
         return 2
     except RuntimeError as exc:
         print(f"multihost_demo: {exc}", file=sys.stderr)
         return 1
-    finally:
-        if not args.keep:
-            shutil.rmtree(wd, ignore_errors=True)
     wall = time.perf_counter() - t0
     rep = res.report
     labels = np.asarray(rep["labels"])

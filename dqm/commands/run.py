@@ -95,11 +95,9 @@ def run(args) -> int:
     sizes = np.bincount(labels)
     mode = rep.get("mode", cfg.mode)
     if "auto" in rep:
-        from ..distributed.costmodel import mbit_text
+        from ..runtime.coordinator import auto_summary
 
-        rates = ", ".join(f"{p}: {mbit_text(r)}" for p, r in rep["auto"]["rates_bytes_s"].items())
-        print(f"--mode auto picked {rep['auto']['reason']} [measured Mbit/s per process {rates}; "
-              f"{rep['auto']['probe_s']:.2f} s of probes]")
+        print(auto_summary(rep["auto"]))
     print(f"Distributed QuickMatch ({mode} mode, {cfg.agents} agent processes, partition {cfg.partition}, "
           f"seed {cfg.seed}): {len(labels)} features from {n_images} images -> {rep['clusters']} clusters, "
           f"{int((sizes > 1).sum())} spanning 2+ images; {wall:.1f} s wall.")

@@ -26,7 +26,7 @@ from ..distributed.driver import AgentDriver, JobAborted, ready_fields
 from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
 from .bus import Bus, check_job_free, open_client
-from .gather import gather_messages, gather_slices
+from .gather import gather_payload
 from .measure import probe_answer
 
 log = logging.getLogger("dqm.runtime")
@@ -86,7 +86,7 @@ class CoordinatorLost(RuntimeError):
 class GatherSource:
     """One hosted agent of a ``gather`` job (``--mode gather``, or ``auto`` when the coordinator picked it):
     on ``go`` it sends its features to the coordinator as ``gather`` messages
-    (:func:`dqm.runtime.gather.gather_messages`, numbered on its link, not acknowledged: BLOCK puts on a
+    (:func:`dqm.runtime.gather.gather_payload` in parts, numbered on its link, not acknowledged: BLOCK puts on a
     reliable session, like the stand-alone gathering) and its catalog when the job asked for it, then its
     statistics once the catalog is acknowledged, and waits for ``finish``. The same calls as
     :class:`~dqm.distributed.driver.AgentDriver` (``begin``, ``handle``, ``settle``, ``check_timeout``)."""
@@ -113,10 +113,10 @@ class GatherSource:
         """``go``: send the features (and the catalog) to the coordinator."""
         self._enter("gather")
         f = self.features
-        seq0 = self.bus.next_seq(self.me, COORDINATOR, len(gather_slices(f.descriptors)))
-        for payload in gather_messages(self.cfg.job, self.me, f.ids, f.image_ids, f.descriptors, epoch=self.epoch,
-                                       seq0=seq0):
-            self.bus.send(self.me, COORDINATOR, "gather", payload)
+        payload = gather_payload(f.ids, f.image_ids, f.descriptors)
+        seq0 = self.bus.next_seq(self.me, COORDINATOR, protocol.part_count("gather", payload))
+        for msg in protocol.data_messages("gather", self.cfg.job, self.me, payload, seq0=seq0, epoch=self.epoch):
+            self.bus.send(self.me, COORDINATOR, "gather", msg)
         if self.catalog:
             payload = self.features.catalog
             n = protocol.part_count("catalog", payload)

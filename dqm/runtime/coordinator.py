@@ -109,6 +109,13 @@ def default_max_lost(m: int) -> int:
     return max(1 if m > 1 else 0, m // 2)
 
 
+def auto_summary(auto: dict) -> str:
+    """The one line that says what ``--mode auto`` picked and why, from a report's ``auto`` block."""
+    rates = ", ".join(f"{p}: {costmodel.mbit_text(r)}" for p, r in auto["rates_bytes_s"].items())
+    return (f"--mode auto picked {auto['reason']} [measured Mbit/s per process {rates}; "
+            f"{auto['probe_s']:.2f} s of probes]")
+
+
 class _Lost(Exception):
     """A process that owed work died: the coordinator reassigns and starts a new epoch."""
 
@@ -411,9 +418,7 @@ class Coordinator:
             "probe_pairs": {str(p): [list(x) for x in rates[p].pairs] for p in hosts},
             "cores_per_host": cores, "gather_cores": own, "features": n,
         }
-        mbit = ", ".join(f"{p}: {costmodel.mbit_text(rates[p].bytes_s)}" for p in hosts)
-        self.announce(f"--mode auto picked {choice.reason} [measured Mbit/s per process {mbit}; "
-                      f"{probe_s:.2f} s of probes]")
+        self.announce(auto_summary(self.auto))
         self.epoch += 1  # the picked mode runs in the next epoch (every process starts it afresh)
 
     def run(self, tcp_port: Optional[int] = None) -> dict:

@@ -5,7 +5,8 @@ real links (``scripts/bench_hosts.py``, the command lines below) and the coordin
 job in ``--mode gather`` (or ``auto`` when it picks gather), whose agents send the same ``gather``
 messages on their own keys to the coordinator (:mod:`dqm.runtime.coordinator`, :mod:`dqm.runtime.agent`).
 
-* :func:`gather_messages` (:func:`gather_slices`): one source's ``gather`` messages (parts of at most 1 MiB);
+* :func:`gather_payload`: one source's ``gather`` payload (sent in parts of at most 1 MiB by
+  :func:`dqm.distributed.protocol.data_messages`, merged by :func:`dqm.distributed.protocol.merge_parts`);
 * :class:`GatheredParts`: the parts received per source, their completeness, the features by id;
 * :func:`match_gathered`: :func:`dqm.quickmatch` on the gathered features in feature-id order, labels
   numbered canonically (as :func:`dqm.distributed.sources.assemble_labels` numbers a distributed job's):
@@ -38,28 +39,12 @@ from ..distributed import keys, messages, protocol
 from ..core.params import FINITE_KERNEL, QuickMatchParams
 from ..validation import InputError
 
-#: rows of one ``gather`` part: at most about this many bytes of descriptors
-PART_BYTES = 1 << 20
-
-
-def gather_slices(descriptors) -> List[slice]:
-    """The rows of each ``gather`` part of these descriptors: at most :data:`PART_BYTES` per part (with the
-    ids), one (empty) part when there are none."""
-    d = protocol.wire_descriptors(descriptors)
-    rows = max(1, PART_BYTES // max(1, d.shape[1] * d.itemsize + 16))
-    n = len(d)
-    return [slice(i, min(n, i + rows)) for i in range(0, max(n, 1), rows)]
-
-
-def gather_messages(job: str, src: int, ids, image_ids, descriptors, epoch: int = 0, seq0: int = 0) -> List[bytes]:
-    """Source ``src``'s features as ``gather`` messages, one per :func:`gather_slices` part, numbered
-    ``seq0, seq0 + 1, ...`` (``part`` 0, 1, ...); descriptors as they travel (uint8, or float32)."""
-    d = protocol.wire_descriptors(descriptors)
-    ids, image_ids = np.asarray(ids, np.int64), np.asarray(image_ids, np.int64)
-    parts = gather_slices(d)
-    return [messages.encode("gather", job, src, seq=seq0 + k, epoch=epoch, part=k, parts=len(parts), ids=ids[sl],
-                            image_ids=image_ids[sl], descriptors=np.ascontiguousarray(d[sl]))
-            for k, sl in enumerate(parts)]
+def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:
+    """One source's features as the payload of its ``gather`` message (descriptors as they travel: uint8,
+    or float32), split into parts by :func:`dqm.distributed.protocol.data_messages` like every round
+    message (:func:`dqm.distributed.protocol.part_count` parts)."""
+    return {"ids": np.asarray(ids, np.int64), "image_ids": np.asarray(image_ids, np.int64),
+            "descriptors": protocol.wire_descriptors(descriptors)}
 
 
 class GatheredParts:
@@ -94,9 +79,8 @@ class GatheredParts:
         and ``descriptors``, the gathering host's own features), ordered by feature id."""
         blocks = [] if own is None else [(own.ids, own.image_ids, protocol.wire_descriptors(own.descriptors))]
         for s in sorted(self.parts):
-            for k in sorted(self.parts[s]):
-                m = self.parts[s][k]
-                blocks.append((m["ids"], m["image_ids"], m["descriptors"]))
+            m = protocol.merge_parts("gather", list(self.parts[s].values()))
+            blocks.append((m["ids"], m["image_ids"], m["descriptors"]))
         if not blocks:
             raise ValueError("nothing was gathered")
         dtypes = {b[2].dtype for b in blocks if len(b[2])}
@@ -140,7 +124,8 @@ def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
                                f"({keys.alive_gather(job)})")
         key = keys.gather_from(job, me)
         sent = 0
-        for payload in gather_messages(job, me, features.ids, features.image_ids, features.descriptors):
+        payload = gather_payload(features.ids, features.image_ids, features.descriptors)
+        for payload in protocol.data_messages("gather", job, me, payload):
             session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
             sent += len(payload) + len(key)
         t0 = time.monotonic()

@@ -19,9 +19,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, Iterator, List, Optional, Sequence
 
 import numpy as np
 
@@ -107,6 +108,19 @@ def overload_note(exc: JobFailure, exit_codes: List[Optional[int]], m: int) -> J
             f"{m} processes on {cores} cores could not answer the {LEASE_MS / 1000:g} s liveliness lease in time "
             "and were taken for lost. Run fewer agents on this host.")
     return JobFailure(text, exc.exit_code, exc.failure, exc.logs)
+
+
+@contextmanager
+def work_folder(keep: Optional[str], prefix: str) -> Iterator[Path]:
+    """The folder a script works in: ``keep`` (made if missing, and left in place) or a fresh temporary
+    folder named ``prefix...``, removed when the block ends, however it ends."""
+    wd = Path(keep) if keep else Path(tempfile.mkdtemp(prefix=prefix))
+    wd.mkdir(parents=True, exist_ok=True)
+    try:
+        yield wd
+    finally:
+        if not keep:
+            shutil.rmtree(wd, ignore_errors=True)
 
 
 def remove_stale_workdirs(root: Optional[str] = None) -> int:
