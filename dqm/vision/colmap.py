@@ -16,8 +16,8 @@ Export (:func:`export_database`) writes what COLMAP's own feature extraction and
   descriptors are left out (the mapper does not read them);
 * the matches implied by the clusters for every image pair: every two members of a cluster;
 * verified two-view geometries, computed by COLMAP itself (``pycolmap.geometric_verification``
-  over the exported matches), so ``pycolmap.incremental_mapping(DB, IMAGE_DIR, OUT)`` runs
-  with no further step.
+  over the exported matches, its RANSAC seeded so that the same clusters give the same
+  database), so ``pycolmap.incremental_mapping(DB, IMAGE_DIR, OUT)`` runs with no further step.
 
 Import (:func:`import_database`) reads keypoints, descriptors and image names back into a
 FEATURES set, so ``dqm match`` / ``dqm run`` cluster features that COLMAP extracted.
@@ -242,7 +242,7 @@ def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]]
 
 def export_database(database, keypoints, image_ids, image_paths: Sequence, labels, *,
                     image_dir=None, descriptors=None, verify: bool = True,
-                    num_threads: int = -1, camera: CameraOptions | None = None) -> ExportSummary:
+                    num_threads: int = -1, camera: CameraOptions | None = None, seed: int = 0) -> ExportSummary:
     """Write a COLMAP database from clusters (see the module docstring); refuses an existing file.
 
     ``keypoints``: (n, >=2) OpenCV pixel coordinates; ``image_ids``: 0..m-1 indexing
@@ -315,7 +315,9 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
         opts = pycolmap.GeometricVerifierOptions()
         if hasattr(opts, "num_threads"):
             opts.num_threads = num_threads
-        pycolmap.geometric_verification(str(database), verifier_options=opts)
+        two_view = pycolmap.TwoViewGeometryOptions()
+        two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
+        pycolmap.geometric_verification(str(database), verifier_options=opts, two_view_geometry_options=two_view)
         db = pycolmap.Database.open(str(database))
         try:
             summary.n_verified_pairs = int(db.num_verified_image_pairs())

@@ -1,6 +1,10 @@
-"""Sparse reconstruction from dqm's tracks with pycolmap's incremental mapper, and a figure of it.
+"""Sparse reconstruction from dqm's tracks with pycolmap's mappers, and a figure of it.
 
 Used by ``dqm sfm`` (images -> model in one command) and ``scripts/bench_sfm.py``.
+
+Determinism: the mappers get a fixed random seed (:data:`DEFAULT_SEED`; COLMAP's default is
+unseeded), so the same database gives the same model on one machine. COLMAP's mappers run
+multi-threaded and their result can still depend on the number of threads (docs/sfm.md).
 """
 from __future__ import annotations
 
@@ -9,17 +13,44 @@ from pathlib import Path
 
 import numpy as np
 
+from ..validation import InputError
 from .colmap import require_pycolmap
 
+#: the mappers dqm sfm can run: COLMAP's incremental mapper (its default) and its global mapper (ex-GLOMAP)
+MAPPERS = ("incremental", "global")
+#: the seed of every random choice in the mapping and the two-view verification
+DEFAULT_SEED = 0
 
-def reconstruct(database, image_dir, out_dir):
-    """The largest model of pycolmap's incremental mapping of ``database`` (most registered images,
-    then most points; None if no model) and the mapping time in seconds. Models go to ``out_dir``."""
+
+def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_threads: int = -1):
+    """pycolmap's options of a mapper (COLMAP's defaults) with the random seed set (-1: COLMAP's unseeded
+    default) and its threads (-1: all cores; 1 gives the same model bit for bit); InputError for a bad name."""
     pycolmap = require_pycolmap()
+    if mapper not in MAPPERS:
+        raise InputError(f"--mapper {mapper}: use one of {', '.join(MAPPERS)}")
+    if int(seed) != seed or seed < -1:
+        raise InputError(f"--seed must be an integer >= 0, got {seed}")
+    options = pycolmap.IncrementalPipelineOptions() if mapper == "incremental" else pycolmap.GlobalPipelineOptions()
+    options.random_seed = int(seed)
+    options.num_threads = int(num_threads)
+    return options
+
+
+def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
+                num_threads: int = -1):
+    """The largest model of pycolmap's mapping of ``database`` (most registered images, then most points;
+    None if no model) and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...).
+
+    ``mapper``: ``incremental`` (``pycolmap.incremental_mapping``) or ``global``
+    (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed.
+    """
+    pycolmap = require_pycolmap()
+    options = mapper_options(mapper, seed, num_threads)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
     t0 = time.perf_counter()
-    recs = pycolmap.incremental_mapping(str(database), str(image_dir), str(out))
+    recs = run(str(database), str(image_dir), str(out), options=options)
     dt = time.perf_counter() - t0
     if not recs:
         return None, dt
@@ -64,3 +95,35 @@ def model_figure(rec, path, title: str) -> None:
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str = "incremental"):
+    """COLMAP's own pipeline on an image folder, as a user runs it through pycolmap with its defaults:
+    its SIFT (``extract_features``), exhaustive matching with its verification (``match_exhaustive``)
+    and a mapper; the peer of ``dqm sfm`` in ``scripts/bench_sfm.py``.
+
+    ``seed`` None keeps COLMAP's unseeded defaults; a number seeds its verification and mapper.
+    Returns the largest model (or None) and the seconds of each stage (extract, match, map).
+    """
+    pycolmap = require_pycolmap()
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    database = work / "database.db"
+    times = {}
+    t0 = time.perf_counter()
+    level = pycolmap.logging.minloglevel  # COLMAP warns that its extraction uses every core; it is meant to
+    pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
+    try:
+        pycolmap.extract_features(str(database), str(image_dir))
+    finally:
+        pycolmap.logging.minloglevel = level
+    times["extract"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    two_view = pycolmap.TwoViewGeometryOptions()
+    if seed is not None:
+        two_view.ransac.random_seed = int(seed)
+    pycolmap.match_exhaustive(str(database), verification_options=two_view)
+    times["match"] = time.perf_counter() - t0
+    rec, times["map"] = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
+                                    seed=-1 if seed is None else seed)
+    return rec, times
