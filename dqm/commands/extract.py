@@ -19,13 +19,13 @@ import time
 
 from .. import io, outputs
 from ..progress import ProgressBar
-from ..vision.features import DEFAULT_PRESET, PRESET_NAMES
+from ..vision.features import DEFAULT_PRESET, PRESET_NAMES, SFM_PRESET
 
 NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
 
 
-def add_image_options(p) -> None:
+def add_image_options(p, default_preset: str = DEFAULT_PRESET) -> None:
     """Image-input and SIFT options shared by the commands that read images (see :func:`extract`)."""
     p.add_argument("--image-list", default=None, metavar="FILE",
                    help="also read the images named in FILE, one path a line (relative paths from FILE's "
@@ -33,13 +33,17 @@ def add_image_options(p) -> None:
     p.add_argument("--recursive", action="store_true",
                    help="read the images of the given folders' sub-folders too (natural order of the paths "
                         "below each folder), as COLMAP and hloc read an image folder")
-    p.add_argument("--preset", choices=sorted(PRESET_NAMES), default=DEFAULT_PRESET,
-                   help="SIFT settings: rootsift (default) = OpenCV's SIFT with RootSIFT descriptors "
-                        "(Hellinger-normalised, as COLMAP stores them; better F1 on every dataset we measured, "
-                        "docs/sfm.md), colmap = pycolmap's own SIFT with COLMAP's defaults (needs pycolmap; more "
-                        "features, the longer SfM tracks in docs/sfm.md, about 4x the extraction time), opencv = "
-                        "OpenCV's plain SIFT, paper = the seed paper's settings "
-                        "(nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, sigma=1.0)")
+    words = {"sfm": "OpenCV's SIFT at contrast threshold 0.03 with RootSIFT descriptors (about 1.3x rootsift's "
+                    "features; the best cameras in docs/sfm.md)",
+             "rootsift": "OpenCV's SIFT with RootSIFT descriptors (Hellinger-normalised, as COLMAP stores them; "
+                         "better F1 than plain SIFT on every dataset of docs/evaluation.md)",
+             "colmap": "pycolmap's own SIFT with COLMAP's defaults (needs pycolmap; about 4x the extraction time)",
+             "opencv": "OpenCV's plain SIFT",
+             "paper": "the seed paper's settings (nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, "
+                      "sigma=1.0)"}
+    p.add_argument("--preset", choices=sorted(PRESET_NAMES), default=default_preset,
+                   help="SIFT settings: " + "; ".join(f"{k}{' (default)' if k == default_preset else ''} = {v}"
+                                                      for k, v in words.items()))
     p.add_argument("--max-features", type=int, default=0,
                    help="SIFT features per image, 0 = no limit (colmap: COLMAP's 8192)")
     p.add_argument("--skip-bad-images", action="store_true",
@@ -50,7 +54,7 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders, glob patterns or files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="FEATURES.npz to write")
-    add_image_options(p)
+    add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

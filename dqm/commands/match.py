@@ -2,10 +2,10 @@
 
 INPUT is either a FEATURES .npz file (format: see dqm/io.py or docs/formats.md)
 or images: a folder, a glob pattern, or several image files, from which SIFT
-features are extracted first (OpenCV; --preset, --max-features). Images are
-matched with geometry-guided growth after QuickMatch (verified image pairs add
-the links their geometry supports; --no-guided: QuickMatch alone; FEATURES
-files: --guided turns it on; docs/sfm.md).
+features are extracted first (OpenCV; --preset, --max-features; the default
+preset is dqm sfm's). --verify splits off the members that the image pairs'
+geometry rejects; --guided also grows the clusters along it (more complete
+clusters, but worse SfM cameras: docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import io, outputs
 from .extract import add_image_options, extract
+from ..vision.features import SFM_PRESET
 from .param_options import add_quickmatch_params
 from ..core import DEFAULT_NEIGHBORS, quickmatch
 from ..core.memory import parse_size
@@ -42,7 +43,7 @@ def add_arguments(p) -> None:
                    help="FEATURES.npz file(s), or image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="CLUSTERS.npz to write")
     add_cluster_options(p)
-    add_image_options(p)
+    add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -68,13 +69,12 @@ def add_cluster_options(p) -> None:
                    help="geometric verification: per image pair, RANSAC (OpenCV USAC) on the matches the clusters "
                         "imply, homography or fundamental matrix chosen as COLMAP does; members that the verified "
                         "pairs reject are split off (C1 and C2 still hold; needs keypoints)")
-    p.add_argument("--guided", action=argparse.BooleanOptionalAction, default=None,
-                   help="geometry-guided growth, the default when matching images (FEATURES files: off unless "
-                        "given): the clusters are verified as with --verify, then each verified image pair links "
-                        "features that fit its model within 2 px and are mutual nearest descriptors among those "
-                        "(ratio 0.8, <= 1.5 sigma); clusters join along the links where C2 and every verified pair "
-                        "allow (docs/sfm.md; needs keypoints). --no-guided: plain QuickMatch; --verify alone: "
-                        "verification without growth")
+    p.add_argument("--guided", action=argparse.BooleanOptionalAction, default=False,
+                   help="geometry-guided growth (needs keypoints): the clusters are verified as with --verify, then "
+                        "each verified image pair links features that fit its model within 2 px and are mutual "
+                        "nearest descriptors among those (ratio 0.8, <= 1.5 sigma); clusters join along the links "
+                        "where C2 and every verified pair allow. More complete clusters (higher F1 on the image sets "
+                        "of docs/evaluation.md) but worse cameras in SfM, so off by default (docs/sfm.md)")
 
 
 def params_from(args) -> QuickMatchParams:
@@ -130,7 +130,7 @@ def run(args) -> int:
         raise InputError("no features to match (empty input)")
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
-    result, extra = cluster(args, fs, from_images=not any(is_features_file(p) for p in args.inputs))
+    result, extra = cluster(args, fs)
     io.save_clusters(args.out, fs, result, extra)
     if args.tracks_csv:
         n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
@@ -139,10 +139,10 @@ def run(args) -> int:
     return 0
 
 
-def cluster(args, fs: io.FeatureSet, from_images: bool):
-    """QuickMatch on the features with the command's options, then guided growth (the default for
-    images) or verification; prints what each step did. Returns the result and its extra params."""
-    guided = args.guided if args.guided is not None else (from_images and not args.verify)
+def cluster(args, fs: io.FeatureSet):
+    """QuickMatch on the features with the command's options, then guided growth or verification when asked
+    for; prints what each step did. Returns the result and its extra params."""
+    guided = bool(args.guided)
     for flag, on in (("verify", args.verify), ("guided", guided)):
         if on and fs.keypoints is None:
             raise InputError(f"--{flag} needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
@@ -159,8 +159,7 @@ def cluster(args, fs: io.FeatureSet, from_images: bool):
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True, "guided": True}
         sizes = np.bincount(labels)
-        print(f"{gs.summary()}: {len(sizes)} clusters, {int((sizes >= 2).sum())} of them span 2+ images "
-              f"(--no-guided: QuickMatch's own)")
+        print(f"{gs.summary()}: {len(sizes)} clusters, {int((sizes >= 2).sum())} of them span 2+ images")
     elif args.verify:
         from ..vision.verify import verify_clusters
 

@@ -1,18 +1,21 @@
-"""Images to a sparse 3-D model in one command: SIFT, QuickMatch with guided growth, COLMAP export,
-pycolmap's incremental mapper and a figure of the model.
+"""Images to a sparse 3-D model in one command: SIFT, QuickMatch, COLMAP export, pycolmap's mapper,
+a figure of the model and, with --gt, its cameras against ground truth.
 
     dqm sfm photos/ --out model/
+    dqm sfm photos/ --out model/ --gt gt_cameras/        # + pose errors and AUC (Strecha files or a COLMAP model)
     dqm sfm photos/ --out model/ --preset colmap --camera-model OPENCV --single-camera
 
 MODEL_DIR (new or empty) receives clusters.npz (dqm's CLUSTERS file), database.db (the COLMAP
 database: cameras, keypoints, the clusters' matches, verified geometries), sparse/0 ... (the
-models pycolmap's mapper made, in COLMAP's binary format), model.png (the largest model from the
-front and from above) and tracks.csv. It is the chain `dqm match` -> `dqm export colmap` ->
-`pycolmap.incremental_mapping` with the same options (docs/sfm.md). Needs pycolmap:
-pip install 'dqm[colmap]'.
+models the mapper made, in COLMAP's binary format), model.png (the largest model from the
+front and from above), tracks.csv and sfm.json (the stage times, the model's numbers and, with
+--gt, the pose scores). It is the chain `dqm match` -> `dqm export colmap` -> pycolmap's mapper
+with the same options (docs/sfm.md). Every random choice is seeded (--seed): the same photos
+and options give the same model. Needs pycolmap: pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -22,18 +25,31 @@ from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
 
 NAME = "sfm"
-HELP = "images -> sparse 3-D model (extract, match with guided growth, export to COLMAP, pycolmap mapping)"
+HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycolmap mapping; --gt: pose accuracy)"
 
 
 def add_arguments(p) -> None:
+    from ..vision.features import SFM_PRESET
+    from ..vision.sfm import DEFAULT_SEED, MAPPERS
+
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
-    add_image_options(p)
+    add_image_options(p, default_preset=SFM_PRESET)
     add_cluster_options(p)
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
     p.add_argument("--single-camera", action="store_true", help="one camera for all images (one size)")
+    p.add_argument("--mapper", choices=MAPPERS, default="incremental",
+                   help="COLMAP's incremental mapper (default) or its global mapper (COLMAP 4, ex-GLOMAP)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"random seed of the two-view verification and the mapper (default {DEFAULT_SEED})")
+    p.add_argument("--mapper-threads", type=int, default=1, metavar="N",
+                   help="threads of the mapper (default 1: the same model bit for bit on every run; 0: all cores, "
+                        "faster on large jobs, the model then varies in its last digits)")
+    p.add_argument("--gt", default=None, metavar="DIR",
+                   help="ground-truth cameras (a folder of Strecha *.camera files, or a COLMAP model): print the "
+                        "model's pose errors and pairwise pose AUC@1/2/5 degrees (docs/sfm.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -48,33 +64,65 @@ def _out_dir(path: str) -> Path:
 
 
 def run(args) -> int:
-    from ..vision import colmap
+    from ..vision import colmap, poses
     from ..vision.sfm import model_figure, model_numbers, reconstruct
 
     t0 = time.perf_counter()
     colmap.require_pycolmap()
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL,
                                    "single" if args.single_camera else "per-image", None)
+    if args.seed < 0 or args.mapper_threads < 0:
+        raise InputError(f"--seed and --mapper-threads must be >= 0, got {args.seed} and {args.mapper_threads}")
+    threads = args.mapper_threads or -1
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
+    truth = None
+    if args.gt:  # read and matched to the images' names before any work
+        from ..vision.features import collect_images
+
+        names = [p.name for p in collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)]
+        truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
     out = _out_dir(args.out)
+    times = {}
+    t = time.perf_counter()
     fs = extract(args, min_images=2)
-    result, extra = cluster(args, fs, from_images=True)
+    times["extract"] = time.perf_counter() - t
+    t = time.perf_counter()
+    result, extra = cluster(args, fs)
+    times["match"] = time.perf_counter() - t
+    t = time.perf_counter()
     io.save_clusters(out / "clusters.npz", fs, result, extra)
     io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
     paths = colmap.resolve_images(fs.image_names, None)
     s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
-                               descriptors=fs.descriptors, camera=camera)
+                               descriptors=fs.descriptors, camera=camera, seed=args.seed)
+    times["export"] = time.perf_counter() - t
     print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.n_matches} matches in {s.n_image_pairs} image "
           f"pairs, {s.n_verified_pairs} verified; mapping ...", flush=True)
-    rec, t_map = reconstruct(out / "database.db", s.image_dir, out / "sparse")
+    rec, times["map"] = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
+                                    seed=args.seed, num_threads=threads)
     m = model_numbers(rec)
+    report = {"images": s.n_images, "features": len(fs), "options": {
+        "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
+        "verify": bool(args.verify), "mapper": args.mapper, "seed": args.seed,
+        "mapper_threads": args.mapper_threads}, "model": m}
     if rec is None:
-        print(f"no model: pycolmap's mapper registered no image pair ({t_map:.1f} s); the clusters and the "
+        report["times"] = dict(times, total=time.perf_counter() - t0)
+        (out / "sfm.json").write_text(json.dumps(report, indent=1) + "\n")
+        print(f"no model: pycolmap's mapper registered no image pair ({times['map']:.1f} s); the clusters and the "
               f"database are in {out}")
         return 1
     model_figure(rec, out / "model.png", f"{m['registered']} of {s.n_images} images, {m['points']:,} points")
+    times["total"] = time.perf_counter() - t0
+    report["times"] = times
     print(f"model: {m['registered']} of {s.n_images} images registered, {m['points']:,} 3-D points, mean track "
-          f"length {m['track']:.2f}, mean reprojection error {m['reproj']:.3f} px (mapping {t_map:.1f} s); "
-          f"wrote {out}/sparse, {out / 'model.png'} ({time.perf_counter() - t0:.1f} s in all)")
+          f"length {m['track']:.2f}, mean reprojection error {m['reproj']:.3f} px; times: extraction "
+          f"{times['extract']:.1f} s, matching {times['match']:.1f} s, export {times['export']:.1f} s, mapping "
+          f"{times['map']:.1f} s, {times['total']:.1f} s in all")
+    if truth is not None:
+        scores = poses.evaluate_poses(poses.poses_of(rec), truth)
+        report["poses"] = scores.as_dict()
+        print(scores.line())
+    (out / "sfm.json").write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {out}/sparse, {out / 'model.png'}, {out / 'sfm.json'}")
     return 0

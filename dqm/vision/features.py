@@ -25,6 +25,9 @@ PRESETS: dict[str, dict[str, float]] = {
     "opencv": {},
     "paper": {"nOctaveLayers": 6, "contrastThreshold": 0.10, "edgeThreshold": 15, "sigma": 1.0},
     "rootsift": {},
+    # RootSIFT with a lower contrast threshold: about 1.3x the features; the best cameras in
+    # scripts/bench_sfm.py (docs/sfm.md), so dqm sfm's default
+    "sfm": {"contrastThreshold": 0.03},
 }
 #: presets made by another library: pycolmap's SIFT with COLMAP's default options (L1-root
 #: normalised, i.e. RootSIFT, stored x512 as uint8; peak threshold 0.02/3, up-sampled first
@@ -36,8 +39,10 @@ PRESET_NAMES = tuple(PRESETS) + tuple(EXTERNAL_PRESETS)
 COLMAP_MAX_FEATURES = 8192
 #: the default: RootSIFT won against plain SIFT on every dataset in dqm evaluate (docs/sfm.md)
 DEFAULT_PRESET = "rootsift"
+#: the default of ``dqm sfm``: RootSIFT at contrast threshold 0.03 (docs/sfm.md, "Which default")
+SFM_PRESET = "sfm"
 #: presets whose descriptors are RootSIFT (:func:`root_sift`) rather than plain SIFT
-ROOT_PRESETS = frozenset({"rootsift"})
+ROOT_PRESETS = frozenset({"rootsift", "sfm"})
 
 
 def root_sift(descriptors) -> np.ndarray:

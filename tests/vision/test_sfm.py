@@ -1,0 +1,103 @@
+"""dqm sfm end to end on a generated 3-D scene with known cameras: the model, its cameras against the
+ground truth (--gt, both formats), the same model bit for bit on a second run, and scripts/bench_sfm.py
+(small) on real photos with ground-truth cameras."""
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dqm.cli import main
+
+pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def write_strecha(scene, folder: Path) -> Path:
+    """The scene's cameras as Strecha camera files (K, 0 0 0, R camera-to-world, centre, size)."""
+    folder.mkdir()
+    h, w = scene.size
+    for k in range(len(scene)):
+        R, t = np.asarray(scene.R[k]), np.asarray(scene.t[k])
+        rows = [*scene.K.tolist(), [0, 0, 0], *R.T.tolist(), (-R.T @ t).tolist(), [w, h]]
+        (folder / f"img{k + 1}.png.camera").write_text("\n".join(" ".join(f"{v:.15g}" for v in r) for r in rows))
+    return folder
+
+
+def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path, capsys):
+    from dqm import io
+    from generators.scenes3d import generate_scene3d
+
+    scene = generate_scene3d(seed=0, n_images=6)
+    images = scene.save(tmp_path / "img")
+    gt = write_strecha(scene, tmp_path / "gt")
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "full"), "--quiet"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert (tmp_path / "full" / "keep.txt").read_text() == "mine"
+
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m1"), "--gt", str(gt), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "6 of 6 images registered" in out and "guided growth" not in out  # plain QuickMatch by default
+    assert "cameras against ground truth: 6 of 6 registered" in out
+    for name in ("clusters.npz", "database.db", "model.png", "tracks.csv", "sparse/0", "sfm.json"):
+        assert (tmp_path / "m1" / name).exists(), name
+    report = json.loads((tmp_path / "m1" / "sfm.json").read_text())
+    assert report["options"]["preset"] == "sfm" and report["model"]["registered"] == 6
+    assert set(report["times"]) == {"extract", "match", "export", "map", "total"}
+    # the generated cameras are recovered: pairwise pose errors mostly well under 1 degree (AUC@1 0.83 measured)
+    assert report["poses"]["median_rotation_deg"] < 2.0 and report["poses"]["auc"]["1"] > 0.6
+    assert "guided" not in io.load_clusters(tmp_path / "m1" / "clusters.npz")["params"] or \
+        io.load_clusters(tmp_path / "m1" / "clusters.npz")["params"]["guided"] is False
+
+    # a second run is the same model bit for bit: against the first as ground truth (a COLMAP model) every
+    # pairwise error is 0, and the model files are byte-identical
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m2"), "--gt", str(tmp_path / "m1" / "sparse" / "0"),
+                 "--quiet"]) == 0
+    line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("cameras against")][0]
+    assert re.search(r"AUC@1° 1\.000, AUC@2° 1\.000, AUC@5° 1\.000", line), line
+    for name in ("images.bin", "points3D.bin", "cameras.bin"):
+        assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
+
+
+def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
+    from generators.scenes3d import generate_scene3d
+
+    images = generate_scene3d(seed=3, n_images=3, width=160, height=120, n_planes=2).save(tmp_path / "img")
+    (tmp_path / "gt").mkdir()
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--gt", str(tmp_path / "gt")]) == 2
+    assert "neither Strecha" in capsys.readouterr().err
+    (tmp_path / "gt" / "other.jpg.camera").write_text("1 0 0\n0 1 0\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n9 9\n")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--gt", str(tmp_path / "gt")]) == 2
+    assert "no camera for any of the 3 images" in capsys.readouterr().err
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--seed", "-2"]) == 2
+    assert not (tmp_path / "m").exists()
+
+
+def test_bench_sfm_small_on_photos_with_ground_truth(tmp_path):
+    """scripts/bench_sfm.py on the first 4 photos of strecha/entry-P10, dqm's default beside COLMAP's
+    pipeline: both register every image, and the JSON's AUC is the AUC of its pairwise errors."""
+    from conftest import require_data
+
+    from dqm.vision import poses
+
+    scene = require_data("strecha", "entry-P10")
+    p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(scene / "images"), "--gt",
+                        str(scene / "gt_cameras"), "--max-images", "4", "--pipelines", "colmap,dqm",
+                        "--out-dir", str(tmp_path / "out")], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    table = (tmp_path / "out" / "sfm.md").read_text()
+    rows = [ln for ln in table.splitlines() if ln.startswith(("| colmap", "| dqm"))]
+    assert len(rows) == 2 and all("| 4 / 4 |" in ln for ln in rows), table
+    assert re.search(r"^- dqm: AUC@1° [0-9.]+ vs [0-9.]+ \((met|missed)\)", table, re.M), table
+    data = json.loads((tmp_path / "out" / "sfm.json").read_text())
+    for name in ("colmap", "dqm"):
+        run = data["results"][name][0]
+        assert len(run["pair_errors"]) == 6  # 4 images, 6 pairs
+        auc = poses.pose_auc(run["pair_errors"])
+        assert [run["poses"]["auc"][k] for k in ("1", "2", "5")] == pytest.approx(auc)
+    assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000
