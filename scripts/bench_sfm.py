@@ -1,184 +1,414 @@
-"""Structure from motion from dqm's tracks against COLMAP's own pipeline, side by side (issue 22's proof).
+"""Structure from motion, end to end: dqm sfm against COLMAP's own pipeline, judged by the cameras (issue 35).
 
-On ../shared/data/sacre_coeur (10 internet photos), reconstruct with pycolmap's incremental
-mapper from:
+Every pipeline runs on the same photos in one run. COLMAP's is what a user gets from pycolmap with
+its defaults (its SIFT, exhaustive matching and verification, the incremental mapper); dqm's are
+``dqm sfm`` command lines (a subprocess each, timed from start to exit). With ``--gt DIR``
+(Strecha ``*.camera`` files, or a COLMAP model) the cameras are compared with the ground truth:
+the model is aligned by a similarity, and the table reports registered images, the median
+rotation and centre errors, the pairwise pose AUC at 1, 2 and 5 degrees
+(:mod:`dqm.vision.poses`), 3-D points, mean track length, mean reprojection error and the time
+of each stage and in all, then each dqm row against COLMAP's as ratios and differences.
 
-  (a) dqm match's default pipeline: RootSIFT (--preset), QuickMatch, geometry-guided growth;
-  (b) dqm QuickMatch alone (dqm match --no-guided);
-  (c) COLMAP's pipeline on the same images: its SIFT, exhaustive matching and verification;
-  (d) BF ratio-test tracks (OpenCV BF, ratio 0.75, union-find, drop-track) on dqm's SIFT;
-  (e) dqm match --preset colmap: pycolmap's SIFT, QuickMatch, guided growth;
-  (f) dqm match --verify: QuickMatch, verification without growth;
+    python scripts/bench_sfm.py --images ../shared/data/strecha/entry-P10/images \\
+        --gt ../shared/data/strecha/entry-P10/gt_cameras --out-dir docs/sfm/entry-P10 --subsets "0-3;3-6;all"
+    python scripts/bench_sfm.py --images ../shared/data/sacre_coeur --out-dir docs/sfm/sacre_coeur
+    python scripts/bench_sfm.py ... --pipelines colmap,dqm --seeds 0,1,2,3,4   # the spread over seeds
 
-and print a markdown table: registered images, 3-D points, mean track length, mean
-reprojection error and matching time, then each dqm row against COLMAP's (c) as ratios, plus a
-figure of (a)'s sparse model.
-
-    python scripts/bench_sfm.py [--images DIR] [--out-dir DIR] [--preset rootsift] [--quick] [--pipelines a,c]
-
---quick: the last 5 images only. --pipelines: only these rows (CI runs a,c: dqm's default
-pipeline beside COLMAP's). Nothing is written into the repository unless --out-dir points there.
-COLMAP's mapper runs multi-threaded, so its counts move by about 1% between runs.
+Pipelines are named configurations (:data:`PIPELINES`); ``--pipelines`` picks some (default:
+:data:`DEFAULT_PIPELINES`), and a name ``dqm OPTIONS`` runs ``dqm sfm`` with those options.
+``--seeds``: run every pipeline once per seed (COLMAP's
+verification and mapper seeded too) and report each run and the mean, for the measurements
+whose run-to-run spread matters. ``--max-images N``: the first N photos only (CI's small run).
+Writes ``sfm.md`` (the table), ``sfm.json`` (every run) and ``sfm_poses.png`` (the cumulative
+pose-error curves, with --gt) into ``--out-dir`` (default: a temporary folder).
 """
 from __future__ import annotations
 
 import argparse
+import json
+import shlex
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_IMAGES = ROOT.parent / "shared" / "data" / "sacre_coeur"
-ROWS = {
-    "a": "(a) dqm match (default: RootSIFT, QuickMatch, guided growth)",
-    "b": "(b) dqm QuickMatch alone (--no-guided)",
-    "c": "(c) COLMAP (its SIFT, exhaustive matching, verification)",
-    "d": "(d) BF ratio tracks (ratio 0.75, drop-track)",
-    "e": "(e) dqm match --preset colmap (pycolmap's SIFT, guided)",
-    "f": "(f) dqm match --verify (no growth)",
+
+#: the pipelines: None = COLMAP's own; a list = the options of a ``dqm sfm`` command line
+PIPELINES: dict[str, list[str] | None] = {
+    "colmap": None,
+    "dqm": [],
+    "dqm --preset colmap": ["--preset", "colmap"],
+    "dqm --mapper global": ["--mapper", "global"],
+    "dqm --verify": ["--verify"],
+    "dqm --guided": ["--guided"],
+    "dqm --preset rootsift": ["--preset", "rootsift"],
+    "dqm --preset rootsift --guided (the default before)": ["--preset", "rootsift", "--guided"],
+    "colmap --mapper global": None,
 }
+#: what runs without --pipelines
+DEFAULT_PIPELINES = ["colmap", "dqm", "dqm --preset colmap", "dqm --guided",
+                     "dqm --preset rootsift --guided (the default before)"]
+AUC_KEYS = ("1", "2", "5")
 
 
-def row(name, m, t_match, n_images):
-    if not m["registered"]:
-        return f"| {name} | 0 / {n_images} | 0 | - | - | {t_match:.1f} |"
-    return (f"| {name} | {m['registered']} / {n_images} | {m['points']:,} | {m['track']:.3f} | "
-            f"{m['reproj']:.3f} | {t_match:.1f} |")
+def run_colmap(name: str, images: Path, work: Path, seed: int | None, truth) -> dict:
+    from dqm.vision import poses
+    from dqm.vision.sfm import colmap_pipeline, model_numbers
 
-
-def against_colmap(results: dict) -> list[str]:
-    """Each dqm row against COLMAP's (c): points and track length as ratios, reprojection as a difference."""
-    c = results.get("c")
-    if not c or not c["registered"]:
-        return []
-    out = ["", "Against COLMAP (c), measured in this run (targets: points >= 1x, track >= 1x, reprojection "
-           "<= +0.1 px, every image registered):", ""]
-    for key, m in sorted(results.items()):
-        if key == "c" or not m["registered"]:
-            continue
-        ok = lambda x: "met" if x else "missed"  # noqa: E731
-        out.append(f"- {ROWS[key][:3]}: points x{m['points'] / c['points']:.2f} ({ok(m['points'] >= c['points'])}), "
-                   f"track x{m['track'] / c['track']:.3f} ({ok(m['track'] >= c['track'])}), reprojection "
-                   f"{m['reproj'] - c['reproj']:+.3f} px ({ok(m['reproj'] <= c['reproj'] + 0.1)}), registered "
-                   f"{m['registered']} ({ok(m['registered'] == c['n'])}), matching time x{m['t'] / c['t']:.1f}")
+    t0 = time.perf_counter()
+    rec, times = colmap_pipeline(images, work, seed=seed, mapper="global" if "global" in name else "incremental")
+    times["total"] = time.perf_counter() - t0
+    out = {"model": model_numbers(rec), "times": times}
+    if truth is not None and rec is not None:
+        out["poses"] = poses.evaluate_poses(poses.poses_of(rec), truth).as_dict()
     return out
+
+
+def run_dqm(options: list[str], images: Path, work: Path, seed: int | None, gt: Path | None) -> dict:
+    cmd = [sys.executable, "-m", "dqm", "sfm", str(images), "--out", str(work), "--quiet", *options]
+    if seed is not None:
+        cmd += ["--seed", str(seed)]
+    if gt is not None:
+        cmd += ["--gt", str(gt)]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    report = work / "sfm.json"
+    if not report.exists():
+        raise SystemExit(f"bench_sfm: {' '.join(cmd)} failed (exit {p.returncode}): {p.stderr.strip()[-500:]}")
+    out = json.loads(report.read_text())
+    out["times"]["total"] = wall  # start to exit, Python's start and imports included
+    return out
+
+
+def fmt(x, spec: str, missing: str = "-") -> str:
+    return missing if x is None or x != x else format(x, spec)
+
+
+def table(results: dict, with_gt: bool, n_images: int) -> list[str]:
+    """The markdown table: one row per run (the mean row per pipeline when there are several seeds)."""
+    head = ["pipeline", "registered"]
+    if with_gt:
+        head += ["rot. err. (°)", "centre err.", "AUC@1°", "AUC@2°", "AUC@5°"]
+    head += ["3-D points", "track", "reproj. (px)", "extract s", "match s", "map s", "total s"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, runs in results.items():
+        for label, r in ([(f"{name} (seed {r['seed']})", r) for r in runs] if len(runs) > 1 else []) + \
+                [(name if len(runs) == 1 else f"**{name}: mean of {len(runs)}**", mean_run(runs))]:
+            m, t = r["model"], r["times"]
+            cells = [label, f"{m['registered']} / {n_images}"]
+            if with_gt:
+                p = r.get("poses") or {}
+                auc = p.get("auc", {})
+                cells += [fmt(p.get("median_rotation_deg"), ".3f"), fmt(p.get("median_centre_error"), ".4f")]
+                cells += [fmt(auc.get(k), ".3f") for k in AUC_KEYS]
+            cells += [f"{m['points']:,}", fmt(m["track"], ".2f"), fmt(m["reproj"], ".3f")]
+            match = t.get("match", 0.0) + t.get("export", 0.0)  # dqm's export runs COLMAP's verification
+            cells += [fmt(t.get("extract"), ".1f"), fmt(match, ".1f"), fmt(t.get("map"), ".1f"), fmt(t["total"], ".1f")]
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def mean_run(runs: list[dict]) -> dict:
+    """The mean of several runs of one pipeline (every number averaged; registered: the fewest)."""
+    if len(runs) == 1:
+        return runs[0]
+    import numpy as np
+
+    out = {"model": {}, "times": {}}
+    for k in runs[0]["model"]:
+        vals = [r["model"][k] for r in runs]
+        out["model"][k] = min(vals) if k == "registered" else (
+            int(round(np.mean(vals))) if k == "points" else float(np.mean(vals)))
+    for k in runs[0]["times"]:
+        out["times"][k] = float(np.mean([r["times"].get(k, 0.0) for r in runs]))
+    if all("poses" in r for r in runs):
+        p0 = runs[0]["poses"]
+        out["poses"] = {k: float(np.mean([r["poses"][k] for r in runs])) for k in p0 if k != "auc"}
+        out["poses"]["auc"] = {k: float(np.mean([r["poses"]["auc"][k] for r in runs])) for k in p0["auc"]}
+    return out
+
+
+def against_colmap(results: dict, with_gt: bool) -> list[str]:
+    """Each dqm pipeline against COLMAP's (means over seeds), measured in this run, with the issue's targets."""
+    if "colmap" not in results:
+        return []
+    c = mean_run(results["colmap"])
+    if not c["model"]["registered"]:
+        return []
+    ok = lambda x: "met" if x else "missed"  # noqa: E731
+    out = ["", "Against COLMAP, measured in this run (targets: pose AUC >= COLMAP's at 1, 2 and 5 degrees, 3-D "
+           "points >= 1x, every image registered, reprojection error <= COLMAP's + 0.1 px, end-to-end time <= 1x):", ""]
+    for name, runs in results.items():
+        if name.startswith("colmap"):
+            continue
+        r = mean_run(runs)
+        m, cm = r["model"], c["model"]
+        if not m["registered"]:
+            out.append(f"- {name}: no model")
+            continue
+        parts = []
+        if with_gt and "poses" in r and "poses" in c:
+            for k in AUC_KEYS:
+                a, b = r["poses"]["auc"][k], c["poses"]["auc"][k]
+                parts.append(f"AUC@{k}° {a:.3f} vs {b:.3f} ({ok(a >= b)})")
+        parts.append(f"points x{m['points'] / max(cm['points'], 1):.2f} ({ok(m['points'] >= cm['points'])})")
+        parts.append(f"track x{m['track'] / cm['track']:.3f} ({ok(m['track'] >= cm['track'])})")
+        parts.append(f"reprojection {m['reproj'] - cm['reproj']:+.3f} px ({ok(m['reproj'] <= cm['reproj'] + 0.1)})")
+        parts.append(f"registered {m['registered']} ({ok(m['registered'] >= cm['registered'])})")
+        t, ct = r["times"]["total"], c["times"]["total"]
+        parts.append(f"time x{t / ct:.2f} ({ok(t <= ct)}; mapping {r['times']['map']:.1f} s vs "
+                     f"{c['times']['map']:.1f} s)")
+        out.append(f"- {name}: " + ", ".join(parts))
+    return out
+
+
+def pose_figure(results: dict, truth, path: Path, title: str) -> None:
+    """The cumulative pairwise pose error of each pipeline's first run (the AUC is the area up to 1/2/5°)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
+    for name, runs in results.items():
+        errors = runs[0].get("pair_errors")
+        if errors is None:
+            continue
+        e = np.sort(np.asarray(errors, float))
+        ax.step(np.r_[0, e], np.r_[0, np.arange(1, len(e) + 1) / len(e)], where="post", label=name)
+    for t in (1, 2, 5):
+        ax.axvline(t, color="0.8", lw=0.8, zorder=0)
+    ax.set_xlim(0, 5)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("pairwise pose error, max(rotation, translation direction) (degrees)")
+    ax.set_ylabel("fraction of image pairs")
+    ax.set_title(title)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--images", type=Path, default=DEFAULT_IMAGES, help="image folder (default: sacre_coeur)")
-    ap.add_argument("--out-dir", type=Path, default=None, help="where the table and figure go (default: a temp dir)")
-    ap.add_argument("--preset", default="rootsift", help="dqm SIFT preset for (a), (b), (d), (f)")
-    ap.add_argument("--quick", action="store_true", help="last 5 images only")
-    ap.add_argument("--pipelines", default="a,b,c,d,e,f", help="the rows to run, comma-separated letters a..f")
+    ap.add_argument("--images", type=Path, required=True, help="the photos (one folder)")
+    ap.add_argument("--gt", type=Path, default=None, help="ground-truth cameras: Strecha *.camera files or a "
+                                                          "COLMAP model")
+    ap.add_argument("--out-dir", type=Path, default=None, help="where sfm.md, sfm.json, sfm_poses.png go "
+                                                               "(default: a temporary folder)")
+    ap.add_argument("--pipelines", default=None,
+                    help="comma-separated names of PIPELINES (default: " + ", ".join(DEFAULT_PIPELINES) + ")")
+    ap.add_argument("--seeds", default=None, help="comma-separated seeds: one run of every pipeline per seed")
+    ap.add_argument("--max-images", type=int, default=0, help="the first N photos only")
+    ap.add_argument("--subsets", default=None,
+                    help="also run every pipeline on these subsets of the photos, e.g. '0-3;3-6;0,2,4,6,8;all' "
+                         "(indices in name order), and tabulate AUC@1 (points without --gt) per subset")
     args = ap.parse_args()
-    chosen = {x.strip() for x in args.pipelines.split(",") if x.strip()}
-    if not chosen or not chosen <= set(ROWS):
-        sys.exit(f"bench_sfm: --pipelines takes letters a..f separated by commas, got {args.pipelines!r}")
+    chosen = DEFAULT_PIPELINES if args.pipelines is None else [x.strip() for x in args.pipelines.split(",")
+                                                               if x.strip()]
+    for c in chosen:  # any other dqm sfm command line: "dqm --rho 1.0 --preset rootsift"
+        if c not in PIPELINES and c.split()[:1] == ["dqm"]:
+            PIPELINES[c] = shlex.split(c)[1:]
+    unknown = [c for c in chosen if c not in PIPELINES]
+    if unknown or not chosen:
+        sys.exit(f"bench_sfm: unknown pipeline(s) {unknown}; choose from: " + "; ".join(PIPELINES)
+                 + "; or any 'dqm OPTIONS' of dqm sfm")
     try:
-        import pycolmap
+        seeds = [None] if args.seeds is None else [int(s) for s in args.seeds.split(",")]
+    except ValueError:
+        sys.exit(f"bench_sfm: --seeds takes integers separated by commas, got {args.seeds!r}")
+    try:
+        import pycolmap  # noqa: F401
     except ImportError:
         sys.exit("bench_sfm: needs pycolmap (pip install 'dqm[colmap]')")
-    import dqm
-    from dqm.vision import baselines, colmap, features
-    from dqm.vision.guided import guided_labels
-    from dqm.vision.sfm import model_figure, model_numbers, reconstruct
-    from dqm.vision.verify import verify_clusters
+    from dqm.vision import features
 
-    colmap.require_pycolmap()
     if not args.images.is_dir():
         sys.exit(f"bench_sfm: no image folder {args.images}")
-    work = Path(tempfile.mkdtemp(prefix="dqm-sfm-"))
-    out_dir = args.out_dir or work
+    if args.out_dir is not None and args.out_dir.exists() and any(args.out_dir.iterdir()):
+        sys.exit(f"bench_sfm: --out-dir {args.out_dir} is not empty")
+    work = Path(tempfile.mkdtemp(prefix="dqm-bench-sfm-"))
+    out_dir = args.out_dir or work / "out"
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = features.collect_images([str(args.images)])
-    if args.quick:
-        paths = paths[-5:]
+    try:
+        paths = features.collect_images([str(args.images)])
+        if args.max_images:
+            paths = paths[: args.max_images]
+        subsets = parse_subsets(args.subsets, len(paths)) if args.subsets else [list(range(len(paths)))]
+        full = None
+        for k, subset in enumerate(subsets):
+            chosen_paths = [paths[i] for i in subset]
+            results, truth = run_pipelines(chosen, seeds, chosen_paths, args.gt, work / f"subset{k}")
+            label = subset_label(subset, len(paths))
+            full = (results, truth, chosen_paths) if len(subset) == len(paths) or full is None else full
+            if args.subsets:
+                SUBSET_RESULTS.append((label, results))
+        results, truth, chosen_paths = full
+        cpu = platform_line()
+        lines = table(results, truth is not None, len(chosen_paths))
+        lines += against_colmap(results, truth is not None)
+        if args.subsets:
+            lines += ["", f"Every pipeline on {len(subsets)} subsets of the photos (image indices in name order):", ""]
+            lines += subset_table(SUBSET_RESULTS, truth is not None)
+        lines += ["", f"One run per pipeline and seed on {cpu}; dqm's times are whole `dqm sfm` processes, "
+                      f"COLMAP's its three pycolmap calls in this process. Match s: dqm's QuickMatch plus the "
+                      f"export with COLMAP's verification; COLMAP's exhaustive matching with its verification."]
+        (out_dir / "sfm.md").write_text("\n".join(lines) + "\n")
+        (out_dir / "sfm.json").write_text(json.dumps({"images": str(args.images), "n_images": len(chosen_paths),
+                                                       "gt": None if args.gt is None else str(args.gt),
+                                                       "machine": cpu, "results": results,
+                                                       "subsets": SUBSET_RESULTS}, indent=1) + "\n")
+        if truth is not None:
+            pose_figure(results, truth, out_dir / "sfm_poses.png", f"{args.images.parent.name}/{args.images.name}: "
+                                                                   "cameras against ground truth")
+        print("\n".join(lines))
+        print(f"wrote {out_dir / 'sfm.md'}, {out_dir / 'sfm.json'}"
+              + (f", {out_dir / 'sfm_poses.png'}" if truth is not None else ""))
+    finally:
+        if args.out_dir is not None:
+            shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+#: (subset label, results) of every subset, with --subsets
+SUBSET_RESULTS: list = []
+
+
+def parse_subsets(text: str, n: int) -> list[list[int]]:
+    """``"0-3;0,2,4;all"``: image indices (name order) and ranges, one subset per ``;``-separated item."""
+    out = []
+    for item in text.split(";"):
+        item = item.strip()
+        if item == "all":
+            out.append(list(range(n)))
+            continue
+        idx = []
+        try:
+            for part in item.split(","):
+                a, _, b = part.partition("-")
+                idx += list(range(int(a), int(b) + 1)) if b else [int(a)]
+        except ValueError:
+            sys.exit(f"bench_sfm: --subsets item {item!r}: indices like 0-3 or 0,2,4, or all")
+        if len(idx) < 2 or min(idx) < 0 or max(idx) >= n:
+            sys.exit(f"bench_sfm: --subsets item {item!r}: needs 2+ indices in 0..{n - 1}")
+        out.append(sorted(set(idx)))
+    return out
+
+
+def subset_label(subset: list[int], n: int) -> str:
+    if len(subset) == n:
+        return f"all {n}"
+    runs, start = [], subset[0]
+    for a, b in zip(subset, subset[1:] + [None]):
+        if b != a + 1:
+            runs.append(str(start) if start == a else f"{start}-{a}")
+            start = b
+    return ",".join(runs)
+
+
+def subset_table(subsets: list, with_gt: bool) -> list[str]:
+    """AUC@1° (or points without ground truth) of every pipeline on every subset, with the mean, the
+    minimum and the number of subsets where it is at least COLMAP's."""
+    names = list(subsets[0][1])
+    key = "AUC@1°" if with_gt else "3-D points"
+
+    def value(results, name):
+        r = mean_run(results[name])
+        if with_gt:
+            return (r.get("poses") or {}).get("auc", {}).get("1", 0.0)
+        return r["model"]["points"]
+
+    head = ["pipeline"] + [label for label, _ in subsets] + ["mean", "min", "mean AUC@2°/5°" if with_gt else "",
+                                                             ">= COLMAP's"]
+    lines = [f"{key} per subset:", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name in names:
+        vals = [value(results, name) for _, results in subsets]
+        cells = [name] + [fmt(v, ".3f" if with_gt else ",.0f") for v in vals]
+        spec = ".3f" if with_gt else ",.0f"
+        cells += [fmt(sum(vals) / len(vals), spec), fmt(min(vals), spec)]
+        if with_gt:
+            m2 = [mean_run(res[name]).get("poses", {}).get("auc", {}) for _, res in subsets]
+            a2, a5 = (sum(a.get(k, 0) for a in m2) / len(m2) for k in ("2", "5"))
+            cells.append(f"{a2:.3f} / {a5:.3f}")
+        else:
+            cells.append("")
+        if "colmap" in names and name != "colmap":
+            wins = sum(value(res, name) >= value(res, "colmap") for _, res in subsets)
+            cells.append(f"{wins} of {len(subsets)}")
+        else:
+            cells.append("")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def run_pipelines(chosen, seeds, paths, gt, work: Path):
+    """Every chosen pipeline (once per seed) on these photos: {name: [run, ...]} and the ground truth used."""
+    from dqm.validation import InputError
+    from dqm.vision import poses
+
+    work.mkdir(parents=True)
     image_dir = work / "images"
     image_dir.mkdir()
-    for p in paths:  # the mapper reads one folder; link the chosen images there
+    for p in paths:  # the mappers read one folder; link the chosen photos there
         (image_dir / p.name).symlink_to(p.resolve())
-    paths = sorted(image_dir.iterdir())
-    n = len(paths)
-    notes = []
-    sets = {}  # feature sets: preset -> (D, ids, kp)
-
-    def feats(preset):
-        if preset not in sets:
-            t0 = time.perf_counter()
-            sets[preset] = features.extract_many(paths, preset=preset)
-            notes.append(f"SIFT `{preset}`: {len(sets[preset][0]):,} features in {time.perf_counter() - t0:.1f} s")
-            print(notes[-1], flush=True)
-        return sets[preset]
-
-    def dqm_rows(keys, preset):
-        """QuickMatch once per feature set; the rows that start from it."""
-        D, ids, kp = feats(preset)
-        t0 = time.perf_counter()
-        r = dqm.quickmatch(D, ids)
-        t_qm = time.perf_counter() - t0
-        out = {}
-        for key in keys:
-            t0 = time.perf_counter()
-            if key == "b":
-                labels = r.labels
-            elif key == "f":
-                labels, vs = verify_clusters(r.labels, ids, kp)
-                notes.append(f"{key}: verified {vs.n_verified} of {vs.n_pairs} image pairs, {vs.n_split} split off")
+    truth = None
+    if gt is not None:
+        try:
+            truth = poses.restrict(poses.read_ground_truth(gt), [p.name for p in paths], f"--gt {gt}")
+        except InputError as exc:
+            sys.exit(f"bench_sfm: {exc}")
+    results: dict[str, list[dict]] = {}
+    for name in chosen:
+        for seed in seeds:
+            run_dir = work / f"run{len(list(work.iterdir()))}"
+            if PIPELINES[name] is None:
+                r = run_colmap(name, image_dir, run_dir, seed, truth)
             else:
-                labels, gs = guided_labels(r, kp, D)
-                notes.append(f"{key}: {gs.summary()}; {gs.time_verify + gs.time_propose + gs.time_merge:.1f} s "
-                             f"after QuickMatch's {t_qm:.1f} s")
-            out[key] = (labels, t_qm + time.perf_counter() - t0, D, ids, kp)
-        return out
+                r = run_dqm(PIPELINES[name], image_dir, run_dir, seed, gt)
+            r["seed"] = seed
+            if truth is not None:
+                model = run_dir / "sparse"
+                best = max(model.iterdir(), key=lambda d: len(poses.read_colmap_model(d))) \
+                    if model.is_dir() and any(model.iterdir()) else None
+                est = poses.read_colmap_model(best) if best is not None else {}
+                r["pair_errors"] = poses.relative_errors(est, truth, sorted(truth)).tolist()
+            results.setdefault(name, []).append(r)
+            m, t = r["model"], r["times"]
+            auc = r.get("poses", {}).get("auc", {})
+            print(f"[{len(paths)} images] {name}" + ("" if seed is None else f" (seed {seed})")
+                  + f": {m['registered']}/{len(paths)} registered, {m['points']:,} points, track "
+                  + f"{fmt(m['track'], '.2f')}, "
+                  + (f"AUC@1/2/5 {'/'.join(fmt(auc.get(k), '.3f') for k in AUC_KEYS)}, " if auc else "")
+                  + f"{t['total']:.1f} s", flush=True)
+    return results, truth
 
-    methods = {}
-    if chosen & {"a", "b", "f"}:
-        methods.update(dqm_rows(sorted(chosen & {"a", "b", "f"}), args.preset))
-    if "e" in chosen:
-        methods.update(dqm_rows(["e"], "colmap"))
-    if "d" in chosen:
-        D, ids, kp = feats(args.preset)
-        t0 = time.perf_counter()
-        a, b = baselines.pairwise_matches(D, ids, "bf", baselines.DEFAULT_RATIO)
-        methods["d"] = (baselines.build_tracks(a, b, ids, "drop-track"), time.perf_counter() - t0, D, ids, kp)
 
-    results = {}
-    for key in sorted(methods):
-        labels, t_match, D, ids, kp = methods[key]
-        db = work / f"{key}.db"
-        colmap.export_database(db, kp, ids, paths, labels, image_dir=image_dir, descriptors=D)
-        rec, _ = reconstruct(db, image_dir, work / f"sparse_{key}")
-        results[key] = dict(model_numbers(rec), t=t_match, n=n)
-        print(row(ROWS[key], results[key], t_match, n), flush=True)
-        if key == "a" and rec is not None:
-            model_figure(rec, out_dir / "sfm_model.png", f"{args.images.name}: dqm match's tracks, "
-                         f"{rec.num_reg_images()} images, {rec.num_points3D():,} points")
-    if "c" in chosen:
-        db = work / "c.db"
-        t0 = time.perf_counter()
-        pycolmap.extract_features(str(db), str(image_dir))
-        notes.append(f"COLMAP SIFT: {time.perf_counter() - t0:.1f} s")
-        t0 = time.perf_counter()
-        pycolmap.match_exhaustive(str(db))
-        t_cm = time.perf_counter() - t0
-        rec, _ = reconstruct(db, image_dir, work / "sparse_c")
-        results["c"] = dict(model_numbers(rec), t=t_cm, n=n)
-        print(row(ROWS["c"], results["c"], t_cm, n), flush=True)
-    lines = ["| pipeline | registered | 3-D points | mean track length | mean reprojection error (px) | "
-             "matching time (s) |", "|---|---|---|---|---|---|"]
-    lines += [row(ROWS[k], results[k], results[k]["t"], n) for k in sorted(results)]
-    lines += against_colmap(results)
-    lines += ["", "Notes: " + "; ".join(notes) + "."]
-    (out_dir / "sfm.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines[len(results) + 2:]))
-    figure = out_dir / "sfm_model.png"
-    print(f"table: {out_dir / 'sfm.md'}" + (f"; figure: {figure}" if "a" in chosen and figure.exists() else ""))
-    if args.out_dir is not None:
-        shutil.rmtree(work, ignore_errors=True)
-    return 0
+def platform_line() -> str:
+    """The CPU and its SIMD level, for the record (machines differ between sessions)."""
+    import os
+    import platform
+
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    flags = ""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        flags = "AVX-512 VNNI" if "avx512_vnni" in text else "AVX-512" if "avx512f" in text else \
+            "AVX2" if "avx2" in text else "no AVX2"
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores, {flags}"
 
 
 if __name__ == "__main__":
