@@ -7,7 +7,8 @@ its defaults (its SIFT, exhaustive matching and verification, the incremental ma
 the model is aligned by a similarity, and the table reports registered images, the median
 rotation and centre errors, the pairwise pose AUC at 1, 2 and 5 degrees
 (:mod:`dqm.vision.poses`), 3-D points, mean track length, mean reprojection error and the time
-of each stage and in all, then each dqm row against COLMAP's as ratios and differences.
+of each stage (extraction, matching, mapping, dqm's model-guided triangulation) and in all, then
+each dqm row against COLMAP's as ratios and differences.
 
     python scripts/bench_sfm.py --images ../shared/data/strecha/entry-P10/images \\
         --gt ../shared/data/strecha/entry-P10/gt_cameras --out-dir docs/sfm/entry-P10 --subsets "0-3;3-6;all"
@@ -93,7 +94,7 @@ def table(results: dict, with_gt: bool, n_images: int) -> list[str]:
     head = ["pipeline", "registered"]
     if with_gt:
         head += ["rot. err. (°)", "centre err.", "AUC@1°", "AUC@2°", "AUC@5°"]
-    head += ["3-D points", "track", "reproj. (px)", "extract s", "match s", "map s", "total s"]
+    head += ["3-D points", "track", "reproj. (px)", "extract s", "match s", "map s", "triang. s", "total s"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, runs in results.items():
         for label, r in ([(f"{name} (seed {r['seed']})", r) for r in runs] if len(runs) > 1 else []) + \
@@ -107,7 +108,8 @@ def table(results: dict, with_gt: bool, n_images: int) -> list[str]:
                 cells += [fmt(auc.get(k), ".3f") for k in AUC_KEYS]
             cells += [f"{m['points']:,}", fmt(m["track"], ".2f"), fmt(m["reproj"], ".3f")]
             match = t.get("match", 0.0) + t.get("export", 0.0)  # dqm's export runs COLMAP's verification
-            cells += [fmt(t.get("extract"), ".1f"), fmt(match, ".1f"), fmt(t.get("map"), ".1f"), fmt(t["total"], ".1f")]
+            cells += [fmt(t.get("extract"), ".1f"), fmt(match, ".1f"), fmt(t.get("map"), ".1f"),
+                      fmt(t.get("triangulate"), ".1f"), fmt(t["total"], ".1f")]
             lines.append("| " + " | ".join(cells) + " |")
     return lines
 

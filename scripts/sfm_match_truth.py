@@ -15,7 +15,10 @@ measured with the true cameras, independently of any mapper:
   with a wrong member and how far off such members are (the median of the worst member).
 
 Also each configuration's matches that the first dqm row's lack ("added") are scored alone, which
-isolates what a step such as guided growth adds (only between rows with the same features).
+isolates what a step such as guided growth adds (only between rows with the same features). dqm
+rows run with ``--no-triangulate`` (the database as the mapper read it) unless ``--triangulate``
+is given: then the database also holds the model-guided matches of the last stage, and "added"
+scores those.
 
     python scripts/sfm_match_truth.py --images ../shared/data/strecha/entry-P10/images \\
         --gt ../shared/data/strecha/entry-P10/gt_cameras --pipelines "colmap,dqm,dqm --guided,dqm --verify"
@@ -133,7 +136,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--images", type=Path, required=True)
     ap.add_argument("--gt", type=Path, required=True, help="Strecha *.camera files (intrinsics and poses)")
-    ap.add_argument("--pipelines", default="colmap,dqm,dqm --guided,dqm --verify",
+    ap.add_argument("--pipelines", default="colmap,dqm,dqm --triangulate,dqm --guided,dqm --verify",
                     help="comma-separated: colmap, or dqm sfm command lines ('dqm', 'dqm --guided', ...); the "
                          "first dqm one is the reference for 'added'")
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
@@ -160,8 +163,11 @@ def main() -> int:
                 colmap_pipeline(args.images, work, seed=0)
                 database, clusters = work / "database.db", None
             else:
+                options = shlex.split(name)[1:]
+                if "--triangulate" not in options:  # the database as the mapper read it
+                    options.append("--no-triangulate")
                 cmd = [sys.executable, "-m", "dqm", "sfm", str(args.images), "--out", str(work), "--quiet",
-                       *shlex.split(name)[1:]]
+                       *options]
                 p = subprocess.run(cmd, capture_output=True, text=True)
                 if p.returncode != 0:
                     sys.exit(f"sfm_match_truth: {name} failed: {p.stderr.strip()[-300:]}")

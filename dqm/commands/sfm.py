@@ -15,6 +15,7 @@ and options give the same model. Needs pycolmap: pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -47,10 +48,32 @@ def add_arguments(p) -> None:
     p.add_argument("--mapper-threads", type=int, default=1, metavar="N",
                    help="threads of the mapper (default 1: the same model bit for bit on every run; 0: all cores, "
                         "faster on large jobs, the model then varies in its last digits)")
+    p.add_argument("--triangulate", action=argparse.BooleanOptionalAction, default=True,
+                   help="after mapping, match every two images that share points under the model's own geometry "
+                        "(0.5 px of its epipolar lines, mutual nearest descriptors, ratio 0.8) and triangulate with "
+                        "the cameras fixed: more 3-D points, the same cameras (default; --no-triangulate: the "
+                        "mapper's model as it is)")
     p.add_argument("--gt", default=None, metavar="DIR",
                    help="ground-truth cameras (a folder of Strecha *.camera files, or a COLMAP model): print the "
                         "model's pose errors and pairwise pose AUC@1/2/5 degrees (docs/sfm.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads):
+    """The model with the points that matches under its own geometry add (:mod:`dqm.vision.triangulation`),
+    written over the mapper's model in ``folder``."""
+    import numpy as np
+
+    from ..vision.triangulation import triangulate
+
+    by_name = {name: k for k, name in enumerate(export.names)}
+    keypoints, descriptors = {}, {}
+    for image_id, image in rec.images.items():
+        if image.has_pose:
+            rows = np.flatnonzero(fs.image_ids == by_name[image.name])
+            keypoints[image_id], descriptors[image_id] = fs.keypoints[rows, :2], fs.descriptors[rows]
+    return triangulate(rec, database, export.image_dir, folder, keypoints, descriptors, seed=seed,
+                       num_threads=mapper_threads, n_threads=threads)
 
 
 def _out_dir(path: str) -> Path:
@@ -99,13 +122,20 @@ def run(args) -> int:
     times["export"] = time.perf_counter() - t
     print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.n_matches} matches in {s.n_image_pairs} image "
           f"pairs, {s.n_verified_pairs} verified; mapping ...", flush=True)
-    rec, times["map"] = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
-                                    seed=args.seed, num_threads=threads)
+    rec, times["map"], folder = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
+                                            seed=args.seed, num_threads=threads)
+    mapped = model_numbers(rec)
+    if rec is not None and args.triangulate:
+        t = time.perf_counter()
+        rec, ts = _triangulate(rec, out / "database.db", s, fs, folder, args.seed, threads, args.threads)
+        times["triangulate"] = time.perf_counter() - t
+        print(ts.summary())
     m = model_numbers(rec)
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": args.mapper, "seed": args.seed,
-        "mapper_threads": args.mapper_threads}, "model": m}
+        "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate)}, "model": m,
+        "model_before_triangulation": mapped}
     if rec is None:
         report["times"] = dict(times, total=time.perf_counter() - t0)
         (out / "sfm.json").write_text(json.dumps(report, indent=1) + "\n")
@@ -118,7 +148,8 @@ def run(args) -> int:
     print(f"model: {m['registered']} of {s.n_images} images registered, {m['points']:,} 3-D points, mean track "
           f"length {m['track']:.2f}, mean reprojection error {m['reproj']:.3f} px; times: extraction "
           f"{times['extract']:.1f} s, matching {times['match']:.1f} s, export {times['export']:.1f} s, mapping "
-          f"{times['map']:.1f} s, {times['total']:.1f} s in all")
+          f"{times['map']:.1f} s" + (f", triangulation {times['triangulate']:.1f} s" if "triangulate" in times else "")
+          + f", {times['total']:.1f} s in all")
     if truth is not None:
         scores = poses.evaluate_poses(poses.poses_of(rec), truth)
         report["poses"] = scores.as_dict()

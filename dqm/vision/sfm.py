@@ -39,7 +39,8 @@ def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_th
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
                 num_threads: int = -1):
     """The largest model of pycolmap's mapping of ``database`` (most registered images, then most points;
-    None if no model) and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...).
+    None if no model), the mapping time in seconds and the largest model's folder. Models go to
+    ``out_dir`` (``0``, ``1``, ...).
 
     ``mapper``: ``incremental`` (``pycolmap.incremental_mapping``) or ``global``
     (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed.
@@ -53,8 +54,14 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     recs = run(str(database), str(image_dir), str(out), options=options)
     dt = time.perf_counter() - t0
     if not recs:
-        return None, dt
-    return max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())), dt
+        return None, dt, None
+    key = largest(recs)
+    return recs[key], dt, out / str(key)
+
+
+def largest(recs: dict) -> int:
+    """The key of the largest model (most registered images, then most points; the lowest key on ties)."""
+    return min(recs, key=lambda k: (-recs[k].num_reg_images(), -recs[k].num_points3D(), k))
 
 
 def model_numbers(rec) -> dict:
@@ -124,6 +131,6 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
         two_view.ransac.random_seed = int(seed)
     pycolmap.match_exhaustive(str(database), verification_options=two_view)
     times["match"] = time.perf_counter() - t0
-    rec, times["map"] = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
-                                    seed=-1 if seed is None else seed)
+    rec, times["map"], _ = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
+                                       seed=-1 if seed is None else seed)
     return rec, times

@@ -48,7 +48,7 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
         assert (tmp_path / "m1" / name).exists(), name
     report = json.loads((tmp_path / "m1" / "sfm.json").read_text())
     assert report["options"]["preset"] == "sfm" and report["model"]["registered"] == 6
-    assert set(report["times"]) == {"extract", "match", "export", "map", "total"}
+    assert set(report["times"]) == {"extract", "match", "export", "map", "triangulate", "total"}
     # the generated cameras are recovered: pairwise pose errors mostly well under 1 degree (AUC@1 0.83 measured)
     assert report["poses"]["median_rotation_deg"] < 2.0 and report["poses"]["auc"]["1"] > 0.6
     assert "guided" not in io.load_clusters(tmp_path / "m1" / "clusters.npz")["params"] or \
@@ -101,3 +101,46 @@ def test_bench_sfm_small_on_photos_with_ground_truth(tmp_path):
         auc = poses.pose_auc(run["pair_errors"])
         assert [run["poses"]["auc"][k] for k in ("1", "2", "5")] == pytest.approx(auc)
     assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000
+
+
+def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_path, capsys):
+    """dqm sfm's last stage: matches under the model's own geometry are true correspondences (checked
+    against the generated scene), the model gains points seen in 3+ images, and its cameras are the
+    mapper's, bit for bit (--no-triangulate gives the same poses)."""
+    import pycolmap
+
+    from dqm import io
+    from dqm.vision.triangulation import model_guided_matches
+    from generators.scenes3d import generate_scene3d
+
+    scene = generate_scene3d(seed=2, n_images=5)
+    images = scene.save(tmp_path / "img")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "plain"), "--no-triangulate", "--quiet"]) == 0
+    assert main(["sfm", str(images), "--out", str(tmp_path / "dense"), "--quiet"]) == 0
+    assert "model-guided triangulation:" in capsys.readouterr().out
+    plain = pycolmap.Reconstruction(str(tmp_path / "plain/sparse/0"))
+    dense = pycolmap.Reconstruction(str(tmp_path / "dense/sparse/0"))
+    assert dense.num_points3D() > plain.num_points3D()
+    for image_id, image in plain.images.items():
+        assert np.array_equal(image.cam_from_world().matrix(), dense.images[image_id].cam_from_world().matrix())
+    new = [p for i, p in dense.points3D.items() if i > max(plain.point3D_ids())]
+    assert new and min(p.track.length() for p in new) >= 3
+    report = json.loads((tmp_path / "dense" / "sfm.json").read_text())
+    assert report["model_before_triangulation"]["points"] == plain.num_points3D()
+    assert report["model"]["points"] == dense.num_points3D() and "triangulate" in report["times"]
+
+    # the guided matches, checked against the scene: a match is true when the scene maps one keypoint
+    # within 2 px of the other
+    z = io.load_clusters(tmp_path / "plain" / "clusters.npz")
+    names = [f"img{k + 1}.png" for k in range(len(scene))]
+    by_id = {image_id: names.index(image.name) for image_id, image in plain.images.items()}
+    kp = {i: z["keypoints"][z["image_ids"] == k, :2] for i, k in by_id.items()}
+    desc = {i: z["descriptors"][z["image_ids"] == k] for i, k in by_id.items()}
+    found = model_guided_matches(plain, kp, desc)
+    assert found
+    true = total = 0
+    for (a, b), m in found.items():
+        uv, ok = scene.correspondence(by_id[a], by_id[b], kp[a][m[:, 0]].astype(np.float64))
+        hit = ok & (np.linalg.norm(uv - kp[b][m[:, 1]], axis=1) <= 2.0)
+        true, total = true + int(hit.sum()), total + len(m)
+    assert total > 1000 and true / total > 0.9, (true, total)

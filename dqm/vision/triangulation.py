@@ -1,0 +1,183 @@
+"""More 3-D points from a finished model: matches guided by the model's own cameras, then triangulation.
+
+QuickMatch's clusters give the mapper precise matches and good cameras, but fewer 3-D points than a
+pairwise matcher (docs/sfm.md). Once the cameras are known, a match no longer needs a descriptor that
+stands out in the whole image: it needs one that stands out among the few features near the epipolar
+line that the model's relative pose and intrinsics draw. :func:`model_guided_matches` finds, for every
+pair of registered images that share 3-D points:
+
+* every feature's keypoint in the model's undistorted frame (COLMAP's camera model inverted, scaled
+  by the camera's focal length, so distances are in pixels);
+* the candidates: the other image's features within ``threshold`` pixels (Sampson distance) of the
+  epipolar geometry of the model's relative pose (:func:`dqm.vision.guided.consistent_pairs`, no
+  n x n);
+* the matches: mutual nearest descriptors among the candidates, each passing Lowe's ratio against
+  the second nearest candidate (:func:`dqm.vision.guided.propose_links`).
+
+:func:`triangulate` adds them to the database's verified matches (beside the clusters' own) and runs
+COLMAP's triangulator with the model's poses and intrinsics fixed
+(``pycolmap.triangulate_points``): it creates points from the new correspondences, extends the
+existing tracks and merges points, checking every observation in every view against
+``max_error`` pixels. New points seen in fewer than 3 images are dropped (COLMAP's triangulator
+makes two-view points; its incremental mapper does not create them, and the comparison with it
+stays fair). The cameras are the mapper's, unchanged; the model gains points and observations.
+Deterministic: the matches do not depend on the threads, and the triangulator is seeded.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..core.pairs import default_threads
+from .colmap import require_pycolmap
+from .guided import DEFAULT_RATIO, propose_links
+from .verify import PairModel
+
+#: a guided match fits the model's epipolar geometry within this many pixels (Sampson distance)
+DEFAULT_THRESHOLD = 0.5
+#: the triangulator's reprojection limit for creating, completing and merging tracks (COLMAP's is 4 px)
+DEFAULT_MAX_ERROR = 2.0
+#: image pairs are matched when they share at least this many 3-D points of the model
+MIN_SHARED_POINTS = 15
+
+
+@dataclass
+class TriangulationStats:
+    """What :func:`triangulate` did."""
+
+    n_pairs: int  # image pairs matched under the model's geometry
+    n_matches: int  # guided matches found
+    n_new_matches: int  # of them not among the database's verified matches
+    points_before: int
+    points_after: int
+    observations_before: int
+    observations_after: int
+    time_match: float
+    time_triangulate: float
+
+    def summary(self) -> str:
+        return (f"model-guided triangulation: {self.n_new_matches:,} new matches in {self.n_pairs} image pairs "
+                f"({self.time_match:.1f} s), 3-D points {self.points_before:,} -> {self.points_after:,}, "
+                f"observations {self.observations_before:,} -> {self.observations_after:,} "
+                f"({self.time_triangulate:.1f} s)")
+
+
+def _undistorted(rec, image_id: int, keypoints_xy: np.ndarray) -> np.ndarray:
+    """Keypoints (OpenCV convention) in the camera's undistorted frame, in pixels: f * (x/z, y/z)."""
+    cam = rec.cameras[rec.images[image_id].camera_id]
+    normalised = np.asarray(cam.cam_from_img(np.asarray(keypoints_xy, np.float64) + 0.5))  # COLMAP's +0.5
+    return normalised * float(cam.mean_focal_length())
+
+
+def _pair_model(rec, a: int, b: int) -> PairModel:
+    """The fundamental matrix between the undistorted frames of images a and b, from the model's poses."""
+    Pa = np.asarray(rec.images[a].cam_from_world().matrix(), np.float64)
+    Pb = np.asarray(rec.images[b].cam_from_world().matrix(), np.float64)
+    R = Pb[:, :3] @ Pa[:, :3].T
+    t = Pb[:, 3] - R @ Pa[:, 3]
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    fa = float(rec.cameras[rec.images[a].camera_id].mean_focal_length())
+    fb = float(rec.cameras[rec.images[b].camera_id].mean_focal_length())
+    F = np.diag([1 / fb, 1 / fb, 1.0]) @ E @ np.diag([1 / fa, 1 / fa, 1.0])
+    empty = np.zeros((0, 2), np.int64)
+    return PairModel(a, b, "F", F, empty, empty)
+
+
+def covisible_pairs(rec, min_shared: int = MIN_SHARED_POINTS) -> list[tuple[int, int]]:
+    """Pairs (a < b) of registered image ids that observe at least ``min_shared`` common 3-D points."""
+    counts: dict[tuple[int, int], int] = {}
+    for point in rec.points3D.values():
+        ids = sorted({el.image_id for el in point.track.elements})
+        for i in range(len(ids)):
+            for j in range(i + 1, len(ids)):
+                counts[(ids[i], ids[j])] = counts.get((ids[i], ids[j]), 0) + 1
+    return sorted(p for p, c in counts.items() if c >= min_shared)
+
+
+def model_guided_matches(rec, keypoints: dict, descriptors: dict, *, threshold: float = DEFAULT_THRESHOLD,
+                         ratio: float = DEFAULT_RATIO, min_shared: int = MIN_SHARED_POINTS,
+                         n_threads: int | None = None) -> dict[tuple[int, int], np.ndarray]:
+    """Matches under the model's geometry (module docstring), ``{(image id a, image id b): (m, 2) keypoint
+    indices}``, a < b; ``keypoints`` / ``descriptors``: per registered image id, (n, >= 2) OpenCV pixel
+    coordinates and (n, d) descriptors, in the database's keypoint order."""
+    pairs = covisible_pairs(rec, min_shared)
+    ids = sorted({i for p in pairs for i in p})
+    offsets = np.cumsum([0] + [len(keypoints[i]) for i in ids])
+    start = {i: int(o) for i, o in zip(ids, offsets)}
+    if not ids:
+        return {}
+    xy = np.vstack([_undistorted(rec, i, np.asarray(keypoints[i])[:, :2]) for i in ids])
+    X = np.vstack([np.asarray(descriptors[i]) for i in ids])
+    no_bound = np.full(len(X), np.inf)
+
+    def match(pair):
+        a, b = pair
+        rows = np.arange(start[a], start[a] + len(keypoints[a]))
+        cols = np.arange(start[b], start[b] + len(keypoints[b]))
+        i, j, _ = propose_links(_pair_model(rec, a, b), rows, cols, X, xy, no_bound, threshold=threshold,
+                                ratio=ratio, max_sigma=1.0)
+        return np.stack([i - start[a], j - start[b]], axis=1)
+
+    workers = max(1, default_threads() if n_threads is None else int(n_threads))
+    with ThreadPoolExecutor(workers) as pool:
+        found = list(pool.map(match, pairs))  # in pair order whatever the threads do
+    return {p: m for p, m in zip(pairs, found) if len(m)}
+
+
+def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors: dict, *,
+                threshold: float = DEFAULT_THRESHOLD, ratio: float = DEFAULT_RATIO,
+                max_error: float = DEFAULT_MAX_ERROR, seed: int = 0, num_threads: int = -1,
+                n_threads: int | None = None):
+    """The model with the points that model-guided matches add (module docstring), written to ``out_dir``,
+    and what was done. ``database``: the model's COLMAP database, whose verified matches gain the new
+    ones; ``rec`` is not changed."""
+    pycolmap = require_pycolmap()
+    t0 = time.perf_counter()
+    found = model_guided_matches(rec, keypoints, descriptors, threshold=threshold, ratio=ratio,
+                                 n_threads=n_threads)
+    n_matches = sum(len(m) for m in found.values())
+    n_new = 0
+    db = pycolmap.Database.open(str(database))
+    try:
+        for (a, b), m in found.items():
+            if db.exists_two_view_geometry(a, b):
+                geometry = db.read_two_view_geometry(a, b)
+            else:  # images that share points through others, without a verified pair of their own
+                geometry = pycolmap.TwoViewGeometry()
+                geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+            old = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
+            both = np.unique(np.vstack([old, m]), axis=0)
+            n_new += len(both) - len(old)
+            geometry.inlier_matches = np.ascontiguousarray(both.astype(np.uint32))
+            if db.exists_two_view_geometry(a, b):
+                db.update_two_view_geometry(a, b, geometry)
+            else:
+                db.write_two_view_geometry(a, b, geometry)
+    finally:
+        db.close()
+    t1 = time.perf_counter()
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = int(seed)
+    options.num_threads = int(num_threads)
+    options.triangulation.complete_max_reproj_error = max_error
+    options.triangulation.merge_max_reproj_error = max_error
+    options.mapper.filter_max_reproj_error = max_error
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    before = (rec.num_points3D(), rec.compute_num_observations())
+    last_id = max(rec.point3D_ids(), default=0)
+    dense = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), str(database), str(image_dir), str(out),
+                                        clear_points=False, options=options)
+    # COLMAP's triangulator creates two-view points, which its incremental mapper never does: the new
+    # points must be seen in 3 images or more, as the mapper's are when it creates them (the model's
+    # own points keep their ids and stay)
+    for point_id in [i for i in dense.point3D_ids() if i > last_id and dense.points3D[i].track.length() < 3]:
+        dense.delete_point3D(point_id)
+    dense.write(str(out))
+    stats = TriangulationStats(len(found), n_matches, n_new, before[0], dense.num_points3D(), before[1],
+                               dense.compute_num_observations(), t1 - t0, time.perf_counter() - t1)
+    return dense, stats
