@@ -38,15 +38,15 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from . import outputs
 from .validation import InputError, check_descriptors, check_image_ids
 
 
@@ -146,12 +146,6 @@ def shared_image_ids(local_ids: Sequence[np.ndarray]) -> np.ndarray:
     return values[counts > 1]
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 #: zlib level of the npz files dqm writes: level 1 packs descriptors and labels nearly as tightly as
 #: numpy's default (6) in less time (90k COLMAP features' CLUSTERS: 0.47 -> 0.28 s, 1.5% larger)
 NPZ_LEVEL = 1
@@ -167,18 +161,8 @@ def _savez_fast(path: str, arrays: dict) -> None:
 
 def _atomic_savez(path: Path, arrays: dict) -> None:
     """Write an npz next to ``path`` and rename it in place: no half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
+    with outputs.atomic_output(path) as tmp:
         _savez_fast(tmp, arrays)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a result file follows the umask like any other
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _feature_arrays(fs: FeatureSet) -> dict:
@@ -215,20 +199,35 @@ def _read_npz(p: Path, what: str) -> dict:
         hint = " (it looks like JSON: a job report, not a CLUSTERS file)" if looks_json else ""
         raise InputError(f"{p}: not an .npz {what} file{hint} (an .npz is a zip archive of numpy arrays; "
                          "see docs/formats.md)")
+    key = None
     try:
         with np.load(p, allow_pickle=False) as z:
             out = {}
             for key in z.files:
                 try:
                     out[key] = z[key]
-                except ValueError:  # numpy refuses object arrays without allow_pickle
+                except ValueError as exc:  # numpy refuses object arrays without allow_pickle
+                    if "allow_pickle" not in str(exc):
+                        raise
                     raise InputError(f"{p}: array {key!r} holds Python objects (dtype object); save it as a "
                                      "numeric or string array (dqm never unpickles data)") from None
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any unreadable file
-        raise InputError(f"{p}: not a readable .npz {what} file ({type(exc).__name__})") from None
+        where = f"array {key!r} cannot be read" if key is not None else f"not a readable .npz {what} file"
+        raise InputError(f"{p}: {where} ({_why_unreadable(exc)}); the file is damaged or was cut short, "
+                         "write it again") from None
     return out
+
+
+def _why_unreadable(exc: Exception) -> str:
+    """A damaged file's error in words (zlib's class is called ``error``; zip's CRC check is BadZipFile)."""
+    if isinstance(exc, zlib.error):
+        return f"corrupt compressed data: {exc}"
+    if isinstance(exc, zipfile.BadZipFile):
+        return f"corrupt zip member: {exc}"
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def load_features(path) -> FeatureSet:
@@ -340,10 +339,7 @@ def save_tracks_csv(path, labels, image_ids, keypoints=None, image_names=None, m
     keep = np.flatnonzero(sizes[labels] >= min_size) if len(labels) else np.zeros(0, np.int64)
     order = keep[np.lexsort((keep, image_ids[keep], labels[keep]))]
     track_of = {lab: k for k, lab in enumerate(np.unique(labels[order]).tolist())}
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
+    with outputs.atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["track", "label", "image_id", "image", "feature", "x", "y", "size", "angle"])
         for f in order.tolist():
@@ -353,5 +349,4 @@ def save_tracks_csv(path, labels, image_ids, keypoints=None, image_names=None, m
             if kp is not None:
                 geo = [f"{v:.3f}" for v in kp[f, :4]] + [""] * (4 - min(4, kp.shape[1]))
             w.writerow([track_of[int(labels[f])], int(labels[f]), img, name, f, *geo[:4]])
-    os.replace(tmp, p)
     return len(track_of)

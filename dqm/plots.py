@@ -35,9 +35,11 @@ def _figure(width: float, height: float, dpi: int = 100):
 
 def save(fig, path, dpi: int = 100) -> Path:
     """Write a figure (format from the suffix, e.g. .png) and return the path."""
+    from .outputs import atomic_output
+
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=dpi, bbox_inches="tight")
+    with atomic_output(p) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=p.suffix.lstrip(".").lower() or None)
     return p
 
 

@@ -35,6 +35,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
+from ..outputs import write_text
 from ..plots import save
 from .experiment import ExperimentResult
 from .pipeline import LABELS, PAPER_RHO
@@ -442,9 +443,9 @@ def write_report(result: ExperimentResult, out_dir, img_dir=None, *, command: st
         p = save(fig, imgd / f"{prefix}{name}.png", dpi=90)
         written[name] = p
         rel[name] = os.path.relpath(p, out)
-    (out / json_name).write_text(json.dumps(s.as_json(), indent=1, default=_json_default))
+    write_text(out / json_name, json.dumps(s.as_json(), indent=1, default=_json_default))
     written["json"] = out / json_name
-    (out / md_name).write_text(markdown(s, rel, command or "dqm experiment localization"))
+    write_text(out / md_name, markdown(s, rel, command or "dqm experiment localization"))
     written["markdown"] = out / md_name
     return written
 

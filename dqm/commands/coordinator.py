@@ -13,6 +13,7 @@ interrupted, 143 terminated (SIGTERM).
 """
 import argparse
 
+from .. import outputs
 from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 from ..distributed.config import DEFAULT_SEED
 
@@ -32,6 +33,7 @@ def add_arguments(p) -> None:
                         "./dqm-out/coordinator/JOB.npz)")
     p.add_argument("--no-clusters", action="store_true",
                    help="write no CLUSTERS file (the agents then send no catalogs: fewer bytes)")
+    outputs.add_overwrite_option(p)
     p.add_argument("--tcp-port", type=int, help="router port: also record kernel TCP byte counters")
     p.add_argument("--ready-timeout", type=float, default=30.0,
                    help="seconds to wait for every agent process to appear (missing ones count as lost)")
@@ -52,7 +54,6 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from .. import outputs
     from ..distributed import keys
     from ..distributed.partition import check_agents, check_seed
     from ..runtime.bus import AccessDenied, JobIdInUse, RouterUnreachable, check_endpoint
@@ -64,11 +65,12 @@ def run(args) -> int:
     check_endpoint(args.connect)
     keys.check_job(args.job)
     if args.out:
-        outputs.check_file(args.out, "--out", (".json",))
+        outputs.check_file(args.out, "--out", (".json",), overwrite=args.overwrite)
     if args.clusters and args.no_clusters:
         raise InputError("--clusters and --no-clusters contradict each other; give one")
     clusters = None if args.no_clusters else str(outputs.check_file(
-        args.clusters or outputs.default_dir("coordinator") / f"{args.job}.npz", "--clusters", (".npz",)))
+        args.clusters or outputs.default_dir("coordinator") / f"{args.job}.npz", "--clusters", (".npz",),
+        overwrite=args.overwrite, default=not args.clusters))
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
     for option, value in (("--host-cores", args.host_cores), ("--gather-cores", args.gather_cores)):

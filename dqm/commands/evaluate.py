@@ -58,7 +58,8 @@ def add_arguments(p) -> None:
     p.add_argument("--data-root", default=None, help="folder holding oxford/ and cmu_hotel/")
     p.add_argument("--out-dir", default=None,
                    help="where evaluation.md, evaluation.json and plots go (default ./dqm-out/evaluate; "
-                        "--out-dir docs regenerates the committed docs)")
+                        "--out-dir docs --overwrite regenerates the committed docs)")
+    outputs.add_overwrite_option(p, help="replace the evaluation files and plots of an earlier run in --out-dir")
     p.add_argument("--methods", default=",".join(benchmark.METHODS),
                    help="comma-separated subset of: " + ", ".join(benchmark.METHODS))
     p.add_argument("--rho", type=float, default=DEFAULT_RHO, help="QuickMatch's operating point")
@@ -252,7 +253,9 @@ def _floats(text: str, name: str) -> list[float]:
 
 
 #: the options that apply to --clusters (the others choose how the methods run)
-CLUSTERS_OPTIONS = ("--clusters", "--data-root", "--out-dir", "--tol", "--quiet")
+CLUSTERS_OPTIONS = ("--clusters", "--data-root", "--out-dir", "--tol", "--quiet", "--overwrite")
+#: what dqm evaluate writes in --out-dir, refused there unless --overwrite
+EVALUATION_FILES = ("evaluation.md", "evaluation.json", "pr_*.png", "matches_*.png", "clusters_*.png", "sizes_*.png")
 
 
 def _load_clusters(path: str) -> dict:
@@ -292,7 +295,10 @@ def run_clusters(args) -> int:
         raise InputError(f"--clusters is scored against one DATA set, got {len(args.data)}: {' '.join(args.data)}")
     if not args.tol > 0:
         raise InputError(f"--tol must be positive (pixels), got {args.tol}")
-    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
+    stem = benchmark.file_stem(Path(args.clusters).stem)
+    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir",
+                                (f"evaluation_{stem}.json", f"evaluation_{stem}_*.json"), overwrite=args.overwrite,
+                                default=not args.out_dir)
     cl = _load_clusters(args.clusters)
     if not args.data and "point_ids" not in cl:
         raise InputError(f"--clusters {args.clusters} has no point_ids (ground truth of generated data); name the "
@@ -306,7 +312,6 @@ def run_clusters(args) -> int:
     print(f"{args.clusters} against {truth}: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f} "
           f"({s.n_correct} of {s.n_predicted} implied pairs correct, {s.n_truth} true pairs); "
           f"C1 features {v.c1_features}, C2 tracks {v.c2_tracks}")
-    stem = benchmark.file_stem(Path(args.clusters).stem)
     out = out_dir / (f"evaluation_{stem}" + (f"_{benchmark.file_stem(bench.name)}" if source else "") + ".json")
     payload = {
         "dqm_version": __version__,
@@ -315,7 +320,7 @@ def run_clusters(args) -> int:
         "datasets": {bench.name: {"n_features": len(bench), "n_images": bench.n_images, "kind": bench.kind,
                                   "methods": [row.as_dict()]}},
     }
-    out.write_text(json.dumps(_finite(payload), indent=1))
+    outputs.write_text(out, json.dumps(_finite(payload), indent=1))
     print(f"wrote {out}")
     return 0
 
@@ -338,7 +343,8 @@ def run(args) -> int:
     rhos, ratios = _floats(args.rhos, "--rhos"), _floats(args.ratios, "--ratios")
     explicit = bool(args.data)
     specs = args.data or list(benchmark.DATASETS) + ["scene"]
-    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir")
+    out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("evaluate"), "--out-dir", EVALUATION_FILES,
+                                overwrite=args.overwrite, default=not args.out_dir)
     results: dict[str, list[benchmark.MethodResult]] = {}
     benches: dict[str, benchmark.Benchmark] = {}
     skipped = []
@@ -375,7 +381,7 @@ def run(args) -> int:
     total = time.perf_counter() - t0
     out_dir.mkdir(parents=True, exist_ok=True)
     md = _markdown(args, methods, results, benches, skipped, plot_files, total, load)
-    (out_dir / "evaluation.md").write_text(md)
+    outputs.write_text(out_dir / "evaluation.md", md)
     payload = {
         "dqm_version": __version__,
         "settings": {k: getattr(args, k) for k in ("rho", "ratio", "tol", "preset", "max_features", "seed")},
@@ -385,7 +391,7 @@ def run(args) -> int:
         "skipped": dict(skipped),
     }
     payload["settings"].update(methods=methods, command=command_line(args))
-    (out_dir / "evaluation.json").write_text(json.dumps(payload, indent=1))
+    outputs.write_text(out_dir / "evaluation.json", json.dumps(payload, indent=1))
     print(f"wrote {out_dir / 'evaluation.md'}, {out_dir / 'evaluation.json'} and "
           f"{sum(len(v) for v in plot_files.values())} plot(s) in {total:.0f} s")
     return 0

@@ -21,6 +21,7 @@ import sys
 import time
 from typing import List
 
+from .. import outputs
 from ..vision.baselines import DEFAULT_RATIO
 from ..camnet.experiment import DEFAULT_RATIOS, DEFAULT_RHOS
 from ..camnet.pipeline import DETECTION_RHO, METHODS
@@ -49,8 +50,10 @@ def add_arguments(p) -> None:
     p.add_argument("experiment", choices=EXPERIMENTS, help="which experiment")
     p.add_argument("--out-dir", default=None,
                    help="where camnet.md and camnet.json go (default ./dqm-out/experiment; "
-                        "--out-dir docs regenerates the committed docs)")
+                        "--out-dir docs --overwrite regenerates the committed docs)")
     p.add_argument("--img-dir", default=None, help="where the figures go (default OUT_DIR/img)")
+    outputs.add_overwrite_option(p, help="replace camnet.md, camnet.json and the figures of an earlier run "
+                                         "(--out-dir docs --overwrite regenerates the committed docs)")
     p.add_argument("--seeds", default="0",
                    help="comma-separated world seeds; the first gets the figures, all go in a table (default 0)")
     p.add_argument("--duration", type=float, default=30.0, help="seconds of trajectory (default 30)")
@@ -92,13 +95,13 @@ def run(args) -> int:
 
     if args.experiment != "localization":  # argparse's choices already say so
         raise InputError(f"unknown experiment {args.experiment!r}")
-    from .. import outputs
-
-    args.out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("experiment"), "--out-dir")
+    default = not args.out_dir
+    args.out_dir = outputs.check_dir(args.out_dir or outputs.default_dir("experiment"), "--out-dir",
+                                     ("camnet.md", "camnet.json"), overwrite=args.overwrite, default=default)
     if args.img_dir:
-        outputs.check_dir(args.img_dir, "--img-dir")
+        outputs.check_dir(args.img_dir, "--img-dir", ("camnet_*.png",), overwrite=args.overwrite)
     else:
-        outputs.check_dir(args.out_dir / "img", "--out-dir")
+        outputs.check_dir(args.out_dir / "img", "--out-dir", ("camnet_*.png",), overwrite=args.overwrite or default)
     seeds = _parse_list(args.seeds, int, "--seeds")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:

@@ -50,8 +50,9 @@ def add_arguments(p) -> None:
                    help="folder COLMAP / hloc will read the images from; image names are relative to it "
                         "(default: the images' common folder)")
     p.add_argument("--tracks", default=None, metavar="CSV", help="also write the tracks (clusters of 2+) as CSV")
+    outputs.add_overwrite_option(p)
     g = p.add_argument_group("colmap")
-    g.add_argument("--database", default=None, metavar="DB", help="COLMAP database to create (must not exist)")
+    g.add_argument("--database", default=None, metavar="DB", help="COLMAP database (.db) to create")
     g.add_argument("--no-verify", action="store_true",
                    help="write matches only, no two-view geometries (run COLMAP's verification yourself)")
     g.add_argument("--camera-model", default=None, metavar="MODEL",
@@ -69,8 +70,8 @@ def add_arguments(p) -> None:
                         help="one camera per folder of the image names, as COLMAP's "
                              "ImageReader.single_camera_per_folder")
     g = p.add_argument_group("hloc")
-    g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file to write (must not exist)")
-    g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file to write (must not exist)")
+    g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file (.h5) to write")
+    g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file (.txt) to write")
     g.add_argument("--features", default=None, metavar="H5",
                    help="also write hloc's local-features file (keypoints, descriptors, image sizes; must not "
                         "exist); leave out to use the features file the clusters were imported from")
@@ -89,12 +90,6 @@ def _check_options(args) -> None:
             raise InputError(f"dqm export {args.format} needs --{dest}")
 
 
-def _new_file(path: str, option: str) -> Path:
-    """An output path that can be written and does not exist yet (the export never replaces a file)."""
-    p = outputs.check_file(path, option)
-    if p.exists():
-        raise InputError(f"{option} {p} exists; the export writes a new file (remove it or pick another name)")
-    return p
 
 
 def _load(args, needs: tuple) -> dict:
@@ -111,7 +106,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     _check_options(args)
     if args.tracks:
-        outputs.check_file(args.tracks, "--tracks")
+        outputs.check_file(args.tracks, "--tracks", (".csv",), overwrite=args.overwrite)
     if args.format == "colmap":
         c, image_dir = _run_colmap(args, t0)
     else:
@@ -131,10 +126,12 @@ def run(args) -> int:
 def _run_colmap(args, t0: float):
     from ..vision import colmap
 
-    colmap.require_pycolmap()
+    colmap.require_pycolmap(what="dqm export colmap")
     mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, args.camera_params)
-    db = _new_file(args.database, "--database")
+    db = outputs.check_file(args.database, "--database", (".db", ".sqlite", ".sqlite3"), overwrite=args.overwrite)
+    if args.tracks:
+        outputs.check_distinct(("--database", db), ("--tracks", args.tracks))
     c = _load(args, ("keypoints", "image_names", "image_ids"))
     paths = colmap.resolve_images(c["image_names"], args.image_dir)
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
@@ -151,14 +148,11 @@ def _run_hloc(args, t0: float):
     from ..vision import colmap, hloc
 
     hloc.require_h5py()
-    outs = {"--matches": _new_file(args.matches, "--matches"), "--pairs": _new_file(args.pairs, "--pairs")}
+    outs = {"--matches": outputs.check_file(args.matches, "--matches", (".h5",), overwrite=args.overwrite),
+            "--pairs": outputs.check_file(args.pairs, "--pairs", (".txt",), overwrite=args.overwrite)}
     if args.features:
-        outs["--features"] = _new_file(args.features, "--features")
-    resolved = {}
-    for option, p in outs.items():
-        other = resolved.setdefault(p.resolve(), option)
-        if other != option:
-            raise InputError(f"{other} and {option} name one file, {p}; give each its own")
+        outs["--features"] = outputs.check_file(args.features, "--features", (".h5",), overwrite=args.overwrite)
+    outputs.check_distinct(*outs.items(), *((("--tracks", args.tracks),) if args.tracks else ()))
     c = _load(args, ("image_names", "image_ids") + (("keypoints",) if args.features else ()))
     paths = []
     for name in c["image_names"].tolist():  # a relative name not found as given is taken under --image-dir
@@ -169,9 +163,14 @@ def _run_hloc(args, t0: float):
     image_dir, names = colmap.image_folder(paths, None if args.image_dir is None else Path(args.image_dir))
     names = hloc.check_pair_names(names)
     if args.features:
-        fs = io.FeatureSet(descriptors=c["descriptors"], image_ids=c["image_ids"], keypoints=c["keypoints"],
+        described = "descriptors" in c  # a distributed job's CLUSTERS file has none
+        fs = io.FeatureSet(descriptors=c["descriptors"] if described else np.zeros((len(c["labels"]), 1), np.uint8),
+                           image_ids=c["image_ids"], keypoints=c["keypoints"],
                            image_names=np.array([str(p) for p in paths]))
-        hloc.write_h5_features(outs["--features"], fs, names=names)
+        hloc.write_h5_features(outs["--features"], fs, names=names, with_descriptors=described)
+        if not described:
+            print(f"note: {args.clusters} holds no descriptors (a distributed job's clusters): {args.features} has "
+                  "keypoints only, which is what hloc's reconstruction and triangulation read")
     m = hloc.write_h5_matches(outs["--matches"], c["labels"], c["image_ids"], names)
     hloc.write_pairs(outs["--pairs"], m.pairs)
     wrote = ", ".join(str(p) for p in outs.values())

@@ -15,11 +15,16 @@ The FEATURES format is in docs/formats.md.
 """
 from __future__ import annotations
 
+import logging
+import sys
 import time
 
+from ..wording import count
 from .. import io, outputs
 from ..progress import ProgressBar
 from ..vision.features import DEFAULT_PRESET, PRESET_NAMES, SFM_PRESET
+
+LOG = logging.getLogger("dqm.commands")
 
 NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
@@ -54,6 +59,7 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders, glob patterns or files (or none, with --image-list)")
     p.add_argument("--out", required=True, help="FEATURES.npz to write")
+    outputs.add_overwrite_option(p)
     add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -63,13 +69,15 @@ def extract(args, min_images: int) -> io.FeatureSet:
     their sub-folders), with the shared options of :func:`add_image_options`; reports skipped files."""
     from ..vision.features import extract_images
 
+    LOG.info("SIFT: preset %s%s", args.preset, f", at most {args.max_features} features per image"
+             if args.max_features else "")
     bar = ProgressBar("sift", force=False if args.quiet else None, unit="images")
     skipped = []
     fs = extract_images(args.inputs, preset=args.preset, max_features=args.max_features, progress=bar,
                         min_images=min_images, skip_bad=args.skip_bad_images, skipped=skipped,
                         recursive=args.recursive, image_list=args.image_list)
     if skipped:
-        print(f"warning: skipped {len(skipped)} unreadable image(s): {', '.join(skipped)}")
+        print(f"warning: skipped {count(len(skipped), 'unreadable image')}: {', '.join(skipped)}", file=sys.stderr)
     empty = [str(fs.image_names[k]) for k in range(len(fs.image_names)) if not (fs.image_ids == k).any()]
     if empty:
         print(f"note: no SIFT features in {len(empty)} image(s): {', '.join(empty[:5])}")
@@ -78,9 +86,9 @@ def extract(args, min_images: int) -> io.FeatureSet:
 
 def run(args) -> int:
     t0 = time.perf_counter()
-    outputs.check_file(args.out, "--out")
+    outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
     fs = extract(args, min_images=1)
     io.save_features(args.out, fs)
-    print(f"wrote {len(fs)} features of {len(fs.image_names)} images to {args.out} "
+    print(f"wrote {count(len(fs), 'feature')} of {count(len(fs.image_names), 'image')} to {args.out} "
           f"({time.perf_counter() - t0:.1f} s)")
     return 0

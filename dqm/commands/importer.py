@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from ..wording import count
 from .. import io, outputs
 
 NAME = "import"
@@ -25,14 +26,17 @@ def add_arguments(p) -> None:
     p.add_argument("format", choices=("colmap", "h5"), help="colmap: a COLMAP database; h5: hloc's features")
     p.add_argument("source", metavar="FILE", help="database.db or features.h5")
     p.add_argument("--out", required=True, help="FEATURES.npz to write")
+    outputs.add_overwrite_option(p)
     p.add_argument("--image-dir", default=None, metavar="DIR", help="folder the stored image names are relative to")
 
 
 def run(args) -> int:
     t0 = time.perf_counter()
-    out = outputs.check_file(args.out, "--out")
+    out = outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
     if args.format == "colmap":
-        from ..vision.colmap import import_database
+        from ..vision.colmap import import_database, require_pycolmap
+
+        require_pycolmap(what="dqm import colmap")
 
         fs = import_database(args.source, image_dir=args.image_dir)
     else:
@@ -41,5 +45,5 @@ def run(args) -> int:
         fs = read_h5_features(args.source, image_dir=args.image_dir)
     io.save_features(out, fs)
     print(f"wrote {len(fs)} features ({fs.descriptors.shape[1]}-D {fs.descriptors.dtype}) of "
-          f"{len(np.unique(fs.image_ids))} images to {out} ({time.perf_counter() - t0:.1f} s)")
+          f"{count(len(np.unique(fs.image_ids)), 'image')} to {out} ({time.perf_counter() - t0:.1f} s)")
     return 0

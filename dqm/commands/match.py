@@ -46,6 +46,7 @@ def add_arguments(p) -> None:
     add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
+    outputs.add_overwrite_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -121,9 +122,10 @@ def load_input(args) -> io.FeatureSet:
 
 def run(args) -> int:
     t0 = time.perf_counter()
-    outputs.check_file(args.out, "--out", (".npz",))
+    outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
     if args.tracks_csv:
-        outputs.check_file(args.tracks_csv, "--tracks-csv", (".csv",))
+        outputs.check_file(args.tracks_csv, "--tracks-csv", (".csv",), overwrite=args.overwrite)
+        outputs.check_distinct(("--out", args.out), ("--tracks-csv", args.tracks_csv))
     fs = load_input(args)
     n_images = len(np.unique(fs.image_ids))
     if len(fs) == 0:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from . import HelpFormatter
-from .. import io, plots
+from .. import io, outputs, plots
 from ..evaluation import PRCurve, cluster_pairs, reprojection_error
 from ..validation import InputError
 
@@ -37,6 +37,7 @@ def add_arguments(p) -> None:
     a.add_argument("clusters", metavar="CLUSTERS.npz")
     a.add_argument("--images", type=int, nargs=2, default=(0, 1), metavar=("I", "J"), help="image ids (default 0 1)")
     a.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
+    outputs.add_overwrite_option(a)
     a.add_argument("--truth", default=None, help="Oxford-layout folder with H1toNp: colour lines by correctness")
     a.add_argument("--tol", type=float, default=5.0, help="pixels, with --truth")
     a.add_argument("--max-lines", type=int, default=300,
@@ -46,6 +47,7 @@ def add_arguments(p) -> None:
                        help="patches of the features of the largest clusters")
     c.add_argument("clusters", metavar="CLUSTERS.npz")
     c.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
+    outputs.add_overwrite_option(c)
     c.add_argument("--count", type=int, default=6, help="clusters to draw (largest first)")
     c.add_argument("--min-size", type=int, default=2, help="smallest cluster size drawn")
     c.add_argument("--radius", type=int, default=32, help="patch half-size in pixels")
@@ -53,10 +55,12 @@ def add_arguments(p) -> None:
     s = sub.add_parser("sizes", formatter_class=HelpFormatter, help="histogram of cluster sizes")
     s.add_argument("clusters", metavar="CLUSTERS.npz")
     s.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
+    outputs.add_overwrite_option(s)
     r = sub.add_parser("pr", formatter_class=HelpFormatter, help="PR curves from a dqm evaluate JSON")
     r.add_argument("evaluation", metavar="EVALUATION.json")
     r.add_argument("--out-dir", required=True, help="folder for one pr_<data set>.png per data set (the name made "
                                                          "safe for file names: scene:3 -> pr_scene-3.png)")
+    outputs.add_overwrite_option(r)
 
 
 def _images(cl: dict, image_dir, needed) -> list:
@@ -172,10 +176,8 @@ def _pr(args) -> int:
 
 
 def run(args) -> int:
-    from .. import outputs
-
     if args.what == "pr":
-        outputs.check_dir(args.out_dir, "--out-dir")
+        outputs.check_dir(args.out_dir, "--out-dir", ("pr_*",), overwrite=args.overwrite)
     else:
-        outputs.check_file(args.out, "--out", outputs.IMAGE_SUFFIXES)
+        outputs.check_file(args.out, "--out", outputs.IMAGE_SUFFIXES, overwrite=args.overwrite)
     return {"pair": _pair, "clusters": _clusters, "sizes": _sizes, "pr": _pr}[args.what](args)

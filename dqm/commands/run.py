@@ -21,14 +21,19 @@ Exit codes: 0 done, 1 --check found different clusters, 2 bad input,
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import time
 
 import numpy as np
 
+from .. import outputs
 from .runtime_options import add_algorithm, config_from
 from ..distributed.config import DEFAULT_SEED
 from ..validation import positive_int_arg
+from ..wording import count
+
+LOG = logging.getLogger("dqm.commands")
 
 NAME = "run"
 HELP = "run a distributed job (router + agents + coordinator processes) on this host"
@@ -42,6 +47,7 @@ def add_arguments(p) -> None:
                    help="the job's CLUSTERS file, with the keypoints and image names of the FEATURES, for dqm plot / "
                         "export / evaluate (default: ./dqm-out/run/clusters.npz)")
     p.add_argument("--report", help="also write the JSON report here (traffic per link and kind, timings, labels)")
+    outputs.add_overwrite_option(p)
     p.add_argument("--timeout", type=float, default=600.0, help="seconds the whole job may take")
     p.add_argument("--ready-timeout", type=float, default=None,
                    help="seconds the agent processes may take to start (default: 30, more when there are many "
@@ -60,14 +66,16 @@ TABLE_LINKS = 24
 
 
 def run(args) -> int:
-    from .. import evaluation, io, outputs, synthetic
+    from .. import evaluation, io, synthetic
     from ..distributed.protocol import traffic_table
     from ..runtime.launcher import JobFailure, check_scale, run_job
     from ..validation import InputError
 
-    out = outputs.check_file(args.out or outputs.default_dir("run") / "clusters.npz", "--out", (".npz",))
+    out = outputs.check_file(args.out or outputs.default_dir("run") / "clusters.npz", "--out", (".npz",),
+                             overwrite=args.overwrite, default=not args.out)
     if args.report:
-        outputs.check_file(args.report, "--report", (".json",))
+        outputs.check_file(args.report, "--report", (".json",), overwrite=args.overwrite)
+        outputs.check_distinct(("--out", out), ("--report", args.report))
     if args.max_lost is not None and args.max_lost < 0:
         raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
     if args.ready_timeout is not None and not args.ready_timeout > 0:
@@ -83,6 +91,11 @@ def run(args) -> int:
         raise InputError(f"a distributed job needs features of at least two images, got {n_images}")
     cfg = config_from(args, args.agents, args.seed).validated(len(X), runtime=True)
     ready_timeout = check_scale(cfg.agents, n_images, args.ready_timeout)
+    LOG.info("job %r: %s of %s (%s); starting a zenoh router, %s and a coordinator on this host, %s mode",
+             cfg.job, count(len(X), "feature"), count(n_images, "image"),
+             args.features or "a generated scene with ground truth",
+             count(cfg.agents, "agent process", "agent processes"), cfg.mode)
+    LOG.debug("algorithm: %s", cfg.params_text())
     t0 = time.perf_counter()
     try:
         rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True, features=fs,
@@ -129,8 +142,7 @@ def run(args) -> int:
         print(f"(the {TABLE_LINKS} busiest of {len(rep['links'])} links; every link is in "
               + (f"{args.report})" if args.report else "the report: --report FILE)"))
     if args.report:  # before the check: a long check must not put the job's result at risk
-        with open(args.report, "w") as fh:
-            json.dump(rep, fh)
+        outputs.write_text(args.report, json.dumps(rep))
         print(f"wrote {args.report}")
     if rep.get("images_note"):
         print(f"Images: {rep['images_note']}.")

@@ -10,15 +10,20 @@ every dqm command that reads images or homography sequences reads it:
 """
 from __future__ import annotations
 
+from .. import outputs
 from ..vision.scenes import generate_scene
 from ..validation import InputError
 
 NAME = "scene"
+#: what dqm scene writes in its folder (an Oxford-layout sequence), refused when already there
+SCENE_FILES = ("img*", "H1to*")
 HELP = "write a generated multi-view scene (images + homographies) to a folder"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("out", metavar="FOLDER", help="folder to write (created; existing img*/H1to* files replaced)")
+    p.add_argument("out", metavar="FOLDER", help="folder to write (created if needed; a folder that already holds "
+                                                 "img* or H1to* files is refused unless --overwrite)")
+    outputs.add_overwrite_option(p, help="replace the img* and H1to* files of an existing folder")
     p.add_argument("--images", type=int, default=6, help="number of views (default 6)")
     p.add_argument("--size", type=int, nargs=2, default=(480, 640), metavar=("H", "W"), help="view size")
     p.add_argument("--seed", type=int, default=0, help="generator seed")
@@ -30,9 +35,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if args.images < 2:
         raise InputError("--images must be at least 2")
-    from .. import outputs
-
-    outputs.check_dir(args.out, "FOLDER")
+    outputs.check_dir(args.out, "FOLDER", SCENE_FILES, overwrite=args.overwrite)
     scene = generate_scene(args.images, tuple(args.size), seed=args.seed, viewpoint=args.viewpoint,
                            photometric=args.photometric, noise=args.noise)
     seq = scene.write(args.out)

@@ -83,7 +83,7 @@ def _out_dir(path: str) -> Path:
         raise InputError(f"--out {out} is a file; dqm sfm writes a folder")
     if out.is_dir() and any(out.iterdir()):
         raise InputError(f"--out {out} is not empty; dqm sfm writes into a new or empty folder")
-    return outputs.check_dir(out, "--out")  # created, and probed for writing
+    return outputs.check_dir(out, "--out")  # probed for writing; created when the first file is written
 
 
 def run(args) -> int:
@@ -91,7 +91,7 @@ def run(args) -> int:
     from ..vision.sfm import model_figure, model_numbers, reconstruct
 
     t0 = time.perf_counter()
-    colmap.require_pycolmap()
+    colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL,
                                    "single" if args.single_camera else "per-image", None)
     if args.seed < 0 or args.mapper_threads < 0:
@@ -138,7 +138,7 @@ def run(args) -> int:
         "model_before_triangulation": mapped}
     if rec is None:
         report["times"] = dict(times, total=time.perf_counter() - t0)
-        (out / "sfm.json").write_text(json.dumps(report, indent=1) + "\n")
+        outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
         print(f"no model: pycolmap's mapper registered no image pair ({times['map']:.1f} s); the clusters and the "
               f"database are in {out}")
         return 1
@@ -154,6 +154,6 @@ def run(args) -> int:
         scores = poses.evaluate_poses(poses.poses_of(rec), truth)
         report["poses"] = scores.as_dict()
         print(scores.line())
-    (out / "sfm.json").write_text(json.dumps(report, indent=1) + "\n")
+    outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
     print(f"wrote {out}/sparse, {out / 'model.png'}, {out / 'sfm.json'}")
     return 0

@@ -19,9 +19,12 @@ from typing import List
 
 import numpy as np
 
+from .. import outputs
 from ..validation import InputError, positive_int_arg
 
 NAME = "split"
+#: what dqm split writes in its folder
+AGENT_FILES = ("agent*.npz",)
 HELP = "split a FEATURES file into one file per agent (whole images each)"
 
 
@@ -33,6 +36,8 @@ def add_arguments(p) -> None:
                      help="one text file per agent naming its images (ids, paths or file names, one per line)")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="folder for agent<i>.npz (default: ./dqm-out/split)")
+    outputs.add_overwrite_option(
+        p, help="replace the agent*.npz files of an existing folder (those of a larger earlier split removed)")
 
 
 def read_image_list(path: str, names: List[str], ids: np.ndarray) -> List[int]:
@@ -64,11 +69,12 @@ def read_image_list(path: str, names: List[str], ids: np.ndarray) -> List[int]:
 
 
 def run(args) -> int:
-    from .. import io, outputs
+    from .. import io
     from ..distributed.sources import split_features
     from ..runtime.launcher import save_agent_files
 
-    out = outputs.check_dir(args.out or outputs.default_dir("split"), "--out")
+    out = outputs.check_dir(args.out or outputs.default_dir("split"), "--out", AGENT_FILES, overwrite=args.overwrite,
+                            default=not args.out)
     fs = io.load_features(args.features)
     ids = np.asarray(fs.image_ids)
     n_images = len(np.unique(ids))
@@ -82,6 +88,9 @@ def run(args) -> int:
     parts = split_features(fs, args.agents, lists)
     paths = save_agent_files(parts, out)
     m = len(paths)
+    for stale in sorted(set(outputs.existing(out, AGENT_FILES)) - set(paths)):  # of a larger split, with --overwrite
+        stale.unlink()
+        print(f"removed {stale} (an earlier split's)")
     for a, (path, part) in enumerate(zip(paths, parts)):
         print(f"agent {a}: {path} ({len(np.unique(part.image_ids))} images, {len(part)} features)")
     print(f"start each agent on its host with its file, e.g.\n  dqm agent --id 0 --agents {m} --connect "

@@ -24,6 +24,7 @@ Exit codes: 0 done, 2 bad input or no router, 130 interrupted, 143 terminated
 """
 import argparse
 
+from .. import outputs
 from ..core.params import FINITE_KERNEL
 from ..validation import positive_int_arg
 from .param_options import add_quickmatch_params
@@ -56,6 +57,7 @@ def add_arguments(p) -> None:
                    help="stop after this many seconds without a message")
     p.add_argument("--out", default=None, metavar="CLUSTERS.npz",
                    help="at the end, write the images present and their clusters (format: dqm/io.py)")
+    outputs.add_overwrite_option(p)
     p.add_argument("--quiet", action="store_true", help="no line per image (the default when not a terminal)")
     p.add_argument("--verbose", action="store_true", help="a line per image even when not a terminal")
     p.add_argument("--connect-timeout", type=_positive_float, default=5.0,
@@ -67,7 +69,6 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     import sys
 
-    from .. import outputs
     from ..distributed import keys
     from ..runtime.bus import JobIdInUse, RouterUnreachable, check_endpoint
     from ..validation import InputError
@@ -75,7 +76,7 @@ def run(args) -> int:
     check_endpoint(args.connect)
     keys.check_job(args.job)
     if args.out:
-        outputs.check_file(args.out, "--out", suffixes=(".npz",))
+        outputs.check_file(args.out, "--out", suffixes=(".npz",), overwrite=args.overwrite)
     tls = tls_from(args, listen=False)
     lines = not args.quiet and (args.verbose or sys.stdout.isatty())
     from ..runtime.stream import main_stream

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import FeatureSet
+from ..outputs import atomic_output
 from ..validation import InputError
 
 #: COLMAP's default focal length without EXIF, relative to the larger image side
@@ -45,15 +46,15 @@ DEFAULT_CAMERA_MODEL = "SIMPLE_RADIAL"
 CAMERA_MODES = ("per-image", "single", "per-folder")
 
 
-def require_pycolmap(quiet: bool = True):
-    """The pycolmap module, or one line saying how to install it.
+def require_pycolmap(quiet: bool = True, what: str = "this command"):
+    """The pycolmap module, or one line saying how to install it (``what`` names what needs it).
 
     ``quiet``: COLMAP's own log keeps to warnings and errors (its info lines go to stderr).
     """
     try:
         import pycolmap
     except ImportError:
-        raise InputError("COLMAP import/export needs pycolmap: pip install 'dqm[colmap]'") from None
+        raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
     if quiet and hasattr(pycolmap, "logging"):
         pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
     return pycolmap
@@ -273,56 +274,56 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     pairs = cluster_pairs(labels, ids)
     rows_of = [np.flatnonzero(ids == k) for k in range(len(paths))]
     local = local_indices(ids)
-    database.parent.mkdir(parents=True, exist_ok=True)
-    colmap_id = {}
-    cameras: dict[int, tuple[object, int]] = {}  # camera group -> (pycolmap camera, rig id)
-    db = pycolmap.Database.open(str(database))
-    try:
-        for k, (path, name) in enumerate(zip(paths, names)):
-            if groups[k] not in cameras:
-                w, h, exif = facts[k]
-                focal = exif if exif else DEFAULT_FOCAL_FACTOR * max(w, h)
-                cam = pycolmap.Camera.create_from_model_name(0, camera.model, focal, w, h)
-                cam.has_prior_focal_length = bool(exif)
-                if camera.params is not None:
-                    cam.params = np.asarray(camera.params, np.float64)
-                    cam.has_prior_focal_length = True  # as COLMAP's ImageReader.camera_params
-                cam.camera_id = db.write_camera(cam)
-                rig = pycolmap.Rig()
-                rig.add_ref_sensor(cam.sensor_id)
-                cameras[groups[k]] = (cam, db.write_rig(rig))
-            cam, rig_id = cameras[groups[k]]
-            image_id = db.write_image(pycolmap.Image(name=name, camera_id=cam.camera_id))
-            frame = pycolmap.Frame()
-            frame.rig_id = rig_id
-            frame.add_data_id(pycolmap.data_t(sensor_id=cam.sensor_id, id=image_id))
-            db.write_frame(frame)
-            colmap_id[k] = image_id
-            rows = rows_of[k]
-            db.write_keypoints(image_id, (kp[rows, :2] + 0.5).astype(np.float32))
-            if desc is not None:
-                db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
-                    pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(desc[rows])))
-        n_matches = 0
-        for (a, b), m in pairs.items():
-            db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
-            n_matches += len(m)
-    finally:
-        db.close()
-    summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
-                            n_cameras=len(cameras))
-    if verify and pairs:
-        opts = pycolmap.GeometricVerifierOptions()
-        if hasattr(opts, "num_threads"):
-            opts.num_threads = num_threads
-        two_view = pycolmap.TwoViewGeometryOptions()
-        two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
-        pycolmap.geometric_verification(str(database), verifier_options=opts, two_view_geometry_options=two_view)
-        db = pycolmap.Database.open(str(database))
+    with atomic_output(database) as tmp:  # a stop or an error leaves no half-written database
+        colmap_id = {}
+        cameras: dict[int, tuple[object, int]] = {}  # camera group -> (pycolmap camera, rig id)
+        db = pycolmap.Database.open(tmp)
         try:
-            summary.n_verified_pairs = int(db.num_verified_image_pairs())
+            for k, (path, name) in enumerate(zip(paths, names)):
+                if groups[k] not in cameras:
+                    w, h, exif = facts[k]
+                    focal = exif if exif else DEFAULT_FOCAL_FACTOR * max(w, h)
+                    cam = pycolmap.Camera.create_from_model_name(0, camera.model, focal, w, h)
+                    cam.has_prior_focal_length = bool(exif)
+                    if camera.params is not None:
+                        cam.params = np.asarray(camera.params, np.float64)
+                        cam.has_prior_focal_length = True  # as COLMAP's ImageReader.camera_params
+                    cam.camera_id = db.write_camera(cam)
+                    rig = pycolmap.Rig()
+                    rig.add_ref_sensor(cam.sensor_id)
+                    cameras[groups[k]] = (cam, db.write_rig(rig))
+                cam, rig_id = cameras[groups[k]]
+                image_id = db.write_image(pycolmap.Image(name=name, camera_id=cam.camera_id))
+                frame = pycolmap.Frame()
+                frame.rig_id = rig_id
+                frame.add_data_id(pycolmap.data_t(sensor_id=cam.sensor_id, id=image_id))
+                db.write_frame(frame)
+                colmap_id[k] = image_id
+                rows = rows_of[k]
+                db.write_keypoints(image_id, (kp[rows, :2] + 0.5).astype(np.float32))
+                if desc is not None:
+                    db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
+                        pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(desc[rows])))
+            n_matches = 0
+            for (a, b), m in pairs.items():
+                db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
+                n_matches += len(m)
         finally:
             db.close()
+        summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
+                                n_cameras=len(cameras))
+        if verify and pairs:
+            opts = pycolmap.GeometricVerifierOptions()
+            if hasattr(opts, "num_threads"):
+                opts.num_threads = num_threads
+            two_view = pycolmap.TwoViewGeometryOptions()
+            two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
+            pycolmap.geometric_verification(tmp, verifier_options=opts, two_view_geometry_options=two_view)
+            db = pycolmap.Database.open(tmp)
+            try:
+                summary.n_verified_pairs = int(db.num_verified_image_pairs())
+            finally:
+                db.close()
     return summary
 
 
@@ -338,6 +339,9 @@ def import_database(database, image_dir=None) -> FeatureSet:
     database = Path(database)
     if not database.is_file():
         raise InputError(f"COLMAP database not found: {database}")
+    with open(database, "rb") as fh:  # checked here: pycolmap would log its own error line first
+        if fh.read(16) != b"SQLite format 3\x00":
+            raise InputError(f"{database}: not a COLMAP database (not an SQLite file)")
     try:
         db = pycolmap.Database.open(str(database))
     except Exception as exc:  # noqa: BLE001 - a file that is not a database

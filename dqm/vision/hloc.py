@@ -58,9 +58,7 @@ h5py is optional: ``pip install 'dqm[colmap]'``.
 from __future__ import annotations
 
 import os
-import tempfile
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Union
@@ -69,6 +67,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..io import FeatureSet
+from ..outputs import atomic_output
 from ..validation import InputError
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -284,7 +283,7 @@ def _image_size_of(path: str) -> np.ndarray | None:
 def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[str] | None = None, *,
                       image_dir: PathLike | None = None, image_sizes: ArrayLike | None = None,
                       scores: ArrayLike | None = None,
-                      overwrite: bool = False) -> Path:
+                      overwrite: bool = False, with_descriptors: bool = True) -> Path:
     """Write a FEATURES set as an hloc local-features file; returns the path.
 
     One group per image (names with '/' become nested groups), holding
@@ -302,6 +301,10 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[s
     ``image_sizes``: (m, 2) width, height per image id; by default each size is
     read from the image file (``image_names``) when it exists, and otherwise
     left out. hloc's matchers (``match_features``) need ``image_size``.
+
+    ``with_descriptors=False`` leaves ``descriptors`` out (the features' own are then
+    ignored): enough for hloc's reconstruction and triangulation, which read keypoints only,
+    when the clusters came without descriptors (a distributed job's CLUSTERS file).
 
     An existing ``path`` is refused unless ``overwrite``; the file is written
     to a temporary name and renamed, so a failed write leaves no partial file.
@@ -346,7 +349,7 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[s
                 wh[k] = size
     order = np.argsort(ids, kind="stable")
     bounds = np.searchsorted(ids[order], np.arange(m + 1))
-    with _atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
         for k, name in enumerate(image_names):
             rows = order[bounds[k]:bounds[k + 1]]
             try:
@@ -354,7 +357,8 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[s
             except ValueError as exc:
                 raise InputError(f"image name {name!r} clashes with another image's group ({exc})") from None
             grp.create_dataset("keypoints", data=np.ascontiguousarray(kp[rows, :2]))
-            grp.create_dataset("descriptors", data=np.ascontiguousarray(desc[rows].T, dtype=np.float32))
+            if with_descriptors:
+                grp.create_dataset("descriptors", data=np.ascontiguousarray(desc[rows].T, dtype=np.float32))
             grp.create_dataset("scores", data=sc[rows])
             if write_scales:
                 grp.create_dataset("scales", data=sizes[rows])
@@ -363,28 +367,6 @@ def write_h5_features(path: PathLike, feature_set: FeatureSet, names: Sequence[s
             if k in wh:
                 grp.create_dataset("image_size", data=wh[k])
     return path
-
-
-@contextmanager
-def _atomic_output(path: Path) -> Iterator[str]:
-    """A temporary file next to ``path``, renamed to ``path`` when the block ends, removed if it fails.
-
-    So a failed write leaves no partial file; the result gets the permissions of any new file
-    (0666 minus the umask; ``mkstemp`` makes 0600).
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd_, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd_)
-    try:
-        yield tmp
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def names_to_pair(name0: str, name1: str) -> str:
@@ -457,7 +439,7 @@ def write_h5_matches(path: PathLike, labels: ArrayLike, image_ids: ArrayLike, na
     counts = np.bincount(ids, minlength=len(names))
     written: list[tuple[str, str]] = []
     n_matches = 0
-    with _atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as fd:
         for (a, b), m in sorted(pairs.items()):
             matches0 = np.full(counts[a], -1, np.int32)
             scores0 = np.zeros(counts[a], np.float16)
@@ -479,7 +461,7 @@ def write_pairs(path: PathLike, pairs: Sequence[tuple[str, str]], *, overwrite: 
     path = Path(path)
     if path.exists() and not overwrite:
         raise InputError(f"{path} exists; pass overwrite=True to replace it")
-    with _atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.writelines(f"{a} {b}\n" for a, b in pairs)
     return path
 

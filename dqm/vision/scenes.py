@@ -48,13 +48,16 @@ class Scene:
 
         from .datasets import load_homography_sequence
 
+        from ..outputs import atomic_output
+
         root = Path(folder)
-        root.mkdir(parents=True, exist_ok=True)
         for k, img in enumerate(self.images):
-            if not cv2.imwrite(str(root / f"img{k + 1}.png"), img):
-                raise InputError(f"cannot write {root / f'img{k + 1}.png'}")
+            with atomic_output(root / f"img{k + 1}.png") as tmp:
+                if not cv2.imwrite(tmp, img):
+                    raise InputError(f"cannot write {root / f'img{k + 1}.png'}")
         for k in range(1, len(self.images)):
-            np.savetxt(root / f"H1to{k + 1}p", self.homographies[k] / self.homographies[k][2, 2], fmt="%.12e")
+            with atomic_output(root / f"H1to{k + 1}p") as tmp:
+                np.savetxt(tmp, self.homographies[k] / self.homographies[k][2, 2], fmt="%.12e")
         return load_homography_sequence(root)
 
 

@@ -279,6 +279,6 @@ def test_cli_experiment(tmp_path, capsys):
     for argv, msg in ((["--seeds", "a,b"], "--seeds"), (["--cameras", "0"], "n_cameras"),
                       (["--rho", "-1"], "rho"), (["--seeds", "1,1"], "repeat"), (["--methods", "sift"], "sift"),
                       (["--methods", "bf,bf"], "at most once")):
-        rc = main(["experiment", "localization", "--quick", "--out-dir", str(out), "--quiet"] + argv)
+        rc = main(["experiment", "localization", "--quick", "--out-dir", str(tmp_path / "bad"), "--quiet"] + argv)
         assert rc == 2
         assert msg in capsys.readouterr().err

@@ -81,7 +81,8 @@ def test_evaluate_and_experiment_default_to_dqm_out_not_docs(tmp_path):
 
 def test_check_file_accepts_a_writable_path(tmp_path):
     assert outputs.check_file(tmp_path / "a" / "b.png", "--out", outputs.IMAGE_SUFFIXES) == tmp_path / "a" / "b.png"
-    assert (tmp_path / "a").is_dir() and not any((tmp_path / "a").iterdir())  # the probe leaves nothing
+    assert not (tmp_path / "a").exists()  # checked, not created: a refused command leaves no folder
+    assert list(tmp_path.iterdir()) == []  # and the probe file is gone
 
 
 def test_npz_results_follow_the_umask(tmp_path, features):
@@ -169,8 +170,9 @@ def test_bad_images_are_refused_before_sift_or_skipped_on_request(tmp_path, caps
     assert not (tmp_path / "f.npz").exists() and "sift" not in line
     assert main(["match", str(tmp_path / "scene"), "--out", str(tmp_path / "c.npz"), "--quiet",
                  "--skip-bad-images", "--max-features", "150"]) == 0
-    out = capsys.readouterr().out
-    assert "warning: skipped 1 unreadable image(s)" in out and "img9.png" in out
+    captured = capsys.readouterr()
+    assert "warning: skipped 1 unreadable image:" in captured.err and "img9.png" in captured.err
+    assert "skipped" not in captured.out  # warnings go to standard error, results to standard output
     assert len(io.load_clusters(tmp_path / "c.npz")["image_names"]) == 3
 
 

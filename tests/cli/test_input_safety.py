@@ -85,20 +85,21 @@ def test_match_reads_features_files_by_content_and_several_at_once(tmp_path, cap
     assert main(["match", str(b), "--out", str(out), "--quiet"]) == 0  # upper-case suffix
     noext = tmp_path / "features"
     noext.write_bytes(a.read_bytes())
-    assert main(["match", str(noext), "--out", str(out), "--quiet"]) == 0  # no suffix: known by content
+    assert main(["match", str(noext), "--out", str(out), "--quiet", "--overwrite"]) == 0  # no suffix: by content
     capsys.readouterr()
-    assert main(["match", str(a), str(b), "--out", str(out), "--quiet", "--kernel", "quadratic"]) == 0
+    assert main(["match", str(a), str(b), "--out", str(out), "--quiet", "--kernel", "quadratic", "--overwrite"]) == 0
     assert "each file numbers its own images" in capsys.readouterr().out
     c = io.load_clusters(out)
     np.testing.assert_array_equal(c["image_ids"], np.concatenate([ds.image_ids[half], ds.image_ids[~half]]))
     assert [str(n) for n in c["image_names"]] == ["a0.png", "a1.png", "b0.png", "b1.png"]
     X = np.concatenate([ds.descriptors[half], ds.descriptors[~half]])
     np.testing.assert_array_equal(c["labels"], dqm.quickmatch(X, c["image_ids"], kernel="quadratic").labels)
-    one_line(capsys, ["match", str(a), str(a), "--out", str(out)], "given twice")
-    one_line(capsys, ["match", str(a), str(tmp_path / "x.png"), "--out", str(out)], "mix FEATURES files")
+    new = tmp_path / "new.npz"
+    one_line(capsys, ["match", str(a), str(a), "--out", str(new)], "given twice")
+    one_line(capsys, ["match", str(a), str(tmp_path / "x.png"), "--out", str(new)], "mix FEATURES files")
     one_line(capsys, ["match", str(a), "--out", str(tmp_path / "e.txt")], "--out", "unknown format .txt")
     one_line(capsys, ["match", str(a), "--out", str(tmp_path / "noext")], "(no suffix)")
-    one_line(capsys, ["match", "--out", str(out)], "no input")
+    one_line(capsys, ["match", "--out", str(new)], "no input")
 
 
 def test_features_files_that_cannot_be_right_are_refused_at_load(tmp_path, capsys):

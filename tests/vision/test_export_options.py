@@ -129,7 +129,7 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
         (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--single-camera"],
          "--single-camera is an option of dqm export colmap"),
         (["hloc", f, "--matches", str(tmp_path / "x.h5"), "--pairs", str(tmp_path / "x.h5")],
-         "--matches and --pairs name one file"),
+         "--pairs " + str(tmp_path / "x.h5") + ": unknown format .h5; use one of .txt"),
     ]
     for argv, msg in cases:
         capsys.readouterr()
