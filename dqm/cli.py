@@ -14,12 +14,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import signal
+import re
 import sys
 import warnings
 from typing import List, Optional
 
-from . import __version__, logging_config
+from . import __version__, logging_config, signals
 from .commands import HelpFormatter
 
 COMMANDS = [
@@ -70,17 +70,62 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: options of one command that contradict each other although they set different things
+CONTRADICTIONS = (("--quiet", "--verbose"),)
+_FLAG_ACTIONS = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._StoreConstAction,
+                 argparse.BooleanOptionalAction)
+_NEGATIVE_VALUE = re.compile(r"^-[0-9.]")
+
+
+def _command_parser(parser: argparse.ArgumentParser, name: Optional[str]) -> Optional[argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action.choices.get(name)
+    return None
+
+
+def join_negative_values(parser: argparse.ArgumentParser, argv: List[str]) -> List[str]:
+    """``--camera-params -1,1,2,3`` as ``--camera-params=-1,1,2,3``: argparse takes a value that starts with
+    '-' and is not a plain number for an option; an option that takes one value takes it here."""
+    valued = set()
+    for sub in [parser] + [a for act in parser._actions if isinstance(act, argparse._SubParsersAction)
+                           for a in act.choices.values()]:
+        valued.update(opt for act in sub._actions if act.option_strings and act.nargs is None
+                      and not isinstance(act, _FLAG_ACTIONS) and not isinstance(act, argparse._CountAction)
+                      for opt in act.option_strings)
+    out: List[str] = []
+    k = 0
+    while k < len(argv):
+        if argv[k] in valued and k + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[k + 1]):
+            out.append(f"{argv[k]}={argv[k + 1]}")
+            k += 2
+            continue
+        out.append(argv[k])
+        k += 1
+    return out
+
+
+def contradiction(sub: argparse.ArgumentParser, argv: List[str]) -> Optional[str]:
+    """The first two flags of ``argv`` that contradict each other (``--guided --no-guided``, ``--quiet
+    --verbose``), as a message; None when there are none."""
+    given = [a.split("=", 1)[0] for a in argv if a.startswith("--")]
+    dest_of = {opt: action.dest for action in sub._actions if isinstance(action, _FLAG_ACTIONS)
+               for opt in action.option_strings}
+    seen: dict = {}
+    for opt in given:
+        if opt in dest_of:
+            first = seen.setdefault(dest_of[opt], opt)
+            if first != opt:
+                return f"{first} and {opt} contradict each other; give one"
+    for a, b in CONTRADICTIONS:
+        if a in given and b in given and a in sub._option_string_actions and b in sub._option_string_actions:
+            return f"{a} and {b} contradict each other; give one"
+    return None
+
+
 def verbosity(args: argparse.Namespace) -> int:
     """The ``-v`` count, before and after the sub-command together."""
     return getattr(args, "verbosity", 0) + getattr(args, "verbosity_after", 0)
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM: leave like Ctrl-C (children stopped, files closed), exit 143."""
-
-
-def _on_sigterm(signum, frame):
-    raise Terminated()
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
@@ -96,19 +141,24 @@ interrupted_while_importing = False
 
 def main(argv: Optional[List[str]] = None) -> int:
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
-    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
-        signal.signal(signal.SIGTERM, _on_sigterm)
+    signals.install_sigterm()
     try:
         parser = build_parser()
         from .validation import InputError
     except KeyboardInterrupt as exc:
         global interrupted_while_importing
         interrupted_while_importing = True
-        print(f"dqm: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        print(f"dqm: {signals.word(exc)}", file=sys.stderr)
+        return signals.exit_code(exc)
+    argv = join_negative_values(parser, list(sys.argv[1:] if argv is None else argv))
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
+        return 2
+    sub = _command_parser(parser, args.command)
+    clash = contradiction(sub, argv) if sub is not None else None
+    if clash:
+        print(f"dqm {args.command}: error: {clash}", file=sys.stderr)
         return 2
     warnings.showwarning = _one_line_warning
     logging_config.configure(verbosity(args))
@@ -120,12 +170,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except BrokenPipeError:  # output piped into a reader that stopped early (| head): not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except Terminated:
-        print(f"dqm {args.command}: terminated", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
-        print(f"dqm {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated
+        print(f"dqm {args.command}: {signals.word(exc)}", file=sys.stderr)
+        return signals.exit_code(exc)
     except Exception as exc:  # noqa: BLE001 - no traceback reaches the user
         if os.environ.get("DQM_TRACEBACK"):
             raise

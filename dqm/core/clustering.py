@@ -36,6 +36,7 @@ never merge); features without one get ``-1`` and ``parent_distance = inf``.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -43,12 +44,15 @@ from typing import Dict, List, Optional, Union
 
 import numpy as np
 
+from ..wording import count
 from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
 from . import approximate, memory, native, pairs, tree
 from .pairs import duplicate_groups
 from .params import (DEFAULT_KERNEL, DEFAULT_PARENT, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES,
                      QuickMatchParams)
+
+LOG = logging.getLogger("dqm.core")
 
 # the parameter vocabulary lives in dqm.core.params; these names stay importable from here
 __all__ = ["DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS", "PARENT_MODES", "QuickMatch",
@@ -122,7 +126,7 @@ class QuickMatchResult:
         mode = f", approximate with {self.stats['n_neighbors']:.0f} neighbours" if "n_neighbors" in self.stats else ""
         return (
             f"QuickMatch ({self.kernel} kernel, rho={self.rho:g}{mode}) clustered {self.n_features} features "
-            f"from {self.n_images} images into {self.n_clusters} clusters{tt}; "
+            f"from {count(self.n_images, 'image')} into {count(self.n_clusters, 'cluster')}{tt}; "
             f"{multi} clusters span 2+ images and hold {matched} features "
             f"({100.0 * matched / max(1, self.n_features):.1f}%). Cluster sizes (size:count): {parts or 'none'}."
         )
@@ -331,11 +335,14 @@ def quickmatch(
         base = memory.check_base(n, X.shape[1], threads, budget)
         aug = pairs.Augmented(X)
     native.warn_if_fallback(n)
+    LOG.info("QuickMatch: %s of %s (%d-D %s), rho %g, %s kernel, %s, memory budget %.2f GiB", count(n, "feature"),
+             count(n_images, "image"), X.shape[1], X.dtype, rho, kernel, count(threads, "thread"), budget / 2 ** 30)
 
     t = time.perf_counter()
     groups = duplicate_groups(aug.exact)
     sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
     stats["time_sigma"] = time.perf_counter() - t
+    LOG.info("sigma (nearest other feature of the same image): %.2f s", stats["time_sigma"])
 
     t = time.perf_counter()
     cpu = time.process_time()
@@ -350,6 +357,8 @@ def quickmatch(
     stats["streaming"] = float(streaming)
     stats["time_pass"] = time.perf_counter() - t
     stats["cpu_pass"] = time.process_time() - cpu  # CPU seconds of all threads: how busy the cores were
+    LOG.info("kernel pass (densities and candidate parents): %.2f s wall, %.2f CPU s%s", stats["time_pass"],
+             stats["cpu_pass"], ", parents streamed (the edges exceed the memory budget)" if streaming else "")
 
     density, cr, cc, d = _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, image_index,
                                  parent == "other-image", threads, progress, stats)
@@ -359,6 +368,8 @@ def quickmatch(
     labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
     stats["time_tree"] = time.perf_counter() - t
     stats["time_total"] = time.perf_counter() - t0
+    LOG.info("tree and merges: %.2f s; %.2f s in all", stats["time_tree"], stats["time_total"])
+    LOG.debug("QuickMatch statistics: %s", ", ".join(f"{k}={v:.4g}" for k, v in sorted(stats.items())))
     return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
 
 
@@ -462,6 +473,8 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     stats["n_candidate_edges"] = float(len(cr))
     stats["time_tree"] = time.perf_counter() - t
     stats["time_total"] = time.perf_counter() - t0
+    LOG.info("tree and merges: %.2f s; %.2f s in all", stats["time_tree"], stats["time_total"])
+    LOG.debug("QuickMatch statistics: %s", ", ".join(f"{k}={v:.4g}" for k, v in sorted(stats.items())))
     return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
 
 

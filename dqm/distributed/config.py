@@ -33,7 +33,7 @@ from typing import Dict, List, Optional, Tuple, get_type_hints
 
 from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
 from ..validation import InputError, check_choice, check_positive
-from . import partition
+from . import keys, partition
 from .costmodel import AUTO_MODES
 
 #: the distributed algorithms (the simulator runs these)
@@ -163,6 +163,8 @@ class DQMConfig:
         only the runtime runs (:data:`RUNTIME_MODES`: gather, auto); the simulator takes :data:`MODES`."""
         partition.check_agents(self.agents, n_features)
         partition.check_seed(self.seed)
+        if runtime:  # the job id names the key space on the bus
+            keys.check_job(self.job)
         check_choice(self.partition, "partition", partition.PARTITION_MODES)
         if not runtime and self.mode in RUNTIME_MODES and self.mode not in MODES:
             raise InputError(f"mode {self.mode!r} runs only in the runtime (dqm run, dqm coordinator): the "

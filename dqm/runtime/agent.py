@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import time
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
+from .. import signals
 from ..distributed import keys, messages, protocol, sources
 from ..distributed.config import DQMConfig, differing_param, params_hash, parse_params
 from ..distributed.costmodel import AUTO_MODES
@@ -31,8 +31,8 @@ from .measure import probe_answer
 
 log = logging.getLogger("dqm.runtime")
 
-__all__ = ["AgentHost", "CoordinatorLost", "GatherSource", "JobAborted", "Refused", "fault_pause_from_env",
-           "load_agent_features", "main_agent", "parse_peer_features"]
+__all__ = ["AgentHost", "CoordinatorLost", "GatherSource", "JobAborted", "Refused", "RouterLost",
+           "fault_pause_from_env", "load_agent_features", "main_agent", "parse_peer_features"]
 
 
 def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
@@ -59,12 +59,6 @@ def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
     return pause
 
 
-class Terminated(BaseException):
-    """SIGTERM received: leave the loop, close the session."""
-
-
-def _on_sigterm(signum, frame):  # pragma: no cover - exercised by process tests
-    raise Terminated()
 
 
 def load_agent_features(paths, me: int) -> sources.AgentFeatures:
@@ -81,6 +75,10 @@ class Refused(RuntimeError):
 
 class CoordinatorLost(RuntimeError):
     """The coordinator's liveliness token vanished."""
+
+
+class RouterLost(RuntimeError):
+    """The session's router is gone: nothing can arrive or leave any more."""
 
 
 class GatherSource:
@@ -180,6 +178,7 @@ class AgentHost:
         self.seed: Optional[int] = None
         self.done = False
         self.t0 = time.monotonic()
+        self._router_checked = self.t0
 
     @property
     def phase(self) -> str:
@@ -283,6 +282,7 @@ class AgentHost:
             for a in sorted(self.slots):
                 self.slots[a].settle()
             self.bus.resend_due()
+            self._check_router()
             if self.epoch >= 0 and self.bus.coordinator_alive() is False:
                 raise CoordinatorLost(f"the coordinator vanished (its liveliness token was lost) while this agent was "
                                       f"in phase {self.phase}")
@@ -290,6 +290,18 @@ class AgentHost:
                 slot.check_timeout()
             if self.epoch < 0 and time.monotonic() - self.t0 > self.phase_timeout_s:
                 raise TimeoutError(f"no start from a coordinator within {self.phase_timeout_s:.0f} s")
+
+
+    def _check_router(self) -> None:
+        """Every 0.25 s: the router must still be there (else the agent would wait out its phase timeout and
+        blame the coordinator)."""
+        now = time.monotonic()
+        if now - self._router_checked < 0.25 or not hasattr(self.bus, "router_connected"):
+            return
+        self._router_checked = now
+        if not self.bus.router_connected():
+            where = "waiting for its coordinator" if self.epoch < 0 else f"in phase {self.phase}"
+            raise RouterLost(f"the zenoh router is gone (the session to it closed) while this agent was {where}")
 
 
 def parse_peer_features(specs: Optional[List[str]]) -> Dict[int, List[str]]:
@@ -316,7 +328,7 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     """Entry point of ``dqm agent``: returns the process exit code."""
     from .lifeline import watch_parent
 
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    signals.install_sigterm(force=True)
     watch_parent()
     keys.check_job(cfg.job)
     files = dict(peers or {})
@@ -332,25 +344,25 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
         bus.check_access(endpoint, tls, f"agent process {me} of job {cfg.job!r}")
         host = AgentHost(me, cfg, bus, files, phase_timeout_s=phase_timeout_s, own=own,
                          on_state=fault_pause_from_env())
+        log.info("connected to the router at %s; waiting for the coordinator of job %r", endpoint, cfg.job)
         host.run()
         return EXIT_OK
     except Refused as exc:
         log.error("refused: %s", exc)
         time.sleep(0.3)  # let the refusal reach the coordinator before the token goes
         return EXIT_REFUSED
-    except CoordinatorLost as exc:
-        log.error("error: %s. This agent leaves; to run the job again, start the coordinator and every agent "
-                  "again with the same options (a job restarts from the beginning).", exc)
+    except (CoordinatorLost, RouterLost) as exc:
+        where = f" (router: {endpoint})" if isinstance(exc, RouterLost) else ""
+        log.error("error: %s%s. This agent leaves; to run the job again, start %sthe coordinator and every agent "
+                  "again with the same options (a job restarts from the beginning).", exc, where,
+                  "the router, " if isinstance(exc, RouterLost) else "")
         return EXIT_COORDINATOR_LOST
     except (JobAborted, TimeoutError) as exc:
         log.error("error: %s", exc)
         return EXIT_FAILED
-    except KeyboardInterrupt:
-        log.warning("interrupted, leaving")
-        return EXIT_INTERRUPTED
-    except Terminated:
-        log.warning("terminated, leaving")
-        return EXIT_TERMINATED
+    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated
+        log.warning("%s, leaving", signals.word(exc))
+        return signals.exit_code(exc)
     finally:
         if bus is not None:
             bus.close()

@@ -19,17 +19,20 @@ Facts this relies on (docs/runtime.md, shared/notes/zenoh-facts.md):
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import re
 import threading
 import time
 from collections import defaultdict
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
+from ..wording import seconds
 from ..distributed import messages, protocol
 from ..distributed.ledger import Meter
 from ..distributed import keys
 
+LOG = logging.getLogger("dqm.runtime")
 ROUTER_RETRY_S = 5.0
 
 
@@ -79,11 +82,15 @@ def _secure(cfg: dict, tls: Optional[dict]) -> dict:
     return cfg
 
 
-def client_config(endpoint: str, tls: Optional[dict] = None) -> "object":
-    """zenoh Config of a client connected to ``endpoint`` (tcp/HOST:PORT or tls/HOST:PORT)."""
+def client_config(endpoint: str, tls: Optional[dict] = None, open_timeout_s: Optional[float] = None) -> "object":
+    """zenoh Config of a client connected to ``endpoint`` (tcp/HOST:PORT or tls/HOST:PORT). ``open_timeout_s``:
+    how long one try may wait for the router's answer once the connection is made (zenoh's default, 10 s, held
+    ``--connect-timeout`` up against a listener that never answers)."""
     import zenoh
 
     cfg = _base_config({"mode": "client", "connect": {"endpoints": [endpoint]}})
+    if open_timeout_s is not None:
+        cfg["transport"]["unicast"] = {"open_timeout": max(100, int(open_timeout_s * 1000))}
     return zenoh.Config.from_json5(json.dumps(_secure(cfg, tls)))
 
 
@@ -140,8 +147,13 @@ def zenoh_message(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
-def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = ROUTER_RETRY_S):
-    """Open a client session, retrying until ``deadline_s``; RouterUnreachable names the endpoint."""
+def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = ROUTER_RETRY_S,
+                check_stop: Optional[Callable[[], None]] = None):
+    """Open a client session, retrying until ``deadline_s``; RouterUnreachable names the endpoint.
+
+    ``check_stop``: called between tries (every 50 ms while waiting); it raises to stop the retries
+    (:meth:`dqm.signals.StopFlag.check`, for commands that catch Ctrl-C and SIGTERM themselves).
+    """
     import zenoh
 
     check_endpoint(endpoint)
@@ -150,13 +162,22 @@ def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = R
     delay = 0.05
     last = None
     while True:
+        if check_stop is not None:
+            check_stop()
+        left = deadline_s - (time.monotonic() - t0)
         try:
-            return zenoh.open(client_config(endpoint, tls))
+            return zenoh.open(client_config(endpoint, tls, open_timeout_s=min(10.0, max(0.2, left))))
         except Exception as exc:  # zenoh raises ZError (or others) when nothing listens
+            if last is None:
+                LOG.info("no zenoh router answers at %s yet; retrying for up to %s", endpoint, seconds(deadline_s))
             last = exc
         if time.monotonic() - t0 > deadline_s:
             raise RouterUnreachable(_unreachable_message(endpoint, deadline_s, last))
-        time.sleep(delay)
+        end = time.monotonic() + delay
+        while time.monotonic() < end:
+            if check_stop is not None:
+                check_stop()
+            time.sleep(min(0.05, max(0.0, end - time.monotonic())))
         delay = min(0.5, delay * 2)
 
 
@@ -164,7 +185,7 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
     """Why ``open_client`` gave up: nothing listens, or something listens but refused the session (TLS)."""
     import socket
 
-    base = f"no zenoh router reachable at {endpoint} after {deadline_s:.0f} s of retries ({zenoh_message(last)})"
+    base = f"no zenoh router reachable at {endpoint} after {seconds(deadline_s)} of retries ({zenoh_message(last)})"
     proto, _, addr = endpoint.split("#")[0].split("?")[0].partition("/")
     host, _, port = addr.rpartition(":")
     try:
@@ -176,8 +197,9 @@ def _unreachable_message(endpoint: str, deadline_s: float, last) -> str:
         return (f"{base}; something listens at {addr} but refused the TLS session: check that --tls-ca is the CA "
                 f"that signed the router's certificate, that the router's certificate names {host} "
                 f"(subjectAltName), and that --tls-cert/--tls-key were issued by the CA the router trusts")
-    return (f"{base}; something listens at {addr} but refused a {proto} zenoh session: a tls/ router, or one that "
-            "admits only known usernames (--user and --password-file: check both)")
+    return (f"{base}; something listens at {addr} but did not open a {proto} zenoh session with this client: it "
+            "is not a zenoh router, or a tls/ one, or one that admits only known usernames (--user and "
+            "--password-file: check both)")
 
 
 class AccessDenied(RuntimeError):
@@ -306,7 +328,9 @@ class Bus:
             [f"messages to it on {keys.process_inbox(self.job, self.home)} do not arrive"] if not inbox else [])
         raise AccessDenied(f"the router at {endpoint} does not let identity {who!r} act as {what}: "
                            f"{' and '.join(denied)}. Its roster (dqm router --acl) must hold the line '{line}'"
-                           + ("" if self.home < 0 else " (or start this agent with the --id its certificate is for)"))
+                           + ("" if self.home < 0 else " (or start this agent with the --id its certificate is for)")
+                           + f", and, if it has 'job' lines, the line 'job {self.job}' (a roster with job lines "
+                           "admits only the job ids they name)")
 
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
@@ -335,6 +359,11 @@ class Bus:
     def coordinator_alive(self) -> Optional[bool]:
         with self._alive_lock:
             return self.alive.get(keys.alive_coordinator(self.job))
+
+    def router_connected(self) -> bool:
+        """Whether the session still has its router (a router that stopped closes the link at once; a host or
+        link that went away, within the lease)."""
+        return bool(list(self.session.info.routers_zid()))
 
     # ------------------------------------------------------------------ sending
     def next_seq(self, src: int, dst: int, count: int = 1) -> int:

@@ -37,7 +37,6 @@ from __future__ import annotations
 import itertools
 import json
 import logging
-import signal
 import subprocess
 import sys
 import time
@@ -47,6 +46,8 @@ from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
 
+from ..wording import count, seconds
+from .. import signals
 from .. import io
 from ..distributed import costmodel, keys, messages, protocol, sources
 from ..distributed.config import DQMConfig
@@ -55,7 +56,6 @@ from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
 from ..validation import InputError
 from . import measure
-from .agent import Terminated, _on_sigterm
 from .bus import AccessDenied, Bus, check_job_free, open_client
 from .gather import GatheredParts, match_gathered
 
@@ -289,12 +289,15 @@ class Coordinator:
     def _check_time(self) -> None:
         if time.monotonic() - self.t0 > self.job_timeout_s:
             slow = [a for a in range(self.m) if a not in self.stats]
-            self.fail(JobFailed(f"the job did not finish within {self.job_timeout_s:.0f} s", slow[0] if slow else None,
+            self.fail(JobFailed(f"the job did not finish within {seconds(self.job_timeout_s)}",
+                                slow[0] if slow else None,
                                 self._phase_of(slow[0]) if slow else "",
                                 "Raise --timeout, or check the slow agent's log."))
 
     # ------------------------------------------------------------------ the job
     def _wait_tokens(self) -> None:
+        log.info("waiting up to %s for the %s of job %r", seconds(self.ready_timeout_s),
+                 count(self.m, "agent process", "agent processes"), self.cfg.job)
         while True:
             missing = [p for p in range(self.m) if not self.bus.agent_alive(p)]
             if not missing:
@@ -302,14 +305,14 @@ class Coordinator:
             self.bus.receive(timeout=0.1)
             if time.monotonic() - self.t0 > self.ready_timeout_s:
                 if len(missing) == self.m:
-                    self.fail(JobFailed(f"no agent process appeared within {self.ready_timeout_s:.0f} s", None,
+                    self.fail(JobFailed(f"no agent process appeared within {seconds(self.ready_timeout_s)}", None,
                                         "start", "Start the agents with the coordinator's --connect endpoint and "
                                         "--job id."))
                 if len(missing) > self.max_lost:  # not lost: never seen (still starting, or elsewhere)
                     shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
                     self.fail(JobFailed(
                         f"{len(missing)} of {self.m} agent processes ({shown}) did not appear within the ready "
-                        f"timeout of {self.ready_timeout_s:.0f} s, more than the {self.max_lost} the job may do "
+                        f"timeout of {seconds(self.ready_timeout_s)}, more than the {self.max_lost} the job may do "
                         "without", missing[0], "start",
                         "They may still be starting (many processes on few cores start slowly: start fewer agents "
                         "per host, or raise --ready-timeout), or cannot reach the router (check their logs)."))
@@ -336,7 +339,7 @@ class Coordinator:
             self._check_time()
             if time.monotonic() - t > self.phase_timeout_s:
                 slow = [p for p in hosts if p not in self.ready]
-                self.fail(JobFailed(f"agent process {slow[0]} did not get ready within {self.phase_timeout_s:.0f} s",
+                self.fail(JobFailed(f"agent process {slow[0]} did not get ready within {seconds(self.phase_timeout_s)}",
                                     slow[0], "start", "Check that agent's log."))
         ref = self.ready[hosts[0]]
         for p in hosts:
@@ -377,7 +380,7 @@ class Coordinator:
             self._check_deaths()
             self._check_time()
             if time.monotonic() - t > timeout_s:
-                self.fail(JobFailed(f"an agent process did not answer the link probe within {timeout_s:.0f} s",
+                self.fail(JobFailed(f"an agent process did not answer the link probe within {seconds(timeout_s)}",
                                     None, "probe", "Check the agents' logs; every process of a --mode auto job "
                                     "must be started with --mode auto."))
         return self.probe_answers.pop(token)
@@ -551,7 +554,7 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     from .console import JobView
     from .lifeline import watch_parent
 
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    signals.install_sigterm(force=True)
     watch_parent()
     tag_lines("coordinator")
     keys.check_job(cfg.job)
@@ -592,9 +595,9 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
             _write_json(failure_path(out), exc.as_dict())
         time.sleep(0.2)
         return EXIT_REFUSED if exc.refused else EXIT_FAILED
-    except (KeyboardInterrupt, Terminated) as exc:
-        log.warning("interrupted, aborting the job")
-        coord._abort_all("coordinator interrupted")
-        return EXIT_INTERRUPTED if isinstance(exc, KeyboardInterrupt) else EXIT_TERMINATED
+    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated
+        log.warning("%s, aborting the job", signals.word(exc))
+        coord._abort_all(f"coordinator {signals.word(exc)}")
+        return signals.exit_code(exc)
     finally:
         bus.close()

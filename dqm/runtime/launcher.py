@@ -26,6 +26,7 @@ from typing import Callable, Iterator, List, Optional, Sequence
 
 import numpy as np
 
+from ..wording import seconds
 from .. import io
 from ..distributed.config import DQMConfig, config_args
 from ..distributed.sources import split_features
@@ -167,7 +168,7 @@ def wait_listening(host: str, port: int, deadline_s: float, proc: subprocess.Pop
                 return
         except OSError:
             time.sleep(0.05)
-    raise RuntimeError(f"the router did not listen on {host}:{port} within {deadline_s:.0f} s")
+    raise RuntimeError(f"the router did not listen on {host}:{port} within {seconds(deadline_s)}")
 
 
 def write_agent_files(descriptors, image_ids, m: int, workdir: Path, features: Optional[io.FeatureSet] = None,

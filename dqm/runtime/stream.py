@@ -41,12 +41,14 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
+from ..wording import count
+from .. import signals
 from ..core.clustering import DEFAULT_RHO
 from ..distributed import keys, messages
 from ..validation import InputError
 
 #: exit codes of ``dqm stream``: done (--images reached, idle, or nothing more to do), interrupted, terminated
-EXIT_OK, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 130, 143
+EXIT_OK = 0
 #: the reason of a rejected message is logged this many times, then only counted
 LOG_PER_REASON = 3
 #: seconds left for the last puts to leave before the session closes
@@ -240,8 +242,8 @@ class StreamEngine:
 
     def summary(self) -> List[str]:
         """The end-of-stream lines: images, features, clusters, rejected messages by reason, events by kind."""
-        lines = [f"{self.accepted} images accepted ({len(self.present)} present, {self.removed_images} removed by "
-                 f"the window), {self.om.n_features} features, {self.n_clusters()} clusters; "
+        lines = [f"{count(self.accepted, 'image')} accepted ({len(self.present)} present, {self.removed_images} "
+                 f"removed by the window), {self.om.n_features} features, {self.n_clusters()} clusters; "
                  f"{self.received} messages received, {self.published} change sets published"]
         if self.rejected:
             lines.append(f"rejected {self.n_rejected} messages: " + "; ".join(
@@ -256,18 +258,6 @@ class StreamEngine:
 
 
 # ---------------------------------------------------------------------- the zenoh shell
-class _Stop:
-    """Ctrl-C / SIGTERM set a flag (the current image is finished first); a second Ctrl-C interrupts."""
-
-    def __init__(self):
-        self.signal: Optional[int] = None
-
-    def __call__(self, signum, frame):
-        if self.signal == signal.SIGINT and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.signal = signum
-
-
 def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Optional[int] = None,
                 max_images: Optional[int] = None, idle_s: Optional[float] = None, out: Optional[str] = None,
                 lines: bool = False, tls: Optional[dict] = None, connect_timeout_s: float = 5.0,
@@ -284,16 +274,19 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
         print(f"[stream] {text}", file=sys.stderr, flush=True)
 
     engine = StreamEngine(job, rho=rho, window=window, max_bytes=max_bytes, log=log)
-    stop = _Stop()
-    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = signals.StopFlag()  # Ctrl-C / SIGTERM: the current image is finished first
+    old = stop.install()
     watch_parent()
     inbox: "queue.Queue" = queue.Queue()
-    session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    try:
+        session = open_client(endpoint, tls, deadline_s=connect_timeout_s, check_stop=stop.check)
+    except BaseException:  # unreachable, or a signal while connecting (raised as the default handlers would)
+        signals.restore(old)
+        raise
     try:  # a second stream under this job id would split the cameras' images between two
         check_job_free(session, keys.alive_stream(job), "the stream", job, endpoint)
     except JobIdInUse:
-        for s, handler in old.items():
-            signal.signal(s, handler)
+        signals.restore(old)
         raise
     sub = token = None
     why = "stopped"
@@ -307,11 +300,11 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
         changes_key = keys.stream_changes(job)
         last = time.monotonic()
         while True:
-            if stop.signal is not None:
+            if stop:
                 why = "interrupted" if stop.signal == signal.SIGINT else "terminated"
                 break
             if max_images is not None and engine.accepted >= max_images:
-                why = f"{engine.accepted} images accepted"
+                why = f"{count(engine.accepted, 'image')} accepted"
                 break
             try:
                 key, payload = inbox.get(timeout=0.1)
@@ -326,7 +319,7 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
                 if lines:
                     named = f", {o.name}" if o.name else ""
                     print(f"{o.op} image {o.image_id} (camera {o.camera}{named}): {o.changeset.summary()}; now "
-                          f"{o.n_features} features, {o.n_clusters} clusters in {o.n_images} images "
+                          f"{o.n_features} features, {o.n_clusters} clusters in {count(o.n_images, 'image')} "
                           f"({o.seconds * 1e3:.0f} ms)", flush=True)
         time.sleep(LINGER_S)
     finally:
@@ -335,8 +328,7 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
                 with contextlib.suppress(Exception):  # closing anyway
                     obj.undeclare()
         session.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore(old)
     unread = inbox.qsize()
     print(f"stream ({why}): " + engine.summary()[0], flush=True)
     for line in engine.summary()[1:]:
@@ -349,8 +341,8 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
             print(f"wrote {out}", flush=True)
         else:
             print(f"no image accepted: {out} not written", flush=True)
-    if stop.signal is not None:
-        return EXIT_INTERRUPTED if stop.signal == signal.SIGINT else EXIT_TERMINATED
+    if stop:
+        return stop.exit_code()
     return EXIT_OK
 
 
@@ -458,7 +450,7 @@ class CameraReport:
                 f"{rate:g} Hz in {self.seconds:.1f} s; {self.late} behind their slot")
 
 
-def _sleep_until(t: float, stop: _Stop) -> None:
+def _sleep_until(t: float, stop: signals.StopFlag) -> None:
     """Sleep until monotonic time ``t`` in short slices, returning early once a stop signal came."""
     while stop.signal is None:
         left = t - time.monotonic()
@@ -491,17 +483,17 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
         raise InputError(f"--rate must be a positive number of images per second, got {rate}")
     camera_image_id(camera, first_index)
     report = CameraReport(camera)
-    stop = _Stop()
-    old = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = signals.StopFlag()  # Ctrl-C / SIGTERM: the current image is finished first
+    old = stop.install()
     watch_parent()
 
     def stopped() -> bool:
-        return stop.signal is not None
+        return bool(stop)
 
     lost = ""
     t_start = time.monotonic()
     try:
-        session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+        session = open_client(endpoint, tls, deadline_s=connect_timeout_s, check_stop=stop.check)
         watch = None
         try:
             watch = TokenWatch(session, keys.alive_stream(job))
@@ -531,13 +523,14 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
                 if not watch.present:
                     if not stopped():
                         lost = (f"the stream of job {job!r} went away and did not come back within {wait_s:g} s; "
-                                f"stopped after {len(report.sent)} images")
+                                f"stopped after {count(len(report.sent), 'image')}")
                     break
                 image_id = camera_image_id(camera, first_index + k)
                 payload = messages.image_message(job, camera, image_id, frame.descriptors, frame.keypoints,
                                                  seq=first_index + k, name=frame.name)
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
                 report.sent.append(image_id)
+                LOG.debug("put image %d (%d features, %d bytes)", image_id, len(frame.descriptors), len(payload))
                 if lines:
                     print(f"image {image_id}" + (f" ({frame.name})" if frame.name else "")
                           + f": {len(frame.descriptors)} features, {len(payload)} bytes", flush=True)
@@ -551,8 +544,7 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
                 watch.close()
             session.close()
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore(old)
     report.seconds = time.monotonic() - t_start
     if stop.signal is not None:
         report.why = "interrupted" if stop.signal == signal.SIGINT else "terminated"
@@ -562,6 +554,6 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
     if lost:
         print(f"dqm camera: error: {lost}", file=sys.stderr, flush=True)
         return EXIT_STREAM_LOST
-    if stop.signal is not None:
-        return EXIT_INTERRUPTED if stop.signal == signal.SIGINT else EXIT_TERMINATED
+    if stop:
+        return stop.exit_code()
     return EXIT_OK

@@ -225,7 +225,7 @@ def check_preset(preset: str, max_features: int = 0) -> None:
     if preset == "colmap":
         from .colmap import require_pycolmap
 
-        require_pycolmap()
+        require_pycolmap(what="--preset colmap (COLMAP's SIFT)")
 
 
 def create_sift(preset: str = "opencv", max_features: int = 0):
@@ -310,6 +310,11 @@ def extract(image, preset: str = DEFAULT_PRESET, max_features: int = 0) -> Image
     kps, desc = create_sift(preset, max_features).detectAndCompute(img, None)
     if desc is None:
         desc = np.zeros((0, 128), np.float32)
+    if max_features and len(kps) > max_features:
+        # OpenCV's nfeatures keeps the N strongest keypoints, then adds a copy per extra orientation: keep the
+        # N strongest of those (ties: the earlier), in OpenCV's order, so that the limit holds
+        keep = np.sort(np.argsort(-np.array([k.response for k in kps]), kind="stable")[:max_features])
+        kps, desc = [kps[i] for i in keep], desc[keep]
     return ImageFeatures(_kp_array(kps), _finish(desc, preset))
 
 

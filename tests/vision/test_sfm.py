@@ -79,7 +79,7 @@ def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
 
 
 def test_bench_sfm_small_on_photos_with_ground_truth(tmp_path):
-    """scripts/bench_sfm.py on the first 4 photos of strecha/entry-P10, dqm's default beside COLMAP's
+    """scripts/bench_sfm.py on the first 3 photos of strecha/entry-P10, dqm's default beside COLMAP's
     pipeline: both register every image, and the JSON's AUC is the AUC of its pairwise errors."""
     from conftest import require_data
 
@@ -87,17 +87,17 @@ def test_bench_sfm_small_on_photos_with_ground_truth(tmp_path):
 
     scene = require_data("strecha", "entry-P10")
     p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(scene / "images"), "--gt",
-                        str(scene / "gt_cameras"), "--max-images", "4", "--pipelines", "colmap,dqm",
+                        str(scene / "gt_cameras"), "--max-images", "3", "--pipelines", "colmap,dqm",
                         "--out-dir", str(tmp_path / "out")], capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-2000:]
     table = (tmp_path / "out" / "sfm.md").read_text()
     rows = [ln for ln in table.splitlines() if ln.startswith(("| colmap", "| dqm"))]
-    assert len(rows) == 2 and all("| 4 / 4 |" in ln for ln in rows), table
+    assert len(rows) == 2 and all("| 3 / 3 |" in ln for ln in rows), table
     assert re.search(r"^- dqm: AUC@1° [0-9.]+ vs [0-9.]+ \((met|missed)\)", table, re.M), table
     data = json.loads((tmp_path / "out" / "sfm.json").read_text())
     for name in ("colmap", "dqm"):
         run = data["results"][name][0]
-        assert len(run["pair_errors"]) == 6  # 4 images, 6 pairs
+        assert len(run["pair_errors"]) == 3  # 3 images, 3 pairs
         auc = poses.pose_auc(run["pair_errors"])
         assert [run["poses"]["auc"][k] for k in ("1", "2", "5")] == pytest.approx(auc)
     assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000

@@ -1,0 +1,86 @@
+"""The signal policy of every command, in one place.
+
+Ctrl-C (SIGINT) and SIGTERM stop any ``dqm`` command in every state (starting, connecting,
+waiting, computing, writing): it exits with 130 after SIGINT and 143 after SIGTERM, the shell's
+codes, with one line and no traceback, its child processes stopped and its outputs either
+complete or absent (:func:`dqm.outputs.atomic_output`).
+
+* SIGTERM is raised as :class:`Terminated`, a ``KeyboardInterrupt``: every ``except
+  KeyboardInterrupt`` that cleans up after Ctrl-C cleans up after SIGTERM too, and
+  :func:`exit_code` tells the two apart (check ``Terminated`` first).
+* Commands that finish their current item before stopping (``dqm stream``, ``dqm camera``)
+  catch both signals in a :class:`StopFlag`; loops that wait (connecting to a router, retries)
+  call :meth:`StopFlag.check`, which raises as the default handlers would.
+"""
+from __future__ import annotations
+
+import signal
+from typing import Optional
+
+EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: leave like Ctrl-C (children stopped, files closed), exit 143."""
+
+
+def raise_terminated(signum, frame):
+    """The SIGTERM handler: raise :class:`Terminated` in the main thread."""
+    raise Terminated()
+
+
+def install_sigterm(force: bool = False) -> None:
+    """Make SIGTERM raise :class:`Terminated` (unless a handler other than the default is set and not ``force``),
+    and SIGINT raise ``KeyboardInterrupt`` even when the process started with SIGINT ignored (as a shell
+    script's background jobs do): a dqm command obeys Ctrl-C whoever started it."""
+    if force or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, raise_terminated)
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def exit_code(exc: BaseException) -> int:
+    """143 for :class:`Terminated`, 130 for any other ``KeyboardInterrupt``."""
+    return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+
+
+def word(exc: BaseException) -> str:
+    """``"terminated"`` or ``"interrupted"``, for the one line a stopped command prints."""
+    return "terminated" if isinstance(exc, Terminated) else "interrupted"
+
+
+class StopFlag:
+    """A signal handler that records SIGINT / SIGTERM instead of raising (the current item is finished
+    first); a second Ctrl-C raises at once. :meth:`check` raises for a recorded signal."""
+
+    def __init__(self):
+        self.signal: Optional[int] = None
+
+    def __call__(self, signum, frame):
+        if self.signal == signal.SIGINT and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.signal = signum
+
+    def __bool__(self) -> bool:
+        return self.signal is not None
+
+    def check(self) -> None:
+        """Raise ``KeyboardInterrupt`` (SIGINT) or :class:`Terminated` (SIGTERM) if one came."""
+        if self.signal == signal.SIGTERM:
+            raise Terminated()
+        if self.signal is not None:
+            raise KeyboardInterrupt
+
+    def exit_code(self) -> int:
+        return EXIT_INTERRUPTED if self.signal == signal.SIGINT else EXIT_TERMINATED
+
+    def install(self) -> dict:
+        """Handle both signals; returns the previous handlers (for :func:`restore`)."""
+        return {s: signal.signal(s, self) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def restore(handlers: dict) -> None:
+    """Put back the handlers :meth:`StopFlag.install` returned."""
+    for s, h in handlers.items():
+        signal.signal(s, h)

@@ -1,0 +1,89 @@
+"""The signal policy (dqm/signals.py) in the connecting state: every command that reaches for a router
+leaves on Ctrl-C with 130 and on SIGTERM with 143 within 2 s while it retries, with one line and no
+traceback (issue 36: dqm stream and dqm camera ran to the end of --connect-timeout, then exited 2; SIGTERM
+escaped dqm agent and dqm coordinator as a traceback). scripts/signal_soak.py repeats this 20 times per
+command and signal; here each runs once, all at the same time."""
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from dqm import io, synthetic
+
+#: what a user types, {endpoint} being a port where nothing listens; every command retries for 60 s
+COMMANDS = {
+    "stream": ["stream", "--connect", "{endpoint}", "--connect-timeout", "60"],
+    "camera": ["camera", "{images}", "--connect", "{endpoint}", "--connect-timeout", "60"],
+    "agent": ["agent", "--id", "0", "--agents", "1", "--connect", "{endpoint}", "--connect-timeout", "60",
+              "{features}"],
+    "coordinator": ["coordinator", "--agents", "1", "--connect", "{endpoint}", "--connect-timeout", "60",
+                    "--no-clusters"],
+}
+#: the -v line that says the command is in its retry loop (dqm.runtime.bus.open_client)
+RETRYING = "retrying for up to"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_connecting(argv_by_name: dict, logs) -> dict:
+    """Start every command with -v (stderr to a file) and wait until each says it is retrying."""
+    procs = {}
+    for name, argv in argv_by_name.items():
+        err = open(logs / f"{name}.err", "w")
+        procs[name] = (subprocess.Popen([sys.executable, "-m", "dqm", "-v", *argv], stdout=subprocess.DEVNULL,
+                                        stderr=err), logs / f"{name}.err")
+    deadline = time.monotonic() + 90
+    waiting = set(procs)
+    while waiting and time.monotonic() < deadline:
+        for name in list(waiting):
+            p, log = procs[name]
+            assert p.poll() is None, f"{name} ended before connecting: {log.read_text()}"
+            if RETRYING in log.read_text():
+                waiting.discard(name)
+        time.sleep(0.1)
+    assert not waiting, f"never reached the retry loop: {sorted(waiting)}"
+    return procs
+
+
+def command_lines(tmp_path) -> dict:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    images = tmp_path / "frames"
+    assert subprocess.run([sys.executable, "-m", "dqm", "scene", str(images), "--images", "2", "--size", "120",
+                           "160"], capture_output=True, timeout=120).returncode == 0
+    ds = synthetic.sized(200, seed=0)
+    io.save_features(tmp_path / "f.npz", io.FeatureSet(ds.descriptors, ds.image_ids))
+    fill = {"endpoint": endpoint, "images": str(images), "features": str(tmp_path / "f.npz")}
+    return {name: [a.format(**fill) for a in argv] for name, argv in COMMANDS.items()}
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_every_connecting_command_obeys_the_signal_at_once(tmp_path, sig, code):
+    procs = start_connecting(command_lines(tmp_path), tmp_path)
+    sent = {}
+    try:
+        for name, (p, _) in procs.items():
+            sent[name] = time.monotonic()
+            p.send_signal(sig)
+        took = {}
+        for name, (p, _) in procs.items():
+            p.wait(timeout=30)
+            took[name] = time.monotonic() - sent[name]
+    finally:
+        for p, _ in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    word = "interrupted" if sig == signal.SIGINT else "terminated"
+    for name, (p, log) in procs.items():
+        text = log.read_text()
+        assert p.returncode == code, (name, p.returncode, text)
+        assert "Traceback" not in text, (name, text)
+        assert text.strip().splitlines()[-1] == f"dqm {name}: {word}", (name, text)
+        assert took[name] < 2.0, f"{name} took {took[name]:.2f} s to leave after {sig.name}"
