@@ -1,0 +1,155 @@
+"""Signal soak: every long-running dqm command, in its connecting and its working state, gets Ctrl-C
+(SIGINT) and SIGTERM many times; each try must end with 130 / 143 within the limit (2 s), with one
+line and no traceback, and leave no child process. Prints a table of tries, misses and the slowest
+exit per command, state and signal (docs/runtime.md quotes it). tests/cli/test_signal_policy.py and
+tests/cli/test_signals.py run one try of each in CI.
+
+    python scripts/signal_soak.py --tries 20
+    python scripts/signal_soak.py --tries 5 --commands stream,agent --states connecting
+
+States: ``connecting`` (no router at the endpoint: the command retries), ``working`` (``match`` in its
+all-pairs pass; ``stream`` and ``agent`` / ``coordinator`` connected to a router, waiting for images or
+for each other; ``camera`` putting images to a live stream).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dqm import io, synthetic
+
+LIMIT_S = 2.0
+COMMANDS = ("stream", "camera", "agent", "coordinator", "match")
+SIGNALS = {"SIGINT": (signal.SIGINT, 130, "interrupted"), "SIGTERM": (signal.SIGTERM, 143, "terminated")}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def children_of(pid: int) -> list:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def start(argv, log: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "dqm", "-vv", *argv], stdout=subprocess.DEVNULL,
+                            stderr=open(log, "w"))
+
+
+def wait_for(log: Path, text: str, proc, timeout: float = 120.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if text in log.read_text():
+            return
+        if proc.poll() is not None:
+            raise RuntimeError(f"ended before {text!r}: {log.read_text()[-500:]}")
+        time.sleep(0.05)
+    raise RuntimeError(f"{text!r} never appeared: {log.read_text()[-500:]}")
+
+
+def argv_for(command: str, state: str, endpoint: str, work: Path) -> tuple:
+    """(argv, the -v text that says the state is reached)."""
+    if command == "match":
+        return ["match", str(work / "big.npz"), "--out", str(work / f"c{time.monotonic_ns()}.npz"), "--quiet"], \
+            "sigma ("  # logged when the all-pairs pass starts
+    common = ["--connect", endpoint, "--connect-timeout", "60"]
+    ready = "retrying for up to" if state == "connecting" else {
+        "stream": "listening on", "camera": "put image", "agent": "waiting for the coordinator",
+        "coordinator": "waiting up to"}[command]
+    return {
+        "stream": ["stream", *common, "--job", "soak"],
+        "camera": ["camera", str(work / "frames"), *common, "--job", "soak", "--loop", "--rate", "5"],
+        "agent": ["agent", "--id", "0", "--agents", "2", *common, "--job", "soak", str(work / "f.npz")],
+        "coordinator": ["coordinator", "--agents", "2", *common, "--job", "soak", "--no-clusters",
+                        "--ready-timeout", "120"],
+    }[command], ready
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tries", type=int, default=20)
+    ap.add_argument("--commands", default=",".join(COMMANDS))
+    ap.add_argument("--states", default="connecting,working")
+    args = ap.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="dqm-signal-soak-"))
+    subprocess.run([sys.executable, "-m", "dqm", "scene", str(work / "frames"), "--images", "3", "--size", "160",
+                    "200"], check=True, capture_output=True)
+    ds = synthetic.sized(400, seed=0)
+    io.save_features(work / "f.npz", io.FeatureSet(ds.descriptors, ds.image_ids))
+    rng = np.random.default_rng(0)
+    n = 300_000  # minutes of all-pairs work on two cores: the pass is surely running at the signal
+    io.save_features(work / "big.npz", io.FeatureSet(rng.integers(0, 64, (n, 128), dtype=np.uint8),
+                                                     np.arange(n) % 150))
+    rows = []
+    for command in args.commands.split(","):
+        for state in args.states.split(","):
+            if command == "match" and state == "connecting":
+                continue
+            for name, (sig, code, word) in SIGNALS.items():
+                misses, slowest = 0, 0.0
+                for k in range(args.tries):
+                    router = helper = None
+                    endpoint = f"tcp/127.0.0.1:{free_port()}"
+                    if state == "working" and command != "match":
+                        router = subprocess.Popen([sys.executable, "-m", "dqm", "router", "--listen", endpoint],
+                                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                        router.stdout.readline()
+                        if command == "camera":  # a live stream for the camera to put to
+                            helper = start(["stream", "--connect", endpoint, "--job", "soak"], work / "helper.log")
+                            wait_for(work / "helper.log", "listening on", helper)
+                    argv, ready = argv_for(command, state, endpoint, work)
+                    log = work / f"{command}.log"
+                    p = start(argv, log)
+                    try:
+                        wait_for(log, ready, p)
+                        time.sleep(0.2 + 0.1 * (k % 5))  # land at different moments of the state
+                        kids = children_of(p.pid)
+                        t = time.monotonic()
+                        p.send_signal(sig)
+                        p.wait(timeout=30)
+                        took = time.monotonic() - t
+                        text = log.read_text()
+                        ok = (p.returncode == code and took <= LIMIT_S and "Traceback" not in text
+                              and text.strip().splitlines()[-1] == f"dqm {command}: {word}"
+                              and not [c for c in kids if os.path.exists(f"/proc/{c}")])
+                        misses += not ok
+                        slowest = max(slowest, took)
+                        if not ok:
+                            print(f"miss: {command} {state} {name} try {k}: exit {p.returncode} after {took:.2f} s: "
+                                  f"{text.strip().splitlines()[-1:]}", flush=True)
+                    finally:
+                        for q in (p, helper, router):
+                            if q is not None and q.poll() is None:
+                                q.kill()
+                                q.wait()
+                rows.append((command, state, name, args.tries, misses, slowest))
+                print(f"{command:12s} {state:10s} {name:8s} {args.tries} tries, {misses} misses, slowest exit "
+                      f"{slowest:.2f} s", flush=True)
+    print("\n| command | state | signal | tries | misses | slowest exit (s) |\n|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]} | {r[4]} | {r[5]:.2f} |")
+    return 1 if any(r[4] for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
