@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import re
 import sys
@@ -142,6 +143,7 @@ interrupted_while_importing = False
 def main(argv: Optional[List[str]] = None) -> int:
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
     signals.install_sigterm()
+    signals.received = None
     try:
         parser = build_parser()
         from .validation import InputError
@@ -174,6 +176,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"dqm {args.command}: {signals.word(exc)}", file=sys.stderr)
         return signals.exit_code(exc)
     except Exception as exc:  # noqa: BLE001 - no traceback reaches the user
+        stop = signals.stopped_by_signal()
+        if stop is not None:  # the signal landed inside a library's lock handling and surfaced as this error
+            print(f"dqm {args.command}: {signals.word(stop)}", file=sys.stderr)
+            return signals.exit_code(stop)
         if os.environ.get("DQM_TRACEBACK"):
             raise
         print(f"dqm {args.command}: error: {type(exc).__name__}: {exc} (DQM_TRACEBACK=1 shows where)",
@@ -182,10 +188,18 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def program() -> None:
-    """The ``dqm`` command (and ``python -m dqm``): :func:`main`, then exit with its code. After a
-    signal during the imports it leaves with ``os._exit`` (see :data:`interrupted_while_importing`)."""
+    """The ``dqm`` command (and ``python -m dqm``): :func:`main`, then exit with its code.
+
+    After Ctrl-C or SIGTERM (exit 130 / 143: the command has already stopped its children, closed its
+    sessions and removed its partial outputs) it leaves with ``os._exit`` once the output is flushed:
+    the interpreter's own exit would first wait for worker threads still finishing a native tile (a
+    stop then took seconds), and run C++ libraries' static destructors while their threads were
+    still running (``terminate called without an active exception``, exit 134, in 3 of 24 Ctrl-C
+    during ``dqm experiment localization``). The same after a signal during the imports (see
+    :data:`interrupted_while_importing`)."""
     code = main()
-    if interrupted_while_importing:
+    if interrupted_while_importing or code in (signals.EXIT_INTERRUPTED, signals.EXIT_TERMINATED):
+        logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -20,6 +20,11 @@ from typing import Optional
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
 
+#: the last stop signal this process received (None: none). A signal that lands inside a library's lock
+#: handling can surface as another error (``RuntimeError: release unlocked lock``); the CLI reads this to
+#: report the stop for what it was.
+received: Optional[int] = None
+
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM: leave like Ctrl-C (children stopped, files closed), exit 143."""
@@ -27,7 +32,16 @@ class Terminated(KeyboardInterrupt):
 
 def raise_terminated(signum, frame):
     """The SIGTERM handler: raise :class:`Terminated` in the main thread."""
+    global received
+    received = signal.SIGTERM
     raise Terminated()
+
+
+def raise_interrupted(signum, frame):
+    """The SIGINT handler: Python's own (``KeyboardInterrupt``), remembering that it came."""
+    global received
+    received = signal.SIGINT
+    raise KeyboardInterrupt
 
 
 def install_sigterm(force: bool = False) -> None:
@@ -36,8 +50,8 @@ def install_sigterm(force: bool = False) -> None:
     script's background jobs do): a dqm command obeys Ctrl-C whoever started it."""
     if force or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         signal.signal(signal.SIGTERM, raise_terminated)
-    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None):
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler):
+        signal.signal(signal.SIGINT, raise_interrupted)
 
 
 def exit_code(exc: BaseException) -> int:
@@ -50,6 +64,14 @@ def word(exc: BaseException) -> str:
     return "terminated" if isinstance(exc, Terminated) else "interrupted"
 
 
+def stopped_by_signal() -> Optional[KeyboardInterrupt]:
+    """The stop that came, as the exception it was raised as (None if no signal came): for an error that a
+    signal caused inside a library (it landed in the library's lock handling)."""
+    if received is None:
+        return None
+    return Terminated() if received == signal.SIGTERM else KeyboardInterrupt()
+
+
 class StopFlag:
     """A signal handler that records SIGINT / SIGTERM instead of raising (the current item is finished
     first); a second Ctrl-C raises at once. :meth:`check` raises for a recorded signal."""
@@ -58,6 +80,8 @@ class StopFlag:
         self.signal: Optional[int] = None
 
     def __call__(self, signum, frame):
+        global received
+        received = signum
         if self.signal == signal.SIGINT and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.signal = signum

@@ -30,11 +30,13 @@ the truncation drops, and why parents differ; then 1M generated features
     python scripts/bench_quickmatch.py --approximate --million --sizes '' --no-graf
 """
 import argparse
+import atexit
 import json
 import multiprocessing as mp
 import os
 import tempfile
 import resource
+import shutil
 import subprocess
 import sys
 import time
@@ -195,8 +197,15 @@ def graph_recall(X, k, sample):
     return hits / (sample * k)
 
 
+_SCRATCH: list = []
+
+
 def scratch(tag):
-    return str(Path(tempfile.gettempdir()) / f"dqm-bench-{os.getpid()}-{tag}.npz")
+    """A scratch file for the results a section compares, in a folder of this run removed when it ends."""
+    if not _SCRATCH:
+        _SCRATCH.append(tempfile.mkdtemp(prefix="dqm-bench-"))
+        atexit.register(shutil.rmtree, _SCRATCH[0], True)
+    return str(Path(_SCRATCH[0]) / f"{tag}.npz")
 
 
 def memory_section():

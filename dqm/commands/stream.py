@@ -70,7 +70,7 @@ def run(args) -> int:
     import sys
 
     from ..distributed import keys
-    from ..runtime.bus import JobIdInUse, RouterUnreachable, check_endpoint
+    from ..runtime.bus import AccessDenied, JobIdInUse, RouterUnreachable, check_endpoint
     from ..validation import InputError
 
     check_endpoint(args.connect)
@@ -85,5 +85,5 @@ def run(args) -> int:
         return main_stream(args.connect, args.job, rho=args.rho, window=args.window, max_images=args.images,
                            idle_s=args.idle, out=args.out, lines=lines, tls=tls,
                            connect_timeout_s=args.connect_timeout, max_bytes=args.max_message_bytes)
-    except (RouterUnreachable, JobIdInUse) as exc:
+    except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

@@ -206,6 +206,33 @@ class AccessDenied(RuntimeError):
     """The router does not let this process's identity use its keys (its access control)."""
 
 
+def denied_message(endpoint: str, who: str, what: str, denied: List[str], line: str, job: str,
+                   hint: str = "") -> str:
+    """Why the router's access control refused this process, and the roster lines that admit it."""
+    return (f"the router at {endpoint} does not let identity {who!r} act as {what}: {' and '.join(denied)}. "
+            f"Its roster (dqm router --acl) must hold the line '{line}'{hint}, and, if it has 'job' lines, the line "
+            f"'job {job}' (a roster with job lines admits only the job ids they name)")
+
+
+def check_token_admitted(endpoint: str, tls: Optional[dict], token_key: str, what: str, line: str, job: str,
+                         deadline_s: float = 3.0) -> None:
+    """With an identity, check through the router that this process's liveliness token is admitted (a second
+    session of the same identity must see it within ``deadline_s``): the start-up check of processes whose
+    messages nobody of their own identity can receive (``dqm stream``). :class:`AccessDenied` otherwise."""
+    if not tls:
+        return  # no identity: no access control possible
+    probe = open_client(endpoint, tls, deadline_s=deadline_s)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < deadline_s:
+            if live_tokens(probe, token_key, timeout_s=0.5):
+                return
+    finally:
+        probe.close()
+    raise AccessDenied(denied_message(endpoint, identity_of(tls) or "this client", what,
+                                      [f"its liveliness token {token_key} is not admitted"], line, job))
+
+
 def identity_of(tls: Optional[dict]) -> str:
     """The identity a client presents: its certificate's common name, else its username ("" if none)."""
     import ssl
@@ -326,11 +353,9 @@ class Bus:
         line = (Identity("coordinator", who) if self.home < 0 else Identity("agent", who, self.home)).as_line()
         denied = ([f"its liveliness token {self.token_key} is not admitted"] if not token else []) + (
             [f"messages to it on {keys.process_inbox(self.job, self.home)} do not arrive"] if not inbox else [])
-        raise AccessDenied(f"the router at {endpoint} does not let identity {who!r} act as {what}: "
-                           f"{' and '.join(denied)}. Its roster (dqm router --acl) must hold the line '{line}'"
-                           + ("" if self.home < 0 else " (or start this agent with the --id its certificate is for)")
-                           + f", and, if it has 'job' lines, the line 'job {self.job}' (a roster with job lines "
-                           "admits only the job ids they name)")
+        raise AccessDenied(denied_message(endpoint, who, what, denied, line, self.job,
+                                          "" if self.home < 0 else
+                                          " (or start this agent with the --id its certificate is for)"))
 
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""

@@ -265,7 +265,8 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
     """Entry point of ``dqm stream``; returns the exit code. Raises RouterUnreachable when no router answers."""
     import zenoh
 
-    from .bus import JobIdInUse, check_job_free, open_client
+    from .bus import JobIdInUse, check_job_free, check_token_admitted, identity_of, open_client
+    from .roster import Identity
     from .lifeline import watch_parent
 
     keys.check_job(job)
@@ -295,6 +296,8 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
                                          lambda sample: inbox.put((str(sample.key_expr),
                                                                    bytes(sample.payload.to_bytes()))))
         token = session.liveliness().declare_token(keys.alive_stream(job))
+        check_token_admitted(endpoint, tls, keys.alive_stream(job), f"the stream of job {job!r}",
+                             Identity("stream", identity_of(tls) or "NAME").as_line(), job)
         log(f"listening on {keys.stream_images(job)}, publishing on {keys.stream_changes(job)}"
             + (f", window of {window} images" if window else ""))
         changes_key = keys.stream_changes(job)
@@ -475,8 +478,9 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
     """
     import zenoh
 
-    from .bus import open_client
+    from .bus import identity_of, open_client
     from .lifeline import watch_parent
+    from .roster import Identity
 
     keys.check_job(job)
     if not (0 < rate < float("inf")):
@@ -504,7 +508,10 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
                 raise StreamUnavailable(
                     f"no dqm stream of job {job!r} at {endpoint} within {wait_s:g} s (its liveliness token "
                     f"{keys.alive_stream(job)} did not appear); start `dqm stream --connect {endpoint} --job {job}` "
-                    f"first, or wait longer with --wait")
+                    f"first, or wait longer with --wait" + (
+                        f"; under access control the router's roster must also hold the line "
+                        f"'{Identity('camera', identity_of(tls) or 'NAME', camera).as_line()}' (and 'job {job}' "
+                        "if it has job lines), else the stream's token is hidden from this node" if tls else ""))
             key = keys.camera_images(job, camera)
             t0 = 0.0
             for k, frame in enumerate(() if stopped() else frames):

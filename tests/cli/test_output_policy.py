@@ -176,3 +176,28 @@ def test_the_run_command_writes_a_second_result_beside_the_first(tmp_path):
     assert p.returncode == 0, p.stderr
     assert sorted(p.name for p in first.parent.iterdir()) == ["clusters-2.npz", "clusters.npz"]
     assert first.read_bytes() == KEEP and "wrote dqm-out/run/clusters-2.npz" in p.stdout
+
+
+@pytest.mark.parametrize("argv, holds", [
+    (["evaluate", "scene:1", "--out-dir", "{d}"], "evaluation.md"),
+    (["evaluate", "--clusters", "{clusters}", "--out-dir", "{d}"], "evaluation_c.json"),
+    (["experiment", "localization", "--quick", "--out-dir", "{d}"], "camnet.md"),
+    (["plot", "pr", "{d}/../evaluation.json", "--out-dir", "{d}"], "pr_graf.png"),
+    (["split", "{features}", "--agents", "2", "--out", "{d}"], "agent1.npz"),
+    (["scene", "{d}"], "img1.png"),
+])
+def test_folder_commands_refuse_a_folder_holding_their_files(tmp_path, capsys, inputs, argv, holds):
+    d = tmp_path / "out"
+    d.mkdir()
+    (d / holds).write_bytes(KEEP)
+    (tmp_path / "evaluation.json").write_text('{"datasets": {}}')
+    _one_line(capsys, [a.format(d=d, **inputs) for a in argv], holds, "--overwrite")
+    assert (d / holds).read_bytes() == KEEP and len(list(d.iterdir())) == 1
+
+
+def test_sfm_refuses_a_folder_that_is_not_empty(tmp_path, capsys, inputs):
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "notes.txt").write_bytes(KEEP)
+    _one_line(capsys, ["sfm", inputs["scene"], "--out", str(model)], "is not empty")
+    assert [p.name for p in model.iterdir()] == ["notes.txt"]

@@ -104,11 +104,12 @@ def acl_router(tmp_path_factory):
     ("agent", "outsider", "dqm/acl/alive/agent/0"),  # in no roster line
     ("agent", "agent1", "dqm/acl/alive/agent/0"),  # in the roster, as another agent
     ("coordinator", "agent0", "dqm/acl/alive/coordinator"),  # an agent's certificate as the coordinator
+    ("stream", "agent0", "dqm/acl/alive/stream"),  # an agent's certificate as the stream (issue 36)
 ])
 def test_an_identity_without_the_role_fails_in_seconds_naming_identity_and_key(acl_router, role, cert, key):
     ep, certs = acl_router["endpoint"], acl_router["certs"]
-    args = (["agent", "--id", "0", "--agents", "2", str(acl_router["files"][0])] if role == "agent"
-            else ["coordinator", "--agents", "2"])
+    args = {"agent": ["agent", "--id", "0", "--agents", "2", str(acl_router["files"][0])],
+            "coordinator": ["coordinator", "--agents", "2"], "stream": ["stream"]}[role]
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, "-m", "dqm", *args, "--job", "acl", "--connect", ep,
                         *tls_options(certs, cert)], capture_output=True, text=True, timeout=60)
