@@ -54,3 +54,22 @@ def start_held_job(X, ids, cfg, marker, env, **kw):
         time.sleep(0.02)
     assert marker.exists(), "the agent never reached the phase"
     return th, started, outcome
+
+
+def wait_for_text(path, text, proc, timeout=60.0):
+    """Wait until the log file ``path`` holds ``text``; fails if ``proc`` ends first or time runs out."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if text in path.read_text():
+            return
+        assert proc.poll() is None, path.read_text()
+        time.sleep(0.05)
+    raise AssertionError(f"{text!r} never appeared: {path.read_text()}")
+
+
+def kill_all(procs):
+    """Kill and reap the processes of ``procs`` that still run (None entries skipped)."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.wait()

@@ -4,14 +4,15 @@ dqm stream and dqm camera ran to the end of --connect-timeout, then exited 2; SI
 dqm coordinator as a traceback) and while it works connected to one. scripts/signal_soak.py repeats this
 20 times per command, state and signal; here each runs once, all at the same time."""
 import signal
-import socket
 import subprocess
 import sys
 import time
 
 import pytest
+from runtime_helpers import kill_all, wait_for_text
 
 from dqm import io, synthetic
+from dqm.runtime.launcher import free_port
 
 #: what a user types, {endpoint} being a port where nothing listens; every command retries for 60 s
 COMMANDS = {
@@ -24,12 +25,6 @@ COMMANDS = {
 }
 #: the -v line that says the command is in its retry loop (dqm.runtime.bus.open_client)
 RETRYING = "retrying for up to"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_connecting(argv_by_name: dict, logs) -> dict:
@@ -76,10 +71,7 @@ def test_every_connecting_command_obeys_the_signal_at_once(tmp_path, sig, code):
             p.wait(timeout=30)
             took[name] = time.monotonic() - sent[name]
     finally:
-        for p, _ in procs.values():
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        kill_all(p for p, _ in procs.values())
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     for name, (p, log) in procs.items():
         text = log.read_text()
@@ -116,7 +108,7 @@ def test_every_connected_command_obeys_the_signal_while_it_works(tmp_path, sig, 
             fh = open(log, "w")
             procs[name] = (subprocess.Popen([sys.executable, "-m", "dqm", "-vv", *[a.format(**fill) for a in argv]],
                                             stdout=fh, stderr=subprocess.STDOUT), log)
-            _wait_for(log, ready, procs[name][0])
+            wait_for_text(log, ready, procs[name][0])
         sent, took = {}, {}
         for name, (p, _) in procs.items():
             sent[name] = time.monotonic()
@@ -125,10 +117,7 @@ def test_every_connected_command_obeys_the_signal_while_it_works(tmp_path, sig, 
             p.wait(timeout=30)
             took[name] = time.monotonic() - sent[name]
     finally:
-        for p in [router] + [p for p, _ in procs.values()]:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        kill_all([router] + [p for p, _ in procs.values()])
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     for name, (p, log) in procs.items():
         text = log.read_text()
@@ -142,15 +131,6 @@ def _inputs(tmp_path):
     endpoint = lines["stream"][2]
     return endpoint, lines["camera"][1], lines["agent"][-1]
 
-
-def _wait_for(path, text, proc, timeout=60.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if text in path.read_text():
-            return
-        assert proc.poll() is None, path.read_text()
-        time.sleep(0.05)
-    raise AssertionError(f"{text!r} never appeared: {path.read_text()}")
 
 
 def test_a_signal_that_surfaces_as_another_error_is_reported_as_the_stop(monkeypatch, capsys):
