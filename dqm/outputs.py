@@ -155,13 +155,6 @@ def existing(folder: Path, writes: Optional[Sequence[str]] = None) -> list:
     return sorted({f for pattern in writes for f in folder.glob(pattern)})
 
 
-def make_dir(path) -> Path:
-    """Create the output folder ``path`` (checked by :func:`check_dir`) when the first file is written."""
-    p = Path(path)
-    p.mkdir(parents=True, exist_ok=True)
-    return p
-
-
 @contextmanager
 def atomic_output(path) -> Iterator[str]:
     """A temporary file beside ``path`` (same suffix), renamed to ``path`` when the block ends, removed if

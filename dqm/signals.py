@@ -7,7 +7,7 @@ complete or absent (:func:`dqm.outputs.atomic_output`).
 
 * SIGTERM is raised as :class:`Terminated`, a ``KeyboardInterrupt``: every ``except
   KeyboardInterrupt`` that cleans up after Ctrl-C cleans up after SIGTERM too, and
-  :func:`exit_code` tells the two apart (check ``Terminated`` first).
+  :func:`exit_code` and :func:`word` tell the two apart.
 * Commands that finish their current item before stopping (``dqm stream``, ``dqm camera``)
   catch both signals in a :class:`StopFlag`; loops that wait (connecting to a router, retries)
   call :meth:`StopFlag.check`, which raises as the default handlers would.

@@ -59,8 +59,6 @@ def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
     return pause
 
 
-
-
 def load_agent_features(paths, me: int) -> sources.AgentFeatures:
     """Own features from FEATURES files (each read once): global ids from ``feature_ids`` or
     (agent << 32) + row, images named by their source (:func:`dqm.distributed.sources.agent_features`)."""
@@ -291,12 +289,11 @@ class AgentHost:
             if self.epoch < 0 and time.monotonic() - self.t0 > self.phase_timeout_s:
                 raise TimeoutError(f"no start from a coordinator within {self.phase_timeout_s:.0f} s")
 
-
     def _check_router(self) -> None:
         """Every 0.25 s: the router must still be there (else the agent would wait out its phase timeout and
         blame the coordinator)."""
         now = time.monotonic()
-        if now - self._router_checked < 0.25 or not hasattr(self.bus, "router_connected"):
+        if now - self._router_checked < 0.25:
             return
         self._router_checked = now
         if not self.bus.router_connected():
@@ -318,7 +315,7 @@ def parse_peer_features(specs: Optional[List[str]]) -> Dict[int, List[str]]:
 
 
 #: exit codes of ``dqm agent`` (docs/runtime.md)
-EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_COORDINATOR_LOST, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 3, 4, 5, 130, 143
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_COORDINATOR_LOST = 0, 3, 4, 5  # 130 / 143: dqm.signals
 
 
 def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,

@@ -520,7 +520,7 @@ class Coordinator:
 
 
 #: exit codes of ``dqm coordinator`` (docs/runtime.md)
-EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 3, 4, 130, 143
+EXIT_OK, EXIT_FAILED, EXIT_REFUSED = 0, 3, 4  # 130 / 143: dqm.signals
 
 
 def failure_path(out: str) -> Path:

@@ -47,7 +47,7 @@ from ..core.clustering import DEFAULT_RHO
 from ..distributed import keys, messages
 from ..validation import InputError
 
-#: exit codes of ``dqm stream``: done (--images reached, idle, or nothing more to do), interrupted, terminated
+#: exit code of ``dqm stream``: done (--images reached, idle, or nothing more to do); 130 / 143: dqm.signals
 EXIT_OK = 0
 #: the reason of a rejected message is logged this many times, then only counted
 LOG_PER_REASON = 3

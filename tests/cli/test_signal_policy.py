@@ -47,31 +47,37 @@ def start_connecting(argv_by_name: dict, logs) -> dict:
     return procs
 
 
-def command_lines(tmp_path) -> dict:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+def inputs(tmp_path) -> dict:
+    """What the command lines name: an endpoint where nothing listens yet, a folder of images, a FEATURES file."""
     images = tmp_path / "frames"
     assert subprocess.run([sys.executable, "-m", "dqm", "scene", str(images), "--images", "2", "--size", "120",
                            "160"], capture_output=True, timeout=120).returncode == 0
     ds = synthetic.sized(200, seed=0)
     io.save_features(tmp_path / "f.npz", io.FeatureSet(ds.descriptors, ds.image_ids))
-    fill = {"endpoint": endpoint, "images": str(images), "features": str(tmp_path / "f.npz")}
-    return {name: [a.format(**fill) for a in argv] for name, argv in COMMANDS.items()}
+    return {"endpoint": f"tcp/127.0.0.1:{free_port()}", "images": str(images), "features": str(tmp_path / "f.npz")}
 
 
-@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_every_connecting_command_obeys_the_signal_at_once(tmp_path, sig, code):
-    procs = start_connecting(command_lines(tmp_path), tmp_path)
-    sent = {}
+def signal_all(procs: dict, sig, others=()) -> dict:
+    """Send ``sig`` to every process of ``procs`` ({name: (Popen, log)}) at once; returns the seconds each took
+    to end. Kills and reaps what still runs afterwards, ``others`` too."""
+    sent, took = {}, {}
     try:
         for name, (p, _) in procs.items():
             sent[name] = time.monotonic()
             p.send_signal(sig)
-        took = {}
         for name, (p, _) in procs.items():
             p.wait(timeout=30)
             took[name] = time.monotonic() - sent[name]
     finally:
-        kill_all(p for p, _ in procs.values())
+        kill_all(list(others) + [p for p, _ in procs.values()])
+    return took
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_every_connecting_command_obeys_the_signal_at_once(tmp_path, sig, code):
+    fill = inputs(tmp_path)
+    procs = start_connecting({name: [a.format(**fill) for a in argv] for name, argv in COMMANDS.items()}, tmp_path)
+    took = signal_all(procs, sig)
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     for name, (p, log) in procs.items():
         text = log.read_text()
@@ -96,7 +102,7 @@ WORKING = {
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_every_connected_command_obeys_the_signal_while_it_works(tmp_path, sig, code):
-    fill = {k: v for k, v in zip(("endpoint", "images", "features"), _inputs(tmp_path))}
+    fill = inputs(tmp_path)
     router = subprocess.Popen([sys.executable, "-m", "dqm", "router", "--listen", fill["endpoint"]],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     procs = {}
@@ -109,28 +115,16 @@ def test_every_connected_command_obeys_the_signal_while_it_works(tmp_path, sig, 
             procs[name] = (subprocess.Popen([sys.executable, "-m", "dqm", "-vv", *[a.format(**fill) for a in argv]],
                                             stdout=fh, stderr=subprocess.STDOUT), log)
             wait_for_text(log, ready, procs[name][0])
-        sent, took = {}, {}
-        for name, (p, _) in procs.items():
-            sent[name] = time.monotonic()
-            p.send_signal(sig)
-        for name, (p, _) in procs.items():
-            p.wait(timeout=30)
-            took[name] = time.monotonic() - sent[name]
-    finally:
+    except BaseException:
         kill_all([router] + [p for p, _ in procs.values()])
+        raise
+    took = signal_all(procs, sig, others=[router])
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     for name, (p, log) in procs.items():
         text = log.read_text()
         assert p.returncode == code, (name, p.returncode, text[-1500:])
         assert "Traceback" not in text and word in text, (name, text[-1500:])
         assert took[name] < 2.0, f"{name} took {took[name]:.2f} s to leave after {sig.name}"
-
-
-def _inputs(tmp_path):
-    lines = command_lines(tmp_path)
-    endpoint = lines["stream"][2]
-    return endpoint, lines["camera"][1], lines["agent"][-1]
-
 
 
 def test_a_signal_that_surfaces_as_another_error_is_reported_as_the_stop(monkeypatch, capsys):
