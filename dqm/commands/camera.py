@@ -4,7 +4,9 @@
     dqm camera 'cam1/*.jpg' --connect tcp/ROUTER:7447 --job cams --camera 1 --rate 5 --loop --limit 100
 
 IMAGES: folders, glob patterns or image files, and/or --image-list FILE (the same
-inputs, in the same order, as dqm extract; --recursive too). The node waits for the
+inputs, in the same order, as dqm extract; --recursive too). Under access control
+(--tls-cert or --user) the node first checks that the router lets it put as camera C
+(the roster line 'camera NAME C'), else exits 2 naming the line. It waits for the
 stream's liveliness token (dqm/<job>/alive/stream, up to --wait seconds), then
 extracts SIFT (the same --preset / --max-features as dqm extract) and puts one
 `image` message per image on dqm/<job>/stream/images/from/C, one every 1/--rate seconds
@@ -129,7 +131,7 @@ def run(args) -> int:
     from ..distributed import keys
     from ..progress import ProgressBar
     from ..runtime import stream
-    from ..runtime.bus import RouterUnreachable, check_endpoint
+    from ..runtime.bus import AccessDenied, RouterUnreachable, check_endpoint
     from ..validation import InputError
     from ..vision.features import collect_images, check_preset, unreadable_images
 
@@ -176,7 +178,7 @@ def run(args) -> int:
         code = stream.main_camera(args.connect, args.job, camera, source, rate=rate, first_index=first, tls=tls,
                                   connect_timeout_s=connect_s, wait_s=wait_s, progress=progress,
                                   lines=args.verbose)
-    except (RouterUnreachable, stream.StreamUnavailable) as exc:
+    except (RouterUnreachable, AccessDenied, stream.StreamUnavailable) as exc:
         raise InputError(str(exc)) from None
     finally:
         bar.close()

@@ -26,6 +26,8 @@ Gathering (:mod:`dqm.runtime.gather`: every source's features to one host, the c
 Streaming (``dqm stream``, :mod:`dqm.runtime.stream`):
 
 * ``dqm/<job>/stream/images/from/<c>``  camera node c puts ``image`` messages here (one image each)
+* ``dqm/<job>/stream/images/from/<c>/probe``  camera node c's check that the router lets it put as
+  camera c (the stream's subscription ``from/*`` does not reach it)
 * ``dqm/<job>/stream/changes``  the stream publishes one ``changes`` message per add or remove
 * ``dqm/<job>/alive/stream``    liveliness token of the stream: declared once it subscribes, so
   a camera node waits for it before its first put (a put before is lost)
@@ -108,6 +110,11 @@ def stream_images(job: str) -> str:
 def camera_images(job: str, camera: int) -> str:
     """Where camera node ``camera`` puts its images."""
     return f"dqm/{job}/stream/images/from/{int(camera)}"
+
+
+def camera_probe(job: str, camera: int) -> str:
+    """Where camera node ``camera`` checks at start-up that the router lets it put as camera ``camera``."""
+    return f"{camera_images(job, camera)}/probe"
 
 
 def _source_of_key(job: str, space: str, key: str):

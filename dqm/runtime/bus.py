@@ -233,6 +233,39 @@ def check_token_admitted(endpoint: str, tls: Optional[dict], token_key: str, wha
                                       [f"its liveliness token {token_key} is not admitted"], line, job))
 
 
+def check_put_admitted(session, endpoint: str, tls: Optional[dict], key: str, what: str, line: str, job: str,
+                       deadline_s: float = 3.0) -> None:
+    """With an identity, check through the router that ``session``'s puts on ``key`` arrive: a second session
+    of the same identity subscribes to ``key`` and must receive a nonce put there within ``deadline_s``. The
+    start-up check of processes that only put (``dqm camera``, on its probe key). :class:`AccessDenied`
+    otherwise."""
+    import os
+
+    if not tls:
+        return  # no identity: no access control possible
+    probe = open_client(endpoint, tls, deadline_s=deadline_s)
+    nonce, arrived = os.urandom(16), threading.Event()
+
+    def on_sample(sample) -> None:
+        if bytes(sample.payload.to_bytes()) == nonce:
+            arrived.set()
+
+    try:
+        sub = probe.declare_subscriber(key, on_sample)
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < deadline_s:
+                session.put(key, nonce)
+                if arrived.wait(0.2):
+                    return
+        finally:
+            sub.undeclare()
+    finally:
+        probe.close()
+    raise AccessDenied(denied_message(endpoint, identity_of(tls) or "this client", what,
+                                      [f"its puts on {key} do not arrive"], line, job))
+
+
 def identity_of(tls: Optional[dict]) -> str:
     """The identity a client presents: its certificate's common name, else its username ("" if none)."""
     import ssl

@@ -169,8 +169,9 @@ def _rules_of(identity: Identity, job: str) -> List[Tuple[str, str, Sequence[str
                         ("egress", "declare_subscriber", [keys.stream_changes(job)]),
                         ("ingress", "liveliness_token", [keys.alive_stream(job)])]
     if identity.role == "camera":
-        own = keys.camera_images(job, identity.index)
-        return alive + [("ingress", "put", [own]), ("egress", "declare_subscriber", [own])]
+        own, probe = keys.camera_images(job, identity.index), keys.camera_probe(job, identity.index)
+        return alive + [("ingress", "put", [own]), ("egress", "declare_subscriber", [own]),
+                        ("ingress", "put declare_subscriber", [probe]), ("egress", "put declare_subscriber", [probe])]
     if identity.role == "viewer":
         return alive + [("ingress", "declare_subscriber", [keys.stream_changes(job)]),
                         ("egress", "put", [keys.stream_changes(job)])]

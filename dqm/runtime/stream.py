@@ -478,7 +478,7 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
     """
     import zenoh
 
-    from .bus import identity_of, open_client
+    from .bus import check_put_admitted, identity_of, open_client
     from .lifeline import watch_parent
     from .roster import Identity
 
@@ -500,6 +500,9 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
         session = open_client(endpoint, tls, deadline_s=connect_timeout_s, check_stop=stop.check)
         watch = None
         try:
+            line = Identity("camera", identity_of(tls) or "NAME", camera).as_line()
+            check_put_admitted(session, endpoint, tls, keys.camera_probe(job, camera),
+                               f"camera {camera} of job {job!r}", line, job)
             watch = TokenWatch(session, keys.alive_stream(job))
             if not watch.wait(min(0.5, wait_s), stopped) and not stopped():
                 LOG.info("waiting up to %g s for the stream of job %r (its token %s)", wait_s, job,
@@ -510,7 +513,7 @@ def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *
                     f"{keys.alive_stream(job)} did not appear); start `dqm stream --connect {endpoint} --job {job}` "
                     f"first, or wait longer with --wait" + (
                         f"; under access control the router's roster must also hold the line "
-                        f"'{Identity('camera', identity_of(tls) or 'NAME', camera).as_line()}' (and 'job {job}' "
+                        f"'{line}' (and 'job {job}' "
                         "if it has job lines), else the stream's token is hidden from this node" if tls else ""))
             key = keys.camera_images(job, camera)
             t0 = 0.0

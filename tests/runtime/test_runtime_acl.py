@@ -85,9 +85,9 @@ def acl_router(tmp_path_factory):
     if shutil.which("openssl") is None:
         pytest.skip("access-control tests need openssl to make certificates (not installed)")
     wd = tmp_path_factory.mktemp("acl-router")
-    certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator", "agent0", "agent1", "outsider"])
+    certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator", "agent0", "agent1", "cam0", "outsider"])
     roster = wd / "roster.txt"
-    roster.write_text("coordinator coordinator\nagent agent0 0\nagent agent1 1\n")
+    roster.write_text("coordinator coordinator\nagent agent0 0\nagent agent1 1\ncamera cam0 0\n")
     ds = synthetic.sift_like(n_images=4, n_points=60, seed=0)
     files = write_agent_files(ds.descriptors, ds.image_ids, 2, wd)
     port = free_port()
@@ -119,6 +119,29 @@ def test_an_identity_without_the_role_fails_in_seconds_naming_identity_and_key(a
     err = r.stderr.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert f"does not let identity {cert!r}" in err and key in err
+
+
+@pytest.mark.parametrize("camera,admitted", [(0, True), (1, False)])
+def test_a_camera_node_checks_at_start_up_that_it_may_put_as_its_camera(acl_router, tmp_path, camera, admitted):
+    """Issue 36: a camera certificate started with another --camera id is refused in seconds, naming the
+    roster line, instead of putting images the router drops; its own id passes the check (and then waits for
+    a stream that is not there)."""
+    import cv2
+
+    img = tmp_path / "frame.png"
+    cv2.imwrite(str(img), np.random.default_rng(0).integers(0, 255, (96, 96), dtype=np.uint8))
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "dqm", "camera", str(img), "--camera", str(camera), "--wait", "1",
+                        "--job", "acl", "--connect", acl_router["endpoint"], "--quiet",
+                        *tls_options(acl_router["certs"], "cam0")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and time.monotonic() - t0 < 15, r.stderr
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    if admitted:
+        assert "no dqm stream of job 'acl'" in err and "does not let" not in err, err
+    else:
+        assert "does not let identity 'cam0' act as camera 1" in err, err
+        assert "dqm/acl/stream/images/from/1/probe" in err and "'camera cam0 1'" in err, err
 
 
 def test_the_router_reports_identities_not_in_the_roster(acl_router):
