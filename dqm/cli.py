@@ -23,41 +23,61 @@ from typing import List, Optional
 from . import __version__, logging_config, signals
 from .commands import HelpFormatter
 
-COMMANDS = [
-    "dqm.commands.extract",
-    "dqm.commands.match",
-    "dqm.commands.split",
-    "dqm.commands.export",
-    "dqm.commands.sfm",
-    "dqm.commands.importer",
-    "dqm.commands.demo",
-    "dqm.commands.evaluate",
-    "dqm.commands.plot",
-    "dqm.commands.scene",
-    "dqm.commands.run",
-    "dqm.commands.router",
-    "dqm.commands.agent",
-    "dqm.commands.coordinator",
-    "dqm.commands.stream",
-    "dqm.commands.camera",
-    "dqm.commands.experiment",
-    "dqm.commands.doctor",
-]
+#: command name -> the module that holds it (NAME, HELP, add_arguments, run)
+COMMANDS = {
+    "extract": "dqm.commands.extract",
+    "match": "dqm.commands.match",
+    "split": "dqm.commands.split",
+    "export": "dqm.commands.export",
+    "sfm": "dqm.commands.sfm",
+    "import": "dqm.commands.importer",
+    "demo": "dqm.commands.demo",
+    "evaluate": "dqm.commands.evaluate",
+    "plot": "dqm.commands.plot",
+    "scene": "dqm.commands.scene",
+    "run": "dqm.commands.run",
+    "router": "dqm.commands.router",
+    "agent": "dqm.commands.agent",
+    "coordinator": "dqm.commands.coordinator",
+    "stream": "dqm.commands.stream",
+    "camera": "dqm.commands.camera",
+    "experiment": "dqm.commands.experiment",
+    "doctor": "dqm.commands.doctor",
+}
 
 VERBOSE_HELP = ("more messages on standard error: -v what the command is doing, -vv debugging detail "
                 "(default: warnings and errors only)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``dqm`` parser with every sub-command (imports the command modules and what they need)."""
-    from .core.native import kernel_description
+class _VersionAction(argparse.Action):
+    """``--version``: the version and the tile kernel, loaded only when asked (the kernel needs numpy)."""
 
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from .core.native import kernel_description
+
+        print(f"dqm {__version__}, tile kernel: {kernel_description()}")
+        parser.exit()
+
+
+def command_named(argv: List[str]) -> Optional[str]:
+    """The sub-command ``argv`` names (its first word that is not an option), when it is one of ours."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def build_parser(only: Optional[str] = None) -> argparse.ArgumentParser:
+    """The ``dqm`` parser with every sub-command, or with sub-command ``only`` alone (a command's start-up
+    then imports its own module, not every command's)."""
     parser = argparse.ArgumentParser(prog="dqm", description="Consistent multi-image feature matching with QuickMatch.")
-    parser.add_argument("--version", action="version", version=f"dqm {__version__}, tile kernel: "
-                        f"{kernel_description()}")
+    parser.add_argument("--version", action=_VersionAction, help="the version and the tile kernel in use")
     parser.add_argument("-v", "--verbose", action="count", default=0, dest="verbosity", help=VERBOSE_HELP)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for modname in COMMANDS:
+    for name, modname in COMMANDS.items():
+        if only is not None and name != only:
+            continue
         mod = importlib.import_module(modname)
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=(mod.__doc__ or mod.HELP).strip(),
                            formatter_class=HelpFormatter)
@@ -144,15 +164,16 @@ def main(argv: Optional[List[str]] = None) -> int:
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
     signals.install_sigterm()
     signals.received = None
+    argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        parser = build_parser()
+        parser = build_parser(only=command_named(argv))
         from .validation import InputError
     except KeyboardInterrupt as exc:
         global interrupted_while_importing
         interrupted_while_importing = True
         print(f"dqm: {signals.word(exc)}", file=sys.stderr)
         return signals.exit_code(exc)
-    argv = join_negative_values(parser, list(sys.argv[1:] if argv is None else argv))
+    argv = join_negative_values(parser, argv)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()

@@ -23,8 +23,6 @@ from __future__ import annotations
 from typing import Tuple
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ..core import tree
 
@@ -58,6 +56,9 @@ def assign_components(child_key: np.ndarray, child_agent: np.ndarray, parent_key
     agents = agents_all[first]
     k = len(keys)
     e = len(child_key)
+    from scipy.sparse import coo_matrix  # here: scipy.sparse costs 0.3 s of every command's start-up
+    from scipy.sparse.csgraph import connected_components
+
     g = coo_matrix((np.ones(e), (inv[:e], inv[e:])), shape=(k, k))
     _, comp = connected_components(g, directed=False)
     lowest = np.full(comp.max() + 1, np.iinfo(np.int64).max)
