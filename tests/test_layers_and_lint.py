@@ -39,7 +39,8 @@ def imported_modules(path: Path) -> set:
 
 def test_resolution_of_relative_imports(tmp_path):
     assert "dqm.validation" in imported_modules(ROOT / "dqm" / "core" / "clustering.py")
-    assert "dqm.core.clustering" in imported_modules(ROOT / "dqm" / "core" / "__init__.py")
+    assert "dqm.core.clustering" in imported_modules(ROOT / "dqm" / "core" / "online.py")  # from .clustering
+    assert "dqm.core.pairs" in imported_modules(ROOT / "dqm" / "core" / "online.py")  # from . import pairs
 
 
 @pytest.mark.parametrize("layer", sorted(ABOVE))

@@ -1,13 +1,16 @@
 """Cluster features of many images with QuickMatch.
 
-INPUT is either a FEATURES .npz file (format: see dqm/io.py or docs/formats.md)
-or images: a folder, a glob pattern, or several image files, from which SIFT
+INPUT is either a FEATURES .npz file (format: see dqm/io.py or docs/formats.md),
+a COLMAP database (its keypoints, descriptors and image names, read directly:
+no dqm import step; --image-dir names the folder its image names are relative
+to), or images: a folder, a glob pattern, or several image files, from which SIFT
 features are extracted first (OpenCV; --preset, --max-features; the default
 preset is dqm sfm's). --verify splits off the members that the image pairs'
 geometry rejects; --guided also grows the clusters along it (more complete
 clusters, but worse SfM cameras: docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
+    dqm match database.db --out clusters.npz --image-dir images/   # COLMAP's features
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
     dqm match photos/ --out clusters.npz --max-features 2000 --tracks-csv tracks.csv
     dqm match big.npz --out clusters.npz --approximate      # a million features
@@ -40,8 +43,12 @@ HELP = "cluster features (from a .npz or from images) with QuickMatch"
 
 def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="INPUT",
-                   help="FEATURES.npz file(s), or image folders / globs / files (or none, with --image-list)")
+                   help="FEATURES.npz file(s), a COLMAP database.db, or image folders / globs / files (or none, "
+                        "with --image-list)")
     p.add_argument("--out", required=True, help="CLUSTERS.npz to write")
+    p.add_argument("--image-dir", default=None, metavar="DIR",
+                   help="with a COLMAP database: the folder its image names are relative to (the CLUSTERS file "
+                        "then names the image files, for plot and export)")
     add_cluster_options(p)
     add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
@@ -99,6 +106,25 @@ def is_features_file(path) -> bool:
 def load_input(args) -> io.FeatureSet:
     """FEATURES .npz file(s), combined (each file numbers its own images: :func:`dqm.io.merge_features`),
     or SIFT of the images named by the inputs (progress bar per image); :func:`is_features_file` tells them apart."""
+    from ..vision.colmap import is_database
+
+    databases = [p for p in args.inputs if is_database(p)]
+    if databases:
+        if len(args.inputs) > 1 or getattr(args, "image_list", None):
+            other = next((p for p in args.inputs if p != databases[0]), "--image-list")
+            raise InputError(f"a COLMAP database ({databases[0]}) is matched on its own, not with {other}; "
+                             "give one database, or FEATURES files, or images")
+        from ..vision.colmap import import_database, require_pycolmap
+
+        require_pycolmap(what="dqm match on a COLMAP database")
+        image_dir = getattr(args, "image_dir", None)
+        if image_dir is not None:
+            if not Path(image_dir).is_dir():
+                raise InputError(f"--image-dir {image_dir}: no such folder")
+            image_dir = Path(image_dir).resolve()  # CLUSTERS files name their images by absolute path
+        return import_database(databases[0], image_dir=image_dir)
+    if getattr(args, "image_dir", None):
+        raise InputError("--image-dir names the folder of a COLMAP database's images; the inputs hold no database")
     features = [p for p in args.inputs if is_features_file(p)]
     if not features:
         if not args.inputs and not getattr(args, "image_list", None):

@@ -327,6 +327,21 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     return summary
 
 
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def is_database(path) -> bool:
+    """A COLMAP database is known by its content (an SQLite file) or its .db suffix, in any case."""
+    path = Path(path)
+    if path.suffix.lower() == ".db":
+        return True
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(16) == SQLITE_MAGIC
+    except OSError:
+        return False
+
+
 def import_database(database, image_dir=None) -> FeatureSet:
     """Keypoints, descriptors and image names of a COLMAP database as a FEATURES set.
 
@@ -340,7 +355,7 @@ def import_database(database, image_dir=None) -> FeatureSet:
     if not database.is_file():
         raise InputError(f"COLMAP database not found: {database}")
     with open(database, "rb") as fh:  # checked here: pycolmap would log its own error line first
-        if fh.read(16) != b"SQLite format 3\x00":
+        if fh.read(16) != SQLITE_MAGIC:
             raise InputError(f"{database}: not a COLMAP database (not an SQLite file)")
     try:
         db = pycolmap.Database.open(str(database))

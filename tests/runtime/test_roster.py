@@ -77,7 +77,12 @@ def test_rules_give_each_identity_only_its_own_keys():
     assert puts == {"dqm/survey-7/proc/*/from/0/**"}
     assert not any("proc/1" in k or "from/1" in k or "coordinator" in k for _, _, k in a)
     cam = allowed("cam-a")
-    assert {k for f, m, k in cam if f == "ingress" and m == "put"} == {keys.camera_images("survey-7", 0)}
+    assert {k for f, m, k in cam if f == "ingress" and m == "put"} == {keys.camera_images("survey-7", 0),
+                                                                     keys.camera_probe("survey-7", 0)}
+    # its own probe key only (the start-up check): a camera never subscribes to images
+    assert {k for f, m, k in cam if m == "declare_subscriber"} == {keys.camera_images("survey-7", 0),
+                                                                   keys.camera_probe("survey-7", 0)}
+    assert {k for f, m, k in cam if f == "ingress" and m == "declare_subscriber"} == {keys.camera_probe("survey-7", 0)}
     assert {k for f, m, k in allowed("dashboard") if m == "declare_subscriber"} == {keys.stream_changes("survey-7")}
     # both authentications name the same identity: a subject each
     assert {tuple(sorted(s)) for s in acl["subjects"]} == {("cert_common_names", "id"), ("id", "usernames")}

@@ -167,3 +167,29 @@ def test_cli_match_verify_export_and_import(scene, tmp_path):
     assert len(fs) == len(scene["ids"]) and fs.image_names is not None
     p = run("match", tmp_path / "f.npz", "--out", tmp_path / "c2.npz", "--verify", "--quiet")
     assert p.returncode == 0, p.stderr
+
+
+def test_match_reads_a_colmap_database_directly(scene, tmp_path, capsys):
+    """Issue 37: `dqm match database.db` gives the clusters of `dqm import colmap` + `dqm match`, with the
+    images named under --image-dir (absolute, as every CLUSTERS file names them); a database is matched on
+    its own, and --image-dir without one is refused before any work."""
+    from dqm.cli import main
+
+    c = tmp_path / "c.npz"
+    assert main(["match", str(scene["folder"]), "--out", str(c), "--quiet", "--preset", "rootsift"]) == 0
+    db = tmp_path / "db.db"
+    assert main(["export", "colmap", str(c), "--database", str(db)]) == 0
+    assert main(["import", "colmap", str(db), "--out", str(tmp_path / "f.npz")]) == 0
+    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "via_import.npz"), "--quiet"]) == 0
+    direct = tmp_path / "direct.npz"
+    assert main(["match", str(db), "--out", str(direct), "--quiet", "--image-dir", str(scene["folder"])]) == 0
+    a, b = io.load_clusters(tmp_path / "via_import.npz"), io.load_clusters(direct)
+    assert len(a["labels"]) == len(scene["ids"]) and np.array_equal(a["labels"], b["labels"])
+    assert [str(n) for n in b["image_names"]] == [str(p.resolve()) for p in scene["paths"]]
+    capsys.readouterr()
+    assert main(["match", str(db), str(tmp_path / "f.npz"), "--out", str(tmp_path / "x.npz")]) == 2
+    assert "is matched on its own" in capsys.readouterr().err
+    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "x.npz"), "--image-dir", "."]) == 2
+    assert "--image-dir names the folder of a COLMAP database" in capsys.readouterr().err
+    assert main(["match", str(db), "--out", str(tmp_path / "x.npz"), "--image-dir", str(tmp_path / "none")]) == 2
+    assert "no such folder" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
