@@ -263,9 +263,9 @@ def test_routing_of_a_row_does_not_depend_on_its_batch():
     rng = np.random.default_rng(8)
     P = rng.normal(size=(6, 128)) * 100
     w = rng.normal(size=6)
-    i, j = rng.integers(0, 6, 300), rng.integers(0, 6, 300)
-    X = (P[i] + P[j]) / 2 + rng.choice([0.0, 1e-13, -1e-13], size=(300, 1)) * rng.normal(size=(300, 128))
-    X = np.vstack([X, rng.normal(size=(200, 128)) * 100])
+    i, j = rng.integers(0, 6, 150), rng.integers(0, 6, 150)
+    X = (P[i] + P[j]) / 2 + rng.choice([0.0, 1e-13, -1e-13], size=(150, 1)) * rng.normal(size=(150, 128))
+    X = np.vstack([X, rng.normal(size=(100, 128)) * 100])
     for weights in (None, w):
         batch = partition.route(X, P, weights)
         alone = np.array([partition.route(X[k:k + 1], P, weights)[0] for k in range(len(X))])
