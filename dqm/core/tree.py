@@ -84,9 +84,12 @@ def merge_clusters(
 ) -> np.ndarray:
     """Break/merge along tree edges; returns labels numbered by first member (0, 1, ...)."""
     n = len(parent)
-    root = np.arange(n)
-    scale = sigma.astype(np.float64).copy()
-    images = [None] * n  # lazily created sets; None means {image_index[i]}
+    # the loop runs on Python lists (scalar access to numpy arrays costs several times more); the values,
+    # float64 distances and scales, are the same doubles
+    root = list(range(n))
+    scale = sigma.astype(np.float64).tolist()
+    image_of = np.asarray(image_index).tolist()
+    images = [None] * n  # lazily created sets; None means {image_of[i]}
 
     def find(i: int) -> int:
         r = i
@@ -99,17 +102,15 @@ def merge_clusters(
         return r
 
     edges = np.flatnonzero(parent >= 0)
-    order = np.lexsort((edges, pdist[edges]))
-    for j in edges[order].tolist():
-        p = int(parent[j])
-        d = pdist[j]
+    order = edges[np.lexsort((edges, pdist[edges]))]
+    for j, p, d in zip(order.tolist(), parent[order].tolist(), pdist[order].astype(np.float64).tolist()):
         rj, rp = find(j), find(p)
         if rj == rp:
             continue
         if not d < rho * min(scale[rj], scale[rp]):
             continue
-        sj = images[rj] if images[rj] is not None else {int(image_index[rj])}
-        sp = images[rp] if images[rp] is not None else {int(image_index[rp])}
+        sj = images[rj] if images[rj] is not None else {image_of[rj]}
+        sp = images[rp] if images[rp] is not None else {image_of[rp]}
         if len(sj) > len(sp):
             sj, sp = sp, sj
             rj, rp = rp, rj
