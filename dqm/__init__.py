@@ -4,7 +4,7 @@ The public names load on first use (PEP 562), so that ``import dqm`` -- and the 
 command, which must own Ctrl-C from its first moment -- does not pay for numpy and the
 engine until they are needed.
 """
-import importlib
+from .lazy_exports import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -13,15 +13,4 @@ _PUBLIC = {"DEFAULT_RHO": ".core", "OnlineQuickMatch": ".core", "QuickMatch": ".
            "QuickMatchResult": ".core", "quickmatch": ".core", "InputError": ".validation"}
 
 __all__ = sorted(_PUBLIC) + ["__version__"]
-
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        value = getattr(importlib.import_module(_PUBLIC[name], __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'dqm' has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_PUBLIC))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

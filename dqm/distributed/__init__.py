@@ -25,29 +25,12 @@ module             holds
 ``simulator``      all agents in one process, metered
 =================  ===============================================================
 """
-import importlib
+from ..lazy_exports import lazy_exports
 
-#: public name -> the submodule that defines it (loaded on first use, PEP 562: the runtime's commands
-#: import the options of :mod:`.config` without the simulator)
-_PUBLIC = {"DEFAULT_MODE": "config", "MODES": "config", "DQMConfig": "config", "DQMResult": "simulator",
-           "Traffic": "simulator", "simulate": "simulator", "image_owners": "sources"}
+#: public name -> the submodule that defines it (loaded on first use: the runtime's commands import the
+#: options of :mod:`.config` without the simulator)
+_PUBLIC = {"DEFAULT_MODE": ".config", "MODES": ".config", "DQMConfig": ".config", "DQMResult": ".simulator",
+           "Traffic": ".simulator", "simulate": ".simulator", "image_owners": ".sources"}
 
 __all__ = sorted(_PUBLIC)
-
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        value = getattr(importlib.import_module(f".{_PUBLIC[name]}", __name__), name)
-    else:
-        try:
-            value = importlib.import_module(f".{name}", __name__)  # dqm.distributed.<submodule>
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{__name__}.{name}":
-                raise  # the submodule exists; something it imports is missing
-            raise AttributeError(f"module 'dqm.distributed' has no attribute {name!r}") from None
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_PUBLIC))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)
