@@ -1,6 +1,6 @@
 """dqm sfm end to end on a generated 3-D scene with known cameras: the model, its cameras against the
-ground truth (--gt, both formats), the same model bit for bit on a second run, and scripts/bench_sfm.py
-(small) on real photos with ground-truth cameras."""
+ground truth (--gt, both formats), the same model bit for bit on a second run, scripts/bench_sfm.py
+(small, on a generated scene), and the shared photos' ground-truth cameras."""
 import json
 import re
 import subprocess
@@ -78,29 +78,48 @@ def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "m").exists()
 
 
-def test_bench_sfm_small_on_photos_with_ground_truth(tmp_path):
-    """scripts/bench_sfm.py on the first 3 photos of strecha/entry-P10, dqm's default beside COLMAP's
-    pipeline: both register every image, and the JSON's AUC is the AUC of its pairwise errors."""
-    from conftest import require_data
-
+def test_bench_sfm_small_with_ground_truth(tmp_path):
+    """scripts/bench_sfm.py on a generated 4-image scene with its true cameras (Strecha files), dqm's default
+    beside COLMAP's pipeline: both register every image, and the JSON's AUC is the AUC of its pairwise
+    errors. (The benchmark's real runs are on photos: docs/sfm.md.)"""
     from dqm.vision import poses
+    from generators.scenes3d import generate_scene3d
 
-    scene = require_data("strecha", "entry-P10")
-    p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(scene / "images"), "--gt",
-                        str(scene / "gt_cameras"), "--max-images", "3", "--pipelines", "colmap,dqm",
-                        "--out-dir", str(tmp_path / "out")], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    scene = generate_scene3d(seed=0, n_images=4)
+    saved = scene.save(tmp_path / "scene")
+    images = tmp_path / "images"  # the photos only (COLMAP reads every file of the folder)
+    images.mkdir()
+    for p in sorted(saved.glob("img*.png")):
+        (images / p.name).symlink_to(p)
+    gt = write_strecha(scene, tmp_path / "gt")
+    p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(images), "--gt", str(gt),
+                        "--pipelines", "colmap,dqm", "--out-dir", str(tmp_path / "out")],
+                       capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-2000:]
     table = (tmp_path / "out" / "sfm.md").read_text()
     rows = [ln for ln in table.splitlines() if ln.startswith(("| colmap", "| dqm"))]
-    assert len(rows) == 2 and all("| 3 / 3 |" in ln for ln in rows), table
+    assert len(rows) == 2 and all("| 4 / 4 |" in ln for ln in rows), table
     assert re.search(r"^- dqm: AUC@1° [0-9.]+ vs [0-9.]+ \((met|missed)\)", table, re.M), table
     data = json.loads((tmp_path / "out" / "sfm.json").read_text())
     for name in ("colmap", "dqm"):
         run = data["results"][name][0]
-        assert len(run["pair_errors"]) == 3  # 3 images, 3 pairs
+        assert len(run["pair_errors"]) == 6  # 4 images, 6 pairs
         auc = poses.pose_auc(run["pair_errors"])
         assert [run["poses"]["auc"][k] for k in ("1", "2", "5")] == pytest.approx(auc)
     assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000
+
+
+def test_the_strecha_cameras_of_the_shared_photos_are_read():
+    """The ground truth the benchmark's real runs use (strecha/entry-P10): ten cameras, rotations."""
+    from conftest import require_data
+
+    from dqm.vision import poses
+
+    truth = poses.read_strecha(require_data("strecha", "entry-P10") / "gt_cameras")
+    assert len(truth) == 10 and all(name.endswith(".jpg") for name in truth)
+    for pose in truth.values():
+        R = np.asarray(pose.R)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
 
 
 def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_path, capsys):
