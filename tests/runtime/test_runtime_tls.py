@@ -64,7 +64,7 @@ def test_client_without_valid_certificate_is_refused(who, certs, tls_router, dat
     _, files, _ = data
     port = tls_router["port"]
     ep = tls_router["endpoint"]
-    agent = ["agent", "--id", "0", "--agents", str(M), "--job", "tls", "--connect-timeout", "2"]
+    agent = ["agent", "--id", "0", "--agents", str(M), "--job", "tls", "--connect-timeout", "1"]
     args = {
         "no-certificate": agent + ["--connect", ep, str(files[0])],
         "certificate-of-another-ca": agent + ["--connect", ep, "--tls-ca", str(ours / "ca.pem"),
@@ -73,7 +73,7 @@ def test_client_without_valid_certificate_is_refused(who, certs, tls_router, dat
         "another-ca-everywhere": agent + ["--connect", ep, *tls_args(other, "intruder"), str(files[0])],
         "plain-tcp": agent + ["--connect", f"tcp/127.0.0.1:{port}", str(files[0])],
         "coordinator-of-another-ca": ["coordinator", "--agents", str(M), "--job", "tls", "--connect", ep,
-                                      "--connect-timeout", "2", *tls_args(other, "intruder")],
+                                      "--connect-timeout", "1", *tls_args(other, "intruder")],
     }[who]
     r, took = _client(args)
     assert r.returncode == 2, r.stderr
