@@ -63,9 +63,14 @@ class _VersionAction(argparse.Action):
 
 
 def command_named(argv: List[str]) -> Optional[str]:
-    """The sub-command ``argv`` names (its first word that is not an option), when it is one of ours."""
-    word = next((a for a in argv if not a.startswith("-")), None)
-    return word if word in COMMANDS else None
+    """The sub-command ``argv`` names (its first word that is not an option), when it is one of ours and no
+    ``-h`` / ``--help`` comes before it (``dqm --help match`` shows every command)."""
+    for a in argv:
+        if a in ("-h", "--help"):
+            return None
+        if not a.startswith("-"):
+            return a if a in COMMANDS else None
+    return None
 
 
 def build_parser(only: Optional[str] = None) -> argparse.ArgumentParser:

@@ -26,6 +26,7 @@ def test_every_command_is_registered_under_its_own_name():
     for name in COMMANDS:
         assert command_named(["-v", name, "--out", "run"]) == name
     assert command_named(["--help"]) is None and command_named(["nonsense", "match"]) is None
+    assert command_named(["--help", "match"]) is None and command_named(["match", "--help"]) == "match"
 
 
 @pytest.mark.parametrize("argv,own", [(["agent", "--help"], "dqm.commands.agent"),
