@@ -152,7 +152,7 @@ def test_sigterm_to_dqm_run_leaves_no_process(tmp_path):
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_bounds", DQM_FAULT_MARKER=str(marker))
     p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "sigterm-test"],
-                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     t0 = time.monotonic()
     while not marker.exists() and time.monotonic() - t0 < 60:
         time.sleep(0.05)

@@ -135,7 +135,7 @@ def test_sigkill_of_dqm_run_leaves_nothing_behind(tmp_path):
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_bounds", DQM_FAULT_MARKER=str(marker), TMPDIR=str(tmp_path))
     p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", f"sigkill-{os.getpid()}"],
-                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
     t0 = time.monotonic()
     while not marker.exists() and time.monotonic() - t0 < 60:
         time.sleep(0.05)
@@ -155,10 +155,11 @@ def test_sigkill_of_dqm_run_leaves_nothing_behind(tmp_path):
     assert not list(tmp_path.glob(WORKDIR_PREFIX + "*"))
 
 
-def _run_on_pty(args, env=None, timeout=120):
+def _run_on_pty(args, env=None, timeout=120, cwd=None):
     """Run a command with its stdout and stderr on a pseudo-terminal; returns (exit code, output)."""
     master, slave = pty.openpty()
-    p = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave, env=env, close_fds=True)
+    p = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave, env=env, close_fds=True,
+                         cwd=cwd)
     os.close(slave)
     chunks = []
     t0 = time.monotonic()
@@ -179,14 +180,15 @@ def _run_on_pty(args, env=None, timeout=120):
     return p.returncode, b"".join(chunks).decode(errors="replace")
 
 
-def test_progress_is_shown_on_a_terminal_and_not_when_piped():
-    rc, out = _run_on_pty([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "pty-test"])
+def test_progress_is_shown_on_a_terminal_and_not_when_piped(tmp_path):
+    # in a folder of their own: the runs write their default CLUSTERS file under ./dqm-out
+    rc, out = _run_on_pty([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "pty-test"], cwd=tmp_path)
     assert rc == 0, out
     assert "dqm job:" in out and "agents done" in out
     assert "agent 0" in out and "features" in out and "MB" in out
     assert "\x1b[2K" in out  # redrawn in place
     piped = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "2", "--job", "pipe-test"],
-                           capture_output=True, text=True, timeout=120)
+                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert piped.returncode == 0
     assert "dqm job:" not in piped.stdout + piped.stderr and "\x1b[" not in piped.stdout + piped.stderr
 
@@ -195,7 +197,8 @@ def test_a_failed_run_prints_a_paragraph_and_no_traceback(tmp_path):
     marker = tmp_path / "paused"
     env = dict(os.environ, DQM_FAULT_PAUSE="1:wait_ghost", DQM_FAULT_MARKER=str(marker))
     p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2", "--max-lost", "0", "--job",
-                          "fail-test"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "fail-test"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         cwd=tmp_path)
     t0 = time.monotonic()
     while not marker.exists() and time.monotonic() - t0 < 60:
         time.sleep(0.05)
