@@ -235,7 +235,7 @@ def test_runtime_messages_are_plain(tmp_path, capsys):
 def test_run_check_says_what_it_does_and_keeps_the_report_first(tmp_path):
     report = tmp_path / "r.json"
     p = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "2", "--check", "--report", str(report)],
-                       capture_output=True, text=True, timeout=300)
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)  # its ./dqm-out there
     assert p.returncode == 0, p.stderr
     assert "Checking: the same job" in p.stderr
     assert "identical clusters" in p.stdout
