@@ -59,6 +59,11 @@ def load(name):
         parts = [load(p) for p in name.split("+")]
         offsets = np.cumsum([0] + [int(ids.max()) + 1 for _, ids in parts[:-1]])
         return np.vstack([D for D, _ in parts]), np.concatenate([ids + o for (_, ids), o in zip(parts, offsets)])
+    if name.endswith(".db"):  # a COLMAP database
+        from dqm.vision.colmap import import_database
+
+        fs = import_database(name)
+        return fs.descriptors, fs.image_ids
     if name.endswith(".npz"):  # a FEATURES file
         z = np.load(name)
         return z["descriptors"], z["image_ids"]
@@ -267,6 +272,26 @@ def approximate_section(names, million):
                   f"100k run, {ex100 * 100 / big['wall']:.1f}x the approximate time")
 
 
+def fast_section(names):
+    """The fast engine against exact: times, pairs computed, co-membership against exact."""
+    from dqm.evaluation import comembership_scores
+
+    print("\n### Fast engine against exact\n")
+    print("| data | n | exact s | fast s | exact / fast | pairs computed (of n^2) | lists (probed) | "
+          "fast phases s: sigma / lists / scan / edges+tree | precision | recall | F1 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in names:
+        ex = run((name, "quickmatch", {"engine": "exact", "save": scratch("exact")}))
+        fa = run((name, "quickmatch", {"engine": "fast", "save": scratch("fast")}))
+        sc = comembership_scores(np.load(scratch("fast"))["labels"], np.load(scratch("exact"))["labels"])
+        scan = fa["time_pass"] - fa["time_lists"]
+        print(f"| {Path(name).stem} | {ex['n']:,} | {ex['wall']:.2f} | {fa['wall']:.2f} | {ex['wall'] / fa['wall']:.2f} | "
+              f"{fa['pairs_computed'] / ex['n'] ** 2:.3f} | {fa['n_lists']:.0f} ({fa['n_probe']:.0f}) | "
+              f"{fa['time_sigma']:.2f} / {fa['time_lists']:.2f} / {scan:.2f} / "
+              f"{fa['time_edges'] + fa['time_tree']:.2f} | {sc.precision:.4f} | {sc.recall:.4f} | {sc.f1:.4f} |",
+              flush=True)
+
+
 def gemm_schedule(task, q):
     """The pass's own GEMMs (every unordered block pair, the same threads), nothing else: the
     float32 GEMM rate this machine's BLAS gives the pass (``task``: the data's name)."""
@@ -315,16 +340,19 @@ def timed(cmd):
 
 
 def real_section(images, rows, brute_images):
-    """dqm's pipeline against COLMAP's matcher on the same COLMAP features, and the pass's rate."""
+    """dqm's pipeline (its default engine, and --exact) against COLMAP's matcher on the same COLMAP features,
+    F1 of the default against exact, and the exact pass's rate against the GEMM's."""
     import shutil
 
     import pycolmap
+    from dqm.evaluation import comembership_scores
 
     work = Path(tempfile.mkdtemp(prefix="dqm-bench-real-"))
     print(f"\n### Real photo SIFT: {images} (COLMAP's features, pycolmap {pycolmap.__version__})\n")
-    print("| COLMAP SIFT | n | COLMAP exhaustive s | dqm import s | dqm match s | dqm export s | "
-          "dqm pipeline / COLMAP | pass GFLOP/s | GEMM GFLOP/s (same tiles) | pass / GEMM | cores busy |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| COLMAP SIFT | n | COLMAP exhaustive s | dqm match s (engine) | dqm export s | dqm / COLMAP | "
+          "dqm match --exact s | exact pipeline / COLMAP | F1 default vs exact | pass GFLOP/s | "
+          "GEMM GFLOP/s (same tiles) | pass / GEMM |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     dqm_cli = [sys.executable, "-m", "dqm"]
     for mf in rows:
         db = colmap_database(images, work, mf)
@@ -333,24 +361,27 @@ def real_section(images, rows, brute_images):
         t = time.perf_counter()
         pycolmap.match_exhaustive(str(cm))
         t_colmap = time.perf_counter() - t
-        feats, clusters, exported = work / f"f-{mf}.npz", work / f"c-{mf}.npz", work / f"e-{mf}.db"
-        t_imp = timed(dqm_cli + ["import", "colmap", str(db), "--out", str(feats), "--image-dir", str(images)])
-        t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet"])
-        t_exp = timed(dqm_cli + ["export", "colmap", str(clusters), "--database", str(exported)])
-        name = str(feats)
+        default, exact, exported = work / f"c-{mf}.npz", work / f"x-{mf}.npz", work / f"e-{mf}.db"
+        t_match = timed(dqm_cli + ["match", str(db), "--image-dir", str(images), "--out", str(default), "--quiet"])
+        t_exp = timed(dqm_cli + ["export", "colmap", str(default), "--database", str(exported)])
+        t_exact = timed(dqm_cli + ["match", str(db), "--image-dir", str(images), "--out", str(exact), "--quiet",
+                                   "--exact"])
+        d, x = np.load(default, allow_pickle=False), np.load(exact, allow_pickle=False)
+        engine = json.loads(str(d["params"]))["engine"] if "params" in d.files else "?"
+        f1 = comembership_scores(d["labels"], x["labels"]).f1
+        name = str(db)
         qm = run((name, "quickmatch", {"save": scratch("real")}))
-        same = bool(np.array_equal(np.load(scratch("real"))["labels"], np.load(clusters)["labels"]))
+        same = bool(np.array_equal(np.load(scratch("real"))["labels"], x["labels"]))
         gm = run((name,), target=gemm_schedule)
         rate_pass = gm["flops"] / qm["time_pass"] / 1e9  # the same tiles' flops, in the pass's own time
         rate_gemm = gm["flops"] / gm["wall"] / 1e9
-        busy = qm["cpu_pass"] / qm["time_pass"]
-        total = t_imp + t_match + t_exp
-        print(f"| {mf} | {qm['n']:,} | {t_colmap:.2f} | {t_imp:.2f} | {t_match:.2f} | {t_exp:.2f} | "
-              f"{total / t_colmap:.2f} | {rate_pass:.0f} | {rate_gemm:.0f} | {rate_pass / rate_gemm:.2f} | "
-              f"{busy:.2f} of {os.cpu_count()} |", flush=True)
-        print(f"  phases of quickmatch (s): sigma {qm['time_sigma']:.2f}, pass {qm['time_pass']:.2f}, refine "
+        print(f"| {mf} | {qm['n']:,} | {t_colmap:.2f} | {t_match:.2f} ({engine}) | {t_exp:.2f} | "
+              f"{(t_match + t_exp) / t_colmap:.2f} | {t_exact:.2f} | {(t_exact + t_exp) / t_colmap:.2f} | {f1:.4f} | "
+              f"{rate_pass:.0f} | {rate_gemm:.0f} | {rate_pass / rate_gemm:.2f} |", flush=True)
+        print(f"  phases of exact quickmatch (s): sigma {qm['time_sigma']:.2f}, pass {qm['time_pass']:.2f}, refine "
               f"{qm['time_refine']:.2f} ({int(qm['n_refined'])} refined), tree {qm['time_tree']:.2f}; "
-              f"wall {qm['wall']:.2f}; dqm match's labels identical to quickmatch's: {same}", flush=True)
+              f"wall {qm['wall']:.2f}, {qm['cpu_pass'] / qm['time_pass']:.2f} of {os.cpu_count()} cores busy in "
+              f"the pass; dqm match --exact's labels identical to quickmatch's: {same}", flush=True)
     if brute_images:
         sub = work / "subset"
         sub.mkdir()
@@ -384,6 +415,9 @@ def main(argv=None):
     ap.add_argument("--approximate", action="store_true", help="approximate mode against exact")
     ap.add_argument("--approx-sets", default="25000,100000,graf,wall,graf+wall",
                     help="data sets of --approximate (numbers are generated sizes)")
+    ap.add_argument("--fast", default=None, metavar="SETS",
+                    help="the fast engine against exact on these sets (comma-separated: generated sizes, graf, wall, "
+                         "graf+wall, FEATURES .npz files or COLMAP databases)")
     ap.add_argument("--million", action="store_true", help="with --approximate: also 1M generated features")
     ap.add_argument("--real", nargs="?", const=str(ROOT.parent / "shared" / "data" / "sacre_coeur"), default=None,
                     metavar="IMAGES", help="real photos (default sacre_coeur): dqm import + match + export against "
@@ -396,6 +430,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.memory:
         memory_section()
+    if args.fast:
+        fast_section([x for x in args.fast.split(",") if x])
     if args.approximate:
         approximate_section([x for x in args.approx_sets.split(",") if x], args.million)
     names = [x for x in args.sizes.split(",") if x]

@@ -47,7 +47,7 @@ import numpy as np
 from ..wording import count
 from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
-from . import approximate, memory, native, pairs, tree
+from . import approximate, inverted_lists, memory, native, pairs, tree
 from .pairs import duplicate_groups
 from .params import (DEFAULT_KERNEL, DEFAULT_PARENT, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES,
                      QuickMatchParams)
@@ -60,6 +60,10 @@ __all__ = ["DEFAULT_NEIGHBORS", "DEFAULT_RATIO_DENSITY", "DEFAULT_RHO", "KERNELS
 
 #: neighbours per feature in the approximate mode (scripts/bench_quickmatch.py --approximate)
 DEFAULT_NEIGHBORS = 32
+#: the engines of :func:`quickmatch`
+ENGINES = ("exact", "fast", "auto")
+#: ``engine="auto"`` runs the fast engine from this many features on (scripts/bench_quickmatch.py --fast)
+FAST_FROM = 50_000
 
 
 @dataclass(frozen=True)
@@ -124,6 +128,8 @@ class QuickMatchResult:
         t = self.stats.get("time_total")
         tt = f" in {t:.2f} s" if t is not None else ""
         mode = f", approximate with {self.stats['n_neighbors']:.0f} neighbours" if "n_neighbors" in self.stats else ""
+        if "engine_fast" in self.stats:
+            mode = f", fast engine: {self.stats['n_lists']:.0f} lists, about {self.stats['n_probe']:.0f} probed"
         return (
             f"QuickMatch ({self.kernel} kernel, rho={self.rho:g}{mode}) clustered {self.n_features} features "
             f"from {count(self.n_images, 'image')} into {count(self.n_clusters, 'cluster')}{tt}; "
@@ -259,6 +265,9 @@ def quickmatch(
     max_memory: Union[None, str, int, float] = None,
     approximate: bool = False,
     n_neighbors: int = DEFAULT_NEIGHBORS,
+    engine: str = "exact",
+    n_probe: int = inverted_lists.DEFAULT_PROBES,
+    seed: int = 0,
 ) -> QuickMatchResult:
     """Cluster features of many images so each cluster is one physical point.
 
@@ -289,6 +298,13 @@ def quickmatch(
         faiss-cpu): densities and parents from each feature's ``n_neighbors``
         nearest neighbours, for sets too large for the exact O(n^2) pass.
     n_neighbors : neighbours per feature in the approximate mode.
+    engine : ``"exact"`` (default: every pair), ``"fast"`` (only the pairs within
+        each feature's ``n_probe`` nearest inverted lists, :mod:`dqm.core.inverted_lists`:
+        densities leave far terms out, so clusters can differ slightly from
+        exact ones) or ``"auto"`` (exact below :data:`FAST_FROM` features, fast
+        from there; what ``dqm match`` does by default).
+    n_probe : lists each feature scans in the fast engine.
+    seed : seed of the fast engine's k-means sample.
 
     Returns
     -------
@@ -324,6 +340,16 @@ def quickmatch(
         raise V.InputError(f"approximate must be True or False, got {approximate!r}")
     threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
     budget = memory.resolve_budget(max_memory)
+    if engine not in ENGINES:
+        raise V.InputError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if approximate and engine == "fast":
+        raise V.InputError("approximate=True is the k-nearest-neighbour engine: give engine='fast' or "
+                           "approximate=True, not both")
+    fast = engine == "fast" or (engine == "auto" and n >= FAST_FROM)
+    if fast and not approximate and n > 2 and n_images > 1:
+        n_probe = V.check_positive_int(n_probe, "n_probe")
+        return _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma, n_probe,
+                                int(seed), threads, budget, progress, t0)
     if approximate and n > 2:
         X = X.astype(np.float64, copy=False)  # as the approximate mode's measurements were made
         return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
@@ -458,16 +484,25 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     dens_o = approximate.knn_density_others(nbr, d2, w, active, kernel)
+    stats["time_density"] = time.perf_counter() - t
+    cr, cc, d = approximate.graph_edges(nbr, d2, rho * sig, image_index if parent == "other-image" else None)
+    del nbr, d2
+    return _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,
+                             stats, t0)
+
+
+def _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,
+                      stats: Dict[str, float], t0: float) -> QuickMatchResult:
+    """The result of an engine whose densities leave far terms out (approximate, fast): zero-sigma and
+    duplicate terms as in the exact engine, then parents among the candidate edges ``cr -> cc`` at exact
+    distances ``d`` and the exact break/merge."""
+    t = time.perf_counter()
+    n = len(sig)
     gsize = np.bincount(groups)
     zero = sig == 0
     if zero.any():
         dens_o = dens_o + zero_sigma_counts(groups, gsize, zero) - zero
     density = 1.0 + equalize_duplicates(dens_o, groups, gsize)
-    stats["time_density"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    cr, cc, d = approximate.graph_edges(nbr, d2, rho * sig, image_index if parent == "other-image" else None)
-    del nbr, d2
     par, pdist = tree.select_parents(n, cr, cc, d, density)
     labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
     stats["n_candidate_edges"] = float(len(cr))
@@ -476,6 +511,43 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     LOG.info("tree and merges: %.2f s; %.2f s in all", stats["time_tree"], stats["time_total"])
     LOG.debug("QuickMatch statistics: %s", ", ".join(f"{k}={v:.4g}" for k, v in sorted(stats.items())))
     return QuickMatchResult(labels, sig, density, par, pdist, ids, rho, ratio_density, kernel, parent, stats)
+
+
+def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma, n_probe, seed,
+                     threads, budget, progress, t0) -> QuickMatchResult:
+    """The fast engine (:mod:`dqm.core.inverted_lists`); arguments already checked."""
+    n, dim = X.shape
+    memory.check_base(n, dim, threads, budget, what="quickmatch (fast engine)")
+    stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
+    aug = pairs.Augmented(X)
+    t = time.perf_counter()
+    groups = duplicate_groups(aug.exact)
+    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
+    stats["time_sigma"] = time.perf_counter() - t
+    LOG.info("sigma (nearest other feature of the same image): %.2f s", stats["time_sigma"])
+
+    t = time.perf_counter()
+    w, active = kernel_weights(sig, kernel, ratio_density)
+    radius = rho * sig
+    dens_o, cr, cc, scan_stats = inverted_lists.scan(aug, w, active, kernel, radius, n_probe=n_probe, seed=seed,
+                                                     n_threads=threads,
+                                                     progress=feature_progress(progress, "quickmatch (fast)", n))
+    stats.update(scan_stats)
+    stats["time_pass"] = time.perf_counter() - t
+    LOG.info("list scan (%d lists, %d probed each; %.1f%% of all pairs): %.2f s", scan_stats["n_lists"],
+             scan_stats["n_probe"], 100.0 * scan_stats["pairs_computed"] / max(1.0, n * (n - 1.0)),
+             stats["time_pass"])
+    t = time.perf_counter()
+    d = pairs.exact_distances(aug.exact, cr, cc)
+    keep = d < radius[cr]
+    cr, cc, d = cr[keep], cc[keep], d[keep]
+    if parent == "other-image":
+        keep = image_index[cr] != image_index[cc]
+        cr, cc, d = cr[keep], cc[keep], d[keep]
+    stats["time_edges"] = time.perf_counter() - t
+    del aug
+    return _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,
+                             stats, t0)
 
 
 class QuickMatch:

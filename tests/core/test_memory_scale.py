@@ -298,7 +298,11 @@ def test_benchmark_script_small_real_run(tmp_path):
     cells = [c.strip() for c in row.split("|")[1:-1]]
     n = int(cells[1].replace(",", ""))
     assert n > 5000  # two photos' COLMAP SIFT
-    colmap_s, ratio, pass_rate, gemm_rate = float(cells[2]), float(cells[6]), float(cells[7]), float(cells[8])
-    assert colmap_s > 0 and ratio > 0 and pass_rate > 0 and gemm_rate > 0
-    assert float(cells[9]) == pytest.approx(pass_rate / gemm_rate, rel=0.05)  # rates printed as integers
-    assert "labels identical to quickmatch's: True" in p.stdout
+    colmap_s, ratio, exact_ratio = float(cells[2]), float(cells[5]), float(cells[7])
+    assert colmap_s > 0 and ratio > 0 and exact_ratio > 0
+    assert cells[3].endswith("(exact)")  # two photos' features are below the fast engine's size
+    assert float(cells[8]) == 1.0  # so the default is the exact answer
+    pass_rate, gemm_rate = float(cells[9]), float(cells[10])
+    assert pass_rate > 0 and gemm_rate > 0
+    assert float(cells[11]) == pytest.approx(pass_rate / gemm_rate, rel=0.05)  # rates printed as integers
+    assert "dqm match --exact's labels identical to quickmatch's: True" in p.stdout

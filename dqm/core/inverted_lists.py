@@ -1,0 +1,195 @@
+"""The fast engine: QuickMatch's pass over the pairs that matter, found by inverted lists.
+
+The exact pass computes every pair of features (n^2 / 2 distances and two
+kernel terms each). On photo SIFT nearly all of a feature's density and every
+candidate parent come from its near neighbourhood, so the fast engine computes
+only pairs of nearby features, at the exact pass's own rate (a float32 GEMM
+and the same native tile kernel per block):
+
+1. **Lists.** k-means on a seeded sample gives ``n_lists`` centroids (about
+   ``2 sqrt(n)``, a power of two); every feature belongs to the list of its
+   nearest centroid, and *probes* its ``n_probe`` nearest lists.
+2. **Scan.** For every list, the features that probe it are one block of rows
+   against the list's members: one GEMM gives the squared distances, the tile
+   kernel adds each member's kernel term to the probing feature's density and
+   keeps the pairs within the feature's edge radius ``rho * sigma``.
+3. **Exact edges.** The kept pairs' distances are recomputed exactly and those
+   within the radius are the candidate parents. (Adding the candidates of each
+   feature's candidates, two hops, was measured: at 48 probes it found 76 more
+   edges among sacre_coeur's 90k features and did not change F1, so it is not
+   done.)
+
+sigma is exact (the per-image pass of the exact engine), distances on every
+kept edge are exact, and break/merge is the exact one, so C1 and C2 hold
+exactly. What is approximate: a density misses the terms of features outside
+the probed lists (far ones, whose terms are small), and a parent outside the
+probed lists is missed. Both can change
+clusters; scripts/bench_quickmatch.py --fast measures co-membership F1 against
+the exact engine (docs/quickmatch.md).
+
+Deterministic for a given input and seed: the sample and k-means are seeded,
+and every sum is added in list order whatever the thread count.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable, Optional, Tuple
+
+import numpy as np
+
+from . import native, pairs
+
+LOG = logging.getLogger("dqm.core")
+
+#: lists per feature count: n_lists = LISTS_FACTOR * sqrt(n), rounded to a power of two
+LISTS_FACTOR = 2.0
+#: lists each feature scans (its nearest centroids)
+DEFAULT_PROBES = 48
+#: k-means: training sample per list, Lloyd iterations
+TRAIN_PER_LIST = 32
+KMEANS_ITERATIONS = 8
+#: probing rows per GEMM block
+ROWS = 1024
+
+ProgressFn = Optional[Callable[[int, int], None]]
+
+
+def n_lists(n: int) -> int:
+    """Lists for ``n`` features: about ``LISTS_FACTOR * sqrt(n)``, a power of two, at least 1 and at
+    most n / 8."""
+    target = max(1.0, min(LISTS_FACTOR * np.sqrt(max(n, 1)), n / 8.0))
+    return int(2 ** int(np.round(np.log2(target))))
+
+
+def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_threads: Optional[int] = 1) -> np.ndarray:
+    """Indices of the ``t`` nearest centroids of every row of ``left`` (augmented operand rows
+    ``[x, |x|^2, 1]``), nearest first; computed in blocks of rows, ``n_threads`` blocks at a time."""
+    dim = centroids.shape[1]
+    right = np.empty((len(centroids), dim + 2), dtype=np.float32)
+    right[:, :dim] = -2.0 * centroids
+    right[:, dim] = 1.0
+    right[:, dim + 1] = (centroids.astype(np.float64) ** 2).sum(axis=1)
+    out = np.empty((len(left), t), dtype=np.int32)
+
+    def block(s: int) -> None:
+        d = left[s:s + 4096] @ right.T
+        if t == 1:
+            out[s:s + len(d), 0] = d.argmin(axis=1)
+            return
+        idx = np.argpartition(d, t - 1, axis=1)[:, :t] if t < d.shape[1] else \
+            np.broadcast_to(np.arange(d.shape[1]), d.shape)
+        order = np.argsort(np.take_along_axis(d, idx, axis=1), axis=1, kind="stable")
+        out[s:s + len(d)] = np.take_along_axis(idx, order, axis=1)
+
+    with pairs.tile_pool(n_threads) as run:
+        for _ in run(block, range(0, len(left), 4096)):
+            pass
+    return out
+
+
+def kmeans(left: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """``k`` centroids of the rows of the augmented operand ``left`` (Lloyd's iterations on a seeded
+    sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
+    operand's centred coordinates."""
+    dim = left.shape[1] - 2
+    rng = np.random.default_rng(seed)
+    n = len(left)
+    sample = np.sort(rng.choice(n, size=min(n, TRAIN_PER_LIST * k), replace=False))
+    S = np.ascontiguousarray(left[sample])
+    centroids = S[np.sort(rng.choice(len(S), size=k, replace=False)), :dim].copy()
+    for _ in range(KMEANS_ITERATIONS):
+        own = _nearest_centroids(S, centroids, 1)[:, 0]
+        by = np.argsort(own, kind="stable")
+        counts = np.bincount(own, minlength=k)
+        filled = np.flatnonzero(counts)
+        sums = np.add.reduceat(S[by, :dim].astype(np.float64), np.searchsorted(own[by], filled), axis=0)
+        centroids[filled] = (sums / counts[filled, None]).astype(np.float32)
+    return centroids
+
+
+def scan(
+    aug: pairs.Augmented,
+    weights: np.ndarray,
+    active: np.ndarray,
+    kernel: str,
+    radius: np.ndarray,
+    *,
+    n_probe: int = DEFAULT_PROBES,
+    lists: Optional[int] = None,
+    seed: int = 0,
+    n_threads: Optional[int] = None,
+    progress: ProgressFn = None,
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Densities (without the self term) and candidate edges from the probed lists.
+
+    Arguments as :func:`dqm.core.pairs.kernel_pass`. Returns ``(density_others, child, cand,
+    stats)``: each feature's sum of the kernel terms of the members of the lists it probes (itself
+    left out), directed candidate edges ``child -> cand`` whose float32 distance is within
+    ``radius[child]`` plus its error bound, and counts (lists, probes, pairs computed).
+    """
+    n = aug.n
+    left, right = aug.left, aug.right
+    k = n_lists(n) if lists is None else int(lists)
+    t = int(min(max(1, n_probe), k))
+    t0 = time.perf_counter()
+    centroids = kmeans(left, k, seed)
+    near = _nearest_centroids(left, centroids, t, n_threads)
+    time_lists = time.perf_counter() - t0
+    own = near[:, 0].astype(np.int64)
+    # members of each list, in feature order; probing rows of each list: its members first (their own
+    # list is their nearest), then the others, so that row i < len(members) is column i (the self pair)
+    by_list = np.argsort(own, kind="stable")
+    bounds = np.searchsorted(own[by_list], np.arange(k + 1))
+    # a feature scans its nearest lists until it has met as many features as n_probe lists of the mean size
+    # hold: where lists are uneven (generated data, repeated texture), dense regions do not cost more per
+    # feature than sparse ones
+    sizes = np.diff(bounds)[near[:, 1:]]
+    before = np.cumsum(sizes, axis=1) - sizes + np.diff(bounds)[own][:, None]
+    scans = before < (t * n) / k
+    probe_list = near[:, 1:][scans].astype(np.int64)
+    probe_row = np.nonzero(scans)[0]
+    order = np.argsort(probe_list, kind="stable")
+    pbounds = np.searchsorted(probe_list[order], np.arange(k + 1))
+    w = np.ascontiguousarray(weights, dtype=np.float32)
+    s = np.ascontiguousarray(active, dtype=np.float32)
+    rad2 = pairs.search_rad2(aug, radius)
+    tasks = []
+    for b in range(k):
+        members = by_list[bounds[b]:bounds[b + 1]]
+        if len(members) == 0:
+            continue
+        rows = np.concatenate([members, probe_row[order[pbounds[b]:pbounds[b + 1]]]])
+        for r0 in range(0, len(rows), ROWS):
+            tasks.append((members, rows[r0:r0 + ROWS], r0))
+
+    def work(task):
+        members, rows, r0 = task
+        dr = np.zeros(len(rows))
+        er = np.zeros(len(rows))
+        L = left[rows]
+        out_r, out_c = [], []
+        for c0 in range(0, len(members), native.MAX_ROW):
+            cols = members[c0:c0 + native.MAX_ROW]
+            G = L @ right[cols].T
+            # the self pair of row i (i < len(members)) is column i - c0 of this chunk
+            r, c = native.tile(G, w[cols], s[cols], kernel, rad2[rows], r0 - c0, dr, er)
+            out_r.append(rows[r])
+            out_c.append(cols[c])
+        return rows, dr, np.concatenate(out_r), np.concatenate(out_c), len(rows) * len(members)
+
+    dens = np.zeros(n)
+    child, cand = [], []
+    computed = 0
+    with pairs.tile_pool(n_threads) as run:
+        for done, (rows, dr, r, c, size) in enumerate(run(work, tasks), start=1):
+            dens[rows] += dr  # a feature probes a list once: rows are distinct
+            child.append(r)
+            cand.append(c)
+            computed += size
+            if progress is not None:
+                progress(done, len(tasks))
+    cr = np.concatenate(child).astype(np.int64) if child else np.zeros(0, np.int64)
+    cc = np.concatenate(cand).astype(np.int64) if cand else np.zeros(0, np.int64)
+    stats = {"n_lists": float(k), "n_probe": float(t), "pairs_computed": float(computed), "time_lists": time_lists}
+    return dens, cr, cc, stats

@@ -1,0 +1,103 @@
+"""The fast engine (inverted lists, issue 37): close to exact, deterministic, chosen by size."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import dqm
+from dqm import io as dqm_io
+from dqm.core import inverted_lists
+from dqm.core.clustering import FAST_FROM
+from dqm.evaluation import comembership_scores
+from dqm.synthetic import sift_like
+from conftest import assert_consistent
+
+
+@pytest.fixture(scope="module")
+def scene():
+    ds = sift_like(n_images=12, n_points=500, clutter_per_image=300, seed=7)
+    return ds.descriptors, ds.image_ids, dqm.quickmatch(ds.descriptors, ds.image_ids)
+
+
+def test_the_fast_engine_agrees_with_exact_and_loses_with_fewer_probes(scene):
+    X, ids, exact = scene
+    fast = dqm.quickmatch(X, ids, engine="fast")
+    assert_consistent(fast.labels, ids)
+    assert fast.stats["engine_fast"] == 1.0
+    assert fast.stats["pairs_computed"] < 0.5 * len(X) ** 2  # it did not visit every pair
+    assert comembership_scores(fast.labels, exact.labels).f1 >= 0.995
+    np.testing.assert_array_equal(fast.sigma, exact.sigma)  # sigma is the exact engine's
+    # a feature's own list only: far fewer pairs, and clusters whose members fall in other lists are lost
+    poor = dqm.quickmatch(X, ids, engine="fast", n_probe=1)
+    assert poor.stats["pairs_computed"] < fast.stats["pairs_computed"]
+    assert comembership_scores(poor.labels, exact.labels).f1 < comembership_scores(fast.labels, exact.labels).f1
+    # every list probed: every pair is computed, so the densities and parents are the exact ones
+    full = dqm.quickmatch(X, ids, engine="fast", n_probe=inverted_lists.n_lists(len(X)))
+    assert full.stats["pairs_computed"] == len(X) ** 2
+    np.testing.assert_allclose(full.density, exact.density, rtol=1e-6)
+    assert comembership_scores(full.labels, exact.labels).f1 == 1.0
+
+
+def test_the_fast_engine_is_deterministic_and_the_seed_is_its_own(scene):
+    X, ids, _ = scene
+    a = dqm.quickmatch(X, ids, engine="fast", n_threads=1)
+    b = dqm.quickmatch(X, ids, engine="fast", n_threads=2)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_array_equal(a.density, b.density)  # sums in list order whatever the threads
+    c = dqm.quickmatch(X, ids, engine="fast", seed=1)
+    assert not np.array_equal(c.density, a.density)  # another sample, other lists
+
+
+def test_auto_runs_exact_below_its_size_and_engines_are_checked(scene):
+    X, ids, exact = scene
+    assert len(X) < FAST_FROM
+    auto = dqm.quickmatch(X, ids, engine="auto")
+    assert "engine_fast" not in auto.stats
+    np.testing.assert_array_equal(auto.labels, exact.labels)
+    with pytest.raises(dqm.InputError, match="engine must be one of exact, fast, auto, got 'quick'"):
+        dqm.quickmatch(X, ids, engine="quick")
+    with pytest.raises(dqm.InputError, match="n_probe must be a positive integer"):
+        dqm.quickmatch(X, ids, engine="fast", n_probe=0)
+
+
+def test_lists_are_powers_of_two_near_twice_the_root():
+    assert inverted_lists.n_lists(90_000) == 512
+    assert inverted_lists.n_lists(1_000_000) == 2048
+    assert inverted_lists.n_lists(10) == 1
+
+
+def test_cli_match_engines(tmp_path, scene):
+    X, ids, exact = scene
+    src = tmp_path / "f.npz"
+    dqm_io.save_features(src, dqm_io.FeatureSet(X, ids))
+    runs = {}
+    for name, flags in (("fast", ["--engine", "fast"]), ("exact", ["--exact"])):
+        out = tmp_path / f"{name}.npz"
+        p = subprocess.run([sys.executable, "-m", "dqm", "match", str(src), "--out", str(out), "--quiet"] + flags,
+                           capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        runs[name] = (p.stdout, dqm_io.load_clusters(out))
+    assert "fast engine" in runs["fast"][0] and runs["fast"][1]["params"]["engine"] == "fast"
+    assert runs["exact"][1]["params"]["engine"] == "exact"
+    np.testing.assert_array_equal(runs["exact"][1]["labels"], exact.labels)
+    p = subprocess.run([sys.executable, "-m", "dqm", "match", str(src), "--out", str(tmp_path / "x.npz"),
+                        "--engine", "fast", "--approximate"], capture_output=True, text=True)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert "--approximate and --engine fast are two different engines" in p.stderr
+    p = subprocess.run([sys.executable, "-m", "dqm", "match", "--help"], capture_output=True, text=True)
+    assert f"exact below {FAST_FROM:,} features" in " ".join(p.stdout.split())
+
+
+def test_benchmark_script_small_fast_run():
+    """The small version of scripts/bench_quickmatch.py --fast (the full one: docs/quickmatch.md's sets)."""
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "bench_quickmatch.py"
+    p = subprocess.run([sys.executable, str(script), "--fast", "6000", "--sizes", "", "--no-graf"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (row,) = [line for line in p.stdout.splitlines() if line.startswith("| 6000 |")]
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert 0 < float(cells[5]) < 1.0  # pairs computed, of n^2
+    assert float(cells[10]) >= 0.99  # F1 against exact
