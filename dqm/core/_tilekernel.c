@@ -874,3 +874,162 @@ int64_t dqm_pass_tile_u8(const int8_t *A, int64_t lda, const int32_t *na, int64_
     }
     return count;
 }
+
+/*
+ * Scan tile of the fast engine (dqm/core/inverted_lists.py). Columns are the
+ * members of list `list`; rows are the features that scan it: its own n_own
+ * members first (row r < n_own is column r + self_col), then features of
+ * other lists (row_list[r] is a row's own list). A row of another list meets
+ * a column in this tile and, when the column scans the row's list too
+ * (bit row_list[r] of the column's col_bits, `words` 64-bit words per column),
+ * again in the tile of the row's list: the pair is kept in the tile of the
+ * larger list index only. Every kept pair of another list's row is used both
+ * ways: the row's density gets the column's term (weights wc, sc) and the
+ * column's density the row's (wr, sr); own rows take only their own direction
+ * (their pairs appear in both orders). Edges: (r, c) with g < rad2r[r] (the
+ * row as the child) and, for kept pairs of other lists' rows, (-1 - r, c) with
+ * g < rad2c[c] (the column as the child). cacc is float scratch of length k.
+ * Returns the count of edges written, -1 if more than cap, -2 if k > MAX_ROW.
+ * No error bound: the fast engine's densities are approximate anyway.
+ */
+static inline int scan_keep(const uint64_t *col_bits, int64_t words, int64_t c, int32_t a)
+{
+    return !((col_bits[c * words + (a >> 6)] >> (a & 63)) & 1u);
+}
+
+static inline float term_scalar(int kernel, float g, float w, float s)
+{
+    float t = (g < 0.0f ? 0.0f : g) * w;
+    if (kernel == KERNEL_GAUSSIAN)
+        return exp_neg(t > 87.0f ? 87.0f : t) * s;
+    return t < 1.0f ? (1.0f - t) * s : 0.0f;
+}
+
+static int64_t scan_row_scalar(int kernel, const float *g, int64_t k, const float *wc, const float *sc,
+                               float wr, float sr, float limr, const float *rad2c, int own, int64_t self,
+                               int test, const uint64_t *col_bits, int64_t words, int32_t a, int32_t r,
+                               double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, int64_t count,
+                               int64_t cap, int64_t c_off)
+{
+    float acc = 0.0f;
+    for (int64_t c = 0; c < k; ++c) {
+        if (own) {
+            if (c == self)
+                continue;
+        } else if (test && !scan_keep(col_bits, words, c, a)) {
+            continue;
+        }
+        acc += term_scalar(kernel, g[c], wc[c], sc[c]);
+        if (g[c] < limr) {
+            if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + c_off); }
+            ++count;
+        }
+        if (!own) {
+            cacc[c] += term_scalar(kernel, g[c], wr, sr);
+            if (g[c] < rad2c[c]) {
+                if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + c_off); }
+                ++count;
+            }
+        }
+    }
+    *dens_r += (double)acc;
+    return count;
+}
+
+#ifdef DQM_HAVE_AVX2_PATH
+__attribute__((target("avx2,fma")))
+static inline __m256 terms8(int kernel, __m256 gv, __m256 wv, __m256 sv)
+{
+    __m256 t = _mm256_mul_ps(_mm256_max_ps(gv, _mm256_setzero_ps()), wv);
+    if (kernel == KERNEL_GAUSSIAN)
+        return _mm256_mul_ps(exp_neg8(_mm256_min_ps(t, _mm256_set1_ps(87.0f))), sv);
+    return _mm256_mul_ps(_mm256_max_ps(_mm256_sub_ps(_mm256_set1_ps(1.0f), t), _mm256_setzero_ps()), sv);
+}
+
+__attribute__((target("avx2,fma")))
+static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float *wc, const float *sc,
+                             float wr, float sr, float limr, const float *rad2c, int own, int64_t self,
+                             int test, const uint64_t *col_bits, int64_t words, int32_t a, int32_t r,
+                             double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, int64_t count,
+                             int64_t cap)
+{
+    __m256 acc = _mm256_setzero_ps();
+    __m256 vlim = _mm256_set1_ps(limr), wrv = _mm256_set1_ps(wr), srv = _mm256_set1_ps(sr);
+    int64_t c = 0;
+    for (; c + 8 <= k; c += 8) {
+        __m256 gv = _mm256_loadu_ps(g + c);
+        int keepbits = 0xff;
+        if (own) {
+            if (self >= c && self < c + 8)
+                keepbits &= ~(1 << (int)(self - c));
+        } else if (test) {
+            for (int l = 0; l < 8; ++l)
+                if (!scan_keep(col_bits, words, c + l, a))
+                    keepbits &= ~(1 << l);
+            if (!keepbits)
+                continue;
+        }
+        __m256 keep = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+            _mm256_and_si256(_mm256_set1_epi32(keepbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)),
+            _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)));
+        acc = _mm256_add_ps(acc, _mm256_and_ps(terms8(kernel, gv, _mm256_loadu_ps(wc + c), _mm256_loadu_ps(sc + c)), keep));
+        int fwd = _mm256_movemask_ps(_mm256_cmp_ps(gv, vlim, _CMP_LT_OQ)) & keepbits;
+        if (!own) {
+            __m256 ca = _mm256_loadu_ps(cacc + c);
+            _mm256_storeu_ps(cacc + c, _mm256_add_ps(ca, _mm256_and_ps(terms8(kernel, gv, wrv, srv), keep)));
+        }
+        int rev = own ? 0 : _mm256_movemask_ps(_mm256_cmp_ps(gv, _mm256_loadu_ps(rad2c + c), _CMP_LT_OQ)) & keepbits;
+        if (fwd | rev) {
+            for (int l = 0; l < 8; ++l) {
+                if (fwd & (1 << l)) {
+                    if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); }
+                    ++count;
+                }
+                if (rev & (1 << l)) {
+                    if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); }
+                    ++count;
+                }
+            }
+        }
+    }
+    *dens_r += (double)hsum8(acc);
+    return scan_row_scalar(kernel, g + c, k - c, wc + c, sc + c, wr, sr, limr, rad2c + c, own, self - c, test,
+                           col_bits + c * words, words, a, r, dens_r, cacc + c, cand_r, cand_c, count, cap, c);
+}
+#endif
+
+int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
+                      const float *wc, const float *sc, const float *wr, const float *sr, int32_t kernel,
+                      const float *rad2r, const float *rad2c, int64_t n_own, int64_t self_col,
+                      const int32_t *row_list, const uint64_t *col_bits, int64_t words, int32_t list,
+                      double *dens_r, double *dens_c, float *cacc,
+                      int32_t *cand_r, int32_t *cand_c, int64_t cap)
+{
+    int64_t count = 0;
+    if (k > MAX_ROW)
+        return -2;
+    resolve_simd();
+    for (int64_t c = 0; c < k; ++c)
+        cacc[c] = 0.0f;
+    for (int64_t r = 0; r < m; ++r) {
+        int own = r < n_own;
+        int32_t a = row_list[r];
+        int test = !own && a > list; /* both ways scanned: kept in the larger list's tile */
+        const float *g = G + r * ldg;
+#ifdef DQM_HAVE_AVX2_PATH
+        if (simd_level >= 1)
+            count = scan_row_avx2(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
+                                  col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, count, cap);
+        else
+#endif
+            count = scan_row_scalar(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
+                                    col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, count, cap, 0);
+        if ((r + 1) % SUM_CHAIN == 0 || r + 1 == m) {
+            for (int64_t c = 0; c < k; ++c) {
+                dens_c[c] += (double)cacc[c];
+                cacc[c] = 0.0f;
+            }
+        }
+    }
+    return count > cap ? -1 : count;
+}

@@ -81,6 +81,12 @@ def _load() -> Optional[ctypes.CDLL]:
             ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f32, f32, f32, f32, f32, ctypes.c_int32, f32, f32,
             f64, f64, f64, f64, f32, f32, i32, i32, ctypes.c_int64]
         lib.dqm_pass_tile_u8.restype = ctypes.c_int64
+        u64 = np.ctypeslib.ndpointer(np.uint64, flags="C_CONTIGUOUS")
+        lib.dqm_scan_tile.argtypes = [
+            ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, f32, f32, f32, f32, ctypes.c_int32,
+            f32, f32, ctypes.c_int64, ctypes.c_int64, i32, u64, ctypes.c_int64, ctypes.c_int32, f64, f64, f32,
+            i32, i32, ctypes.c_int64]
+        lib.dqm_scan_tile.restype = ctypes.c_int64
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
@@ -217,6 +223,70 @@ def tile(
         if got >= 0:
             dens += d_add
             err += e_add
+            return _head(cr, got), _head(cc, got)
+        _check_code(got, k)
+        cap *= 4
+
+
+def _scan_keep(col_bits: np.ndarray, row_list: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """[r, c]: column c does not scan the list of row ``rows[r]`` (bit row_list of its bitset)."""
+    a = row_list[rows].astype(np.int64)
+    word = col_bits[:, a >> 6].T  # (len(rows), k)
+    return ((word >> (a & 63).astype(np.uint64)[:, None]) & np.uint64(1)) == 0
+
+
+def scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits, list_index,
+                    dens_r, dens_c) -> Tuple[np.ndarray, np.ndarray]:
+    """numpy version of the fast engine's scan tile (see ``dqm_scan_tile`` in _tilekernel.c)."""
+    m, k = G.shape
+    g = np.maximum(G, 0.0)
+    E, _ = _terms(g, wc[None, :], sc[None, :], kernel)
+    keep = np.ones((m, k), dtype=bool)
+    own = np.arange(m) < n_own
+    rows = np.arange(m)
+    cols = rows + self_col
+    has_self = own & (cols >= 0) & (cols < k)
+    keep[rows[has_self], cols[has_self]] = False
+    other = np.flatnonzero(~own)
+    test = other[row_list[other] > list_index]
+    if len(test):
+        keep[test] = _scan_keep(col_bits, row_list, test)
+    E = E * keep
+    dens_r += E.sum(axis=1, dtype=np.float64)
+    fr, fc = np.nonzero((G < rad2r[:, None]) & keep)
+    if len(other):
+        Er, _ = _terms(g[other], wr[other, None], sr[other, None], kernel)
+        kept = keep[other]
+        dens_c += (Er * kept).sum(axis=0, dtype=np.float64)
+        rr, rc = np.nonzero((G[other] < rad2c[None, :]) & kept)
+        fr = np.concatenate([fr, -1 - other[rr]])
+        fc = np.concatenate([fc, rc])
+    return fr.astype(np.int32), fc.astype(np.int32)
+
+
+def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits, list_index,
+              dens_r, dens_c, use_native: bool = True) -> Tuple[np.ndarray, np.ndarray]:
+    """The fast engine's scan tile, natively when available: adds kernel terms to ``dens_r`` (rows) and
+    ``dens_c`` (columns) and returns the edges ``(r, c)`` (row r the child) and ``(-1 - r, c)`` (column c
+    the child). ``G`` must be C-contiguous float32 with at most :data:`MAX_ROW` columns."""
+    if _LIB is None or not use_native:
+        return scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits,
+                               list_index, dens_r, dens_c)
+    m, k = G.shape
+    cap = max(1024, 4 * m)
+    f = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
+    args = (f(wc), f(sc), f(wr), f(sr), KERNEL_CODES[kernel], f(rad2r), f(rad2c), int(n_own), int(self_col),
+            np.ascontiguousarray(row_list, dtype=np.int32), col_bits, col_bits.shape[1], int(list_index))
+    cacc = np.empty(k, dtype=np.float32)
+    while True:
+        cr = np.empty(cap, dtype=np.int32)
+        cc = np.empty(cap, dtype=np.int32)
+        d_r = np.zeros(m)
+        d_c = np.zeros(k)
+        got = _LIB.dqm_scan_tile(G.ctypes.data, m, k, G.strides[0] // 4, *args, d_r, d_c, cacc, cr, cc, cap)
+        if got >= 0:
+            dens_r += d_r
+            dens_c += d_c
             return _head(cr, got), _head(cc, got)
         _check_code(got, k)
         cap *= 4

@@ -28,6 +28,9 @@ def test_the_fast_engine_agrees_with_exact_and_loses_with_fewer_probes(scene):
     assert fast.stats["pairs_computed"] < 0.5 * len(X) ** 2  # it did not visit every pair
     assert comembership_scores(fast.labels, exact.labels).f1 >= 0.995
     np.testing.assert_array_equal(fast.sigma, exact.sigma)  # sigma is the exact engine's
+    # each pair's terms are counted once however many tiles meet it: never more than the exact density
+    assert (fast.density <= exact.density * (1 + 1e-6)).all()
+    assert (fast.density < exact.density * (1 - 1e-9)).any()  # and some far terms are left out
     # a feature's own list only: far fewer pairs, and clusters whose members fall in other lists are lost
     poor = dqm.quickmatch(X, ids, engine="fast", n_probe=1)
     assert poor.stats["pairs_computed"] < fast.stats["pairs_computed"]

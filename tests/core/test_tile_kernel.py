@@ -196,3 +196,31 @@ def test_uint8_and_the_same_values_as_floats_give_identical_results(kernel):
     for field in ("labels", "parent", "sigma", "parent_distance"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
     np.testing.assert_allclose(a.density, b.density, rtol=1e-12)
+
+
+@needs_native
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, kernel):
+    """The scan tile (dqm/core/inverted_lists.py): own rows one way without their self pair, other rows both
+    ways except the pairs the other list's tile keeps, and edges in both directions."""
+    aug, sig, a, b, G = sift_tile(seed=3, m=300, k=517)
+    G = np.ascontiguousarray(G[:, :203])  # columns not a multiple of 8: the scalar tail runs too
+    b = b[:203]
+    w, active = clustering.kernel_weights(sig, kernel, 0.25)
+    w, s = w.astype(np.float32), active.astype(np.float32)
+    rad2 = pairs.search_rad2(aug, 1.2 * sig)
+    rng = np.random.default_rng(0)
+    row_list = rng.integers(0, 130, len(a)).astype(np.int32)
+    row_list[:40] = 64  # the tile's own list: 40 own rows, the self pair at column r + 5
+    bits = rng.integers(0, 2 ** 62, (len(b), 3)).astype(np.uint64)  # 130 lists: 3 words per column
+    args = (G, w[b], s[b], w[a], s[a], kernel, rad2[a], rad2[b], 40, 5, row_list, bits, 64)
+    d_ref, c_ref = np.zeros(len(a)), np.zeros(len(b))
+    rr, rc = native.scan_tile(*args, d_ref, c_ref, use_native=False)
+    assert (rr < 0).any() and (rr >= 0).any()  # edges in both directions are exercised
+    for level in levels:
+        assert native.set_simd_level(level) == level
+        d, c = np.zeros(len(a)), np.zeros(len(b))
+        r, cc = native.scan_tile(*args, d, c)
+        assert sorted(zip(r.tolist(), cc.tolist())) == sorted(zip(rr.tolist(), rc.tolist())), level
+        np.testing.assert_allclose(d, d_ref, rtol=2e-5, atol=1e-12)
+        np.testing.assert_allclose(c, c_ref, rtol=2e-5, atol=1e-12)
