@@ -908,8 +908,8 @@ static inline float term_scalar(int kernel, float g, float w, float s)
 static int64_t scan_row_scalar(int kernel, const float *g, int64_t k, const float *wc, const float *sc,
                                float wr, float sr, float limr, const float *rad2c, int own, int64_t self,
                                int test, const uint64_t *col_bits, int64_t words, int32_t a, int32_t r,
-                               double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, int64_t count,
-                               int64_t cap, int64_t c_off)
+                               double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, float *cand_g,
+                               int64_t count, int64_t cap, int64_t c_off)
 {
     float acc = 0.0f;
     for (int64_t c = 0; c < k; ++c) {
@@ -921,13 +921,13 @@ static int64_t scan_row_scalar(int kernel, const float *g, int64_t k, const floa
         }
         acc += term_scalar(kernel, g[c], wc[c], sc[c]);
         if (g[c] < limr) {
-            if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + c_off); }
+            if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + c_off); cand_g[count] = g[c]; }
             ++count;
         }
         if (!own) {
             cacc[c] += term_scalar(kernel, g[c], wr, sr);
             if (g[c] < rad2c[c]) {
-                if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + c_off); }
+                if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + c_off); cand_g[count] = g[c]; }
                 ++count;
             }
         }
@@ -950,8 +950,8 @@ __attribute__((target("avx2,fma")))
 static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float *wc, const float *sc,
                              float wr, float sr, float limr, const float *rad2c, int own, int64_t self,
                              int test, const uint64_t *col_bits, int64_t words, int32_t a, int32_t r,
-                             double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, int64_t count,
-                             int64_t cap)
+                             double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, float *cand_g,
+                             int64_t count, int64_t cap)
 {
     __m256 acc = _mm256_setzero_ps();
     __m256 vlim = _mm256_set1_ps(limr), wrv = _mm256_set1_ps(wr), srv = _mm256_set1_ps(sr);
@@ -982,11 +982,11 @@ static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float 
         if (fwd | rev) {
             for (int l = 0; l < 8; ++l) {
                 if (fwd & (1 << l)) {
-                    if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); }
+                    if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
                     ++count;
                 }
                 if (rev & (1 << l)) {
-                    if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); }
+                    if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
                     ++count;
                 }
             }
@@ -994,7 +994,7 @@ static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float 
     }
     *dens_r += (double)hsum8(acc);
     return scan_row_scalar(kernel, g + c, k - c, wc + c, sc + c, wr, sr, limr, rad2c + c, own, self - c, test,
-                           col_bits + c * words, words, a, r, dens_r, cacc + c, cand_r, cand_c, count, cap, c);
+                           col_bits + c * words, words, a, r, dens_r, cacc + c, cand_r, cand_c, cand_g, count, cap, c);
 }
 #endif
 
@@ -1003,7 +1003,7 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
                       const float *rad2r, const float *rad2c, int64_t n_own, int64_t self_col,
                       const int32_t *row_list, const uint64_t *col_bits, int64_t words, int32_t list,
                       double *dens_r, double *dens_c, float *cacc,
-                      int32_t *cand_r, int32_t *cand_c, int64_t cap)
+                      int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t cap)
 {
     int64_t count = 0;
     if (k > MAX_ROW)
@@ -1019,11 +1019,11 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
 #ifdef DQM_HAVE_AVX2_PATH
         if (simd_level >= 1)
             count = scan_row_avx2(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
-                                  col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, count, cap);
+                                  col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, cand_g, count, cap);
         else
 #endif
             count = scan_row_scalar(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
-                                    col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, count, cap, 0);
+                                    col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, cand_g, count, cap, 0);
         if ((r + 1) % SUM_CHAIN == 0 || r + 1 == m) {
             for (int64_t c = 0; c < k; ++c) {
                 dens_c[c] += (double)cacc[c];

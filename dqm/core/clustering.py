@@ -517,9 +517,10 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
                      threads, budget, progress, t0) -> QuickMatchResult:
     """The fast engine (:mod:`dqm.core.inverted_lists`); arguments already checked."""
     n, dim = X.shape
-    memory.check_base(n, dim, threads, budget, what="quickmatch (fast engine)")
-    stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
     aug = pairs.Augmented(X)
+    memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
+                      itemsize=X.dtype.itemsize if aug.exact_d2 else None)
+    stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
     t = time.perf_counter()
     groups = duplicate_groups(aug.exact)
     sig = _sigma(aug, sigma, image_index, n_images, threads, groups)

@@ -140,6 +140,25 @@ def check_approximate(n: int, dim: int, k: int, n_threads: int, budget: int) -> 
     return need
 
 
+def check_fast(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, budget: int,
+               itemsize: Optional[int] = None) -> int:
+    """Refuse, in one line, a fast-engine run whose arrays would not fit the budget; returns its estimate.
+
+    The exact run's base arrays (sigma is exact), the GEMM operands again in list order, and per feature
+    and probe about 50 bytes (nearest lists, their sizes, which are scanned, the scanning rows of every
+    list) plus two bitsets of the scanned lists. The candidate edges come on top: at the default rho
+    they are a few per feature; at a high rho the exact engine, which streams its parents, is the one
+    whose memory stays O(n)."""
+    need = (base_bytes(n, dim, n_threads, itemsize) + 2 * n * (dim + 2) * 4 + 50 * n * n_probe
+            + 2 * n * 8 * ((n_lists + 63) // 64))
+    if need > budget:
+        raise MemoryBudgetError(
+            f"quickmatch: the fast engine with {n_probe} probes needs about {format_bytes(need)} for {n:,} "
+            f"features of dimension {dim}, more than the memory budget of {format_bytes(budget)} (max_memory / "
+            "--max-memory); raise the budget, lower n_probe, or use the exact engine (engine='exact', --exact)")
+    return need
+
+
 def max_dense_edges(n: int, base: int, budget: int) -> int:
     """Most candidate edges the dense pass may collect before the engine switches to the
     streaming parent pass: what fits the budget beside the base arrays, and no more

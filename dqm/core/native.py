@@ -85,7 +85,7 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_scan_tile.argtypes = [
             ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, f32, f32, f32, f32, ctypes.c_int32,
             f32, f32, ctypes.c_int64, ctypes.c_int64, i32, u64, ctypes.c_int64, ctypes.c_int32, f64, f64, f32,
-            i32, i32, ctypes.c_int64]
+            i32, i32, f32, ctypes.c_int64]
         lib.dqm_scan_tile.restype = ctypes.c_int64
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
@@ -236,7 +236,7 @@ def _scan_keep(col_bits: np.ndarray, row_list: np.ndarray, rows: np.ndarray) -> 
 
 
 def scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits, list_index,
-                    dens_r, dens_c) -> Tuple[np.ndarray, np.ndarray]:
+                    dens_r, dens_c) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """numpy version of the fast engine's scan tile (see ``dqm_scan_tile`` in _tilekernel.c)."""
     m, k = G.shape
     g = np.maximum(G, 0.0)
@@ -254,21 +254,23 @@ def scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, ro
     E = E * keep
     dens_r += E.sum(axis=1, dtype=np.float64)
     fr, fc = np.nonzero((G < rad2r[:, None]) & keep)
+    fg = G[fr, fc]
     if len(other):
         Er, _ = _terms(g[other], wr[other, None], sr[other, None], kernel)
         kept = keep[other]
         dens_c += (Er * kept).sum(axis=0, dtype=np.float64)
         rr, rc = np.nonzero((G[other] < rad2c[None, :]) & kept)
+        fg = np.concatenate([fg, G[other[rr], rc]])
         fr = np.concatenate([fr, -1 - other[rr]])
         fc = np.concatenate([fc, rc])
-    return fr.astype(np.int32), fc.astype(np.int32)
+    return fr.astype(np.int32), fc.astype(np.int32), fg.astype(np.float32)
 
 
 def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits, list_index,
-              dens_r, dens_c, use_native: bool = True) -> Tuple[np.ndarray, np.ndarray]:
+              dens_r, dens_c, use_native: bool = True) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fast engine's scan tile, natively when available: adds kernel terms to ``dens_r`` (rows) and
     ``dens_c`` (columns) and returns the edges ``(r, c)`` (row r the child) and ``(-1 - r, c)`` (column c
-    the child). ``G`` must be C-contiguous float32 with at most :data:`MAX_ROW` columns."""
+    the child) with their ``G`` values. ``G`` must be C-contiguous float32 with at most :data:`MAX_ROW` columns."""
     if _LIB is None or not use_native:
         return scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits,
                                list_index, dens_r, dens_c)
@@ -281,13 +283,14 @@ def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list
     while True:
         cr = np.empty(cap, dtype=np.int32)
         cc = np.empty(cap, dtype=np.int32)
+        cg = np.empty(cap, dtype=np.float32)
         d_r = np.zeros(m)
         d_c = np.zeros(k)
-        got = _LIB.dqm_scan_tile(G.ctypes.data, m, k, G.strides[0] // 4, *args, d_r, d_c, cacc, cr, cc, cap)
+        got = _LIB.dqm_scan_tile(G.ctypes.data, m, k, G.strides[0] // 4, *args, d_r, d_c, cacc, cr, cc, cg, cap)
         if got >= 0:
             dens_r += d_r
             dens_c += d_c
-            return _head(cr, got), _head(cc, got)
+            return _head(cr, got), _head(cc, got), _head(cg, got)
         _check_code(got, k)
         cap *= 4
 

@@ -62,6 +62,11 @@ def test_auto_runs_exact_below_its_size_and_engines_are_checked(scene):
         dqm.quickmatch(X, ids, engine="quick")
     with pytest.raises(dqm.InputError, match="n_probe must be a positive integer"):
         dqm.quickmatch(X, ids, engine="fast", n_probe=0)
+    from dqm.core import memory
+
+    exact_need = memory.base_bytes(len(X), X.shape[1], 2, X.dtype.itemsize)
+    with pytest.raises(memory.MemoryBudgetError, match="the fast engine with 32 probes needs about"):
+        dqm.quickmatch(X, ids, engine="fast", max_memory=exact_need + (1 << 20), n_threads=2)
 
 
 def test_lists_are_powers_of_two_near_twice_the_root():
@@ -104,3 +109,19 @@ def test_benchmark_script_small_fast_run():
     cells = [c.strip() for c in row.split("|")[1:-1]]
     assert 0 < float(cells[5]) < 1.0  # pairs computed, of n^2
     assert float(cells[10]) >= 0.99  # F1 against exact
+
+
+def test_candidates_keep_each_childs_nearest_within_their_bound():
+    held = inverted_lists.Candidates(n=50, k=2)
+    rng = np.random.default_rng(1)
+    child = rng.integers(0, 50, 4000)
+    cand = rng.integers(0, 50, 4000)
+    g = rng.random(4000).astype(np.float32)
+    for s in range(0, 4000, 500):  # in parts, as tiles arrive
+        held.add(child[s:s + 500], cand[s:s + 500], g[s:s + 500])
+    cr, cc = held.nearest()
+    assert np.bincount(cr, minlength=50).max() == 2
+    for j in range(50):
+        mine = np.flatnonzero(child == j)
+        best = mine[np.lexsort((cand[mine], g[mine]))[:2]]
+        assert sorted(cc[cr == j].tolist()) == sorted(cand[best].tolist())

@@ -215,12 +215,13 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
     bits = rng.integers(0, 2 ** 62, (len(b), 3)).astype(np.uint64)  # 130 lists: 3 words per column
     args = (G, w[b], s[b], w[a], s[a], kernel, rad2[a], rad2[b], 40, 5, row_list, bits, 64)
     d_ref, c_ref = np.zeros(len(a)), np.zeros(len(b))
-    rr, rc = native.scan_tile(*args, d_ref, c_ref, use_native=False)
+    rr, rc, rg = native.scan_tile(*args, d_ref, c_ref, use_native=False)
     assert (rr < 0).any() and (rr >= 0).any()  # edges in both directions are exercised
+    np.testing.assert_array_equal(rg, G[np.where(rr < 0, -1 - rr, rr), rc])  # each edge's squared distance
     for level in levels:
         assert native.set_simd_level(level) == level
         d, c = np.zeros(len(a)), np.zeros(len(b))
-        r, cc = native.scan_tile(*args, d, c)
-        assert sorted(zip(r.tolist(), cc.tolist())) == sorted(zip(rr.tolist(), rc.tolist())), level
+        r, cc, g = native.scan_tile(*args, d, c)
+        assert sorted(zip(r.tolist(), cc.tolist(), g.tolist())) == sorted(zip(rr.tolist(), rc.tolist(), rg.tolist()))
         np.testing.assert_allclose(d, d_ref, rtol=2e-5, atol=1e-12)
         np.testing.assert_allclose(c, c_ref, rtol=2e-5, atol=1e-12)
