@@ -99,36 +99,51 @@ def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_thread
 
 class Candidates:
     """Candidate edges ``child -> cand`` at float32 squared distance ``g``, held as they come and cut to each
-    child's ``k`` nearest (ties: the lower candidate index) whenever they exceed ``4 k n``: memory O(k n)."""
+    child's ``k`` nearest (ties: the lower candidate index) whenever they have doubled since the last cut
+    and exceed 8 per feature: memory O(k n), and O(n) where features have few candidates, as on photos.
+    After a cut, a child that holds k candidates takes only edges no longer than its k-th (cheap to test,
+    and it makes later cuts rare). A cut keeps every child's k nearest of what has come, so when cuts
+    happen does not change the result."""
 
     def __init__(self, n: int, k: int):
         self.n, self.k = n, int(k)
         self.parts: list = []
         self.count = 0
+        self.limit = 8 * n + (1 << 20)
+        self.kth = None  # per child: the k-th nearest g held at the last cut (inf: fewer than k)
 
     def add(self, child: np.ndarray, cand: np.ndarray, g: np.ndarray) -> None:
-        self.parts.append((child.astype(np.int64), cand.astype(np.int64), g))
+        if self.kth is not None:
+            near = g <= self.kth[child]
+            child, cand, g = child[near], cand[near], g[near]
+        self.parts.append((child.astype(np.int32), cand.astype(np.int32), g))
         self.count += len(child)
-        if self.count > 4 * self.k * self.n + (1 << 20):
+        if self.count > self.limit:
             self._cut()
+            self.limit = max(self.limit, 2 * self.count)
 
     def _cut(self) -> None:
         if not self.parts:
             return
         child, cand, g = (np.concatenate(x) for x in zip(*self.parts))
+        self.parts = []
         order = np.lexsort((cand, g, child))
-        child, cand, g = child[order], cand[order], g[order]
-        first = np.searchsorted(child, child, side="left")
-        keep = np.arange(len(child)) - first < self.k
-        self.parts = [(child[keep], cand[keep], g[keep])]
-        self.count = int(keep.sum())
+        child = child[order]
+        rank = np.arange(len(child)) - np.searchsorted(child, child, side="left")
+        keep = rank < self.k
+        order, child = order[keep], child[keep]
+        self.parts = [(child, cand[order], g[order])]
+        self.count = len(order)
+        self.kth = np.full(self.n, np.inf, dtype=np.float32)
+        full = rank[keep] == self.k - 1
+        self.kth[child[full]] = g[order[full]]
 
     def nearest(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Every child's ``k`` nearest candidates: ``(child, cand)``."""
+        """Every child's ``k`` nearest candidates: ``(child, cand)`` as int64."""
         if not self.parts:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         self._cut()
-        return self.parts[0][0], self.parts[0][1]
+        return self.parts[0][0].astype(np.int64), self.parts[0][1].astype(np.int64)
 
 
 def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
