@@ -205,6 +205,18 @@ def _sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, 
     return sig
 
 
+def _timed_sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images: int, threads: int,
+                 stats: Dict[str, float]):
+    """Duplicate groups and sigma (computed, or the caller's checked), timed into ``stats["time_sigma"]``;
+    every engine starts with them."""
+    t = time.perf_counter()
+    groups = duplicate_groups(aug.exact)
+    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
+    stats["time_sigma"] = time.perf_counter() - t
+    LOG.info("sigma (nearest other feature of the same image): %.2f s", stats["time_sigma"])
+    return groups, sig
+
+
 def final_density_bounds(dens_o: np.ndarray, err: np.ndarray):
     """Bounds ``[lo, hi]`` of every final density ``fl(1 + d)``, d within ``err`` of ``dens_o``.
 
@@ -364,11 +376,7 @@ def quickmatch(
     LOG.info("QuickMatch: %s of %s (%d-D %s), rho %g, %s kernel, %s, memory budget %.2f GiB", count(n, "feature"),
              count(n_images, "image"), X.shape[1], X.dtype, rho, kernel, count(threads, "thread"), budget / 2 ** 30)
 
-    t = time.perf_counter()
-    groups = duplicate_groups(aug.exact)
-    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
-    stats["time_sigma"] = time.perf_counter() - t
-    LOG.info("sigma (nearest other feature of the same image): %.2f s", stats["time_sigma"])
+    groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
 
     t = time.perf_counter()
     cpu = time.process_time()
@@ -466,10 +474,7 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
     approximate.require_faiss()
     stats: Dict[str, float] = {"n_neighbors": float(k), "memory_budget": float(budget)}
     aug = pairs.Augmented(X)
-    t = time.perf_counter()
-    groups = duplicate_groups(aug.exact)
-    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
-    stats["time_sigma"] = time.perf_counter() - t
+    groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
 
     t = time.perf_counter()
     # keep only what the graph needs: uint8 SIFT as bytes, else float32 (the GEMM operands go)
@@ -521,11 +526,7 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
     memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
                       itemsize=X.dtype.itemsize if aug.exact_d2 else None)
     stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
-    t = time.perf_counter()
-    groups = duplicate_groups(aug.exact)
-    sig = _sigma(aug, sigma, image_index, n_images, threads, groups)
-    stats["time_sigma"] = time.perf_counter() - t
-    LOG.info("sigma (nearest other feature of the same image): %.2f s", stats["time_sigma"])
+    groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
 
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)

@@ -275,7 +275,7 @@ def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list
         return scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits,
                                list_index, dens_r, dens_c)
     m, k = G.shape
-    cap = max(1024, 4 * m)
+    cap = max(1024, 16 * m)  # a feature of a point seen in many images has many candidates: fewer retries
     f = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
     args = (f(wc), f(sc), f(wr), f(sr), KERNEL_CODES[kernel], f(rad2r), f(rad2c), int(n_own), int(self_col),
             np.ascontiguousarray(row_list, dtype=np.int32), col_bits, col_bits.shape[1], int(list_index))
