@@ -299,7 +299,8 @@ def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = N
               "parent": result.parent_mode}
     if "n_neighbors" in result.stats:  # the approximate mode
         params.update(approximate=True, n_neighbors=int(result.stats["n_neighbors"]))
-    params["engine"] = "fast" if "engine_fast" in result.stats else ("knn" if "n_neighbors" in result.stats else "exact")
+    engine = "knn" if "n_neighbors" in result.stats else "exact"
+    params["engine"] = "fast" if "engine_fast" in result.stats else engine
     if "engine_fast" in result.stats:
         params.update(n_lists=int(result.stats["n_lists"]), n_probe=int(result.stats["n_probe"]))
     params.update(extra_params or {})

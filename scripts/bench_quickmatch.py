@@ -285,7 +285,8 @@ def fast_section(names):
         fa = run((name, "quickmatch", {"engine": "fast", "save": scratch("fast")}))
         sc = comembership_scores(np.load(scratch("fast"))["labels"], np.load(scratch("exact"))["labels"])
         scan = fa["time_pass"] - fa["time_lists"]
-        print(f"| {Path(name).stem} | {ex['n']:,} | {ex['wall']:.2f} | {fa['wall']:.2f} | {ex['wall'] / fa['wall']:.2f} | "
+        print(f"| {Path(name).stem} | {ex['n']:,} | {ex['wall']:.2f} | {fa['wall']:.2f} | "
+              f"{ex['wall'] / fa['wall']:.2f} | "
               f"{fa['pairs_computed'] / ex['n'] ** 2:.3f} | {fa['n_lists']:.0f} ({fa['n_probe']:.0f}) | "
               f"{fa['time_sigma']:.2f} / {fa['time_lists']:.2f} / {scan:.2f} / "
               f"{fa['time_edges'] + fa['time_tree']:.2f} | {sc.precision:.4f} | {sc.recall:.4f} | {sc.f1:.4f} |",
