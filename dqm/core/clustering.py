@@ -217,6 +217,17 @@ def _timed_sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images:
     return groups, sig
 
 
+def _edges_within_radius(aug: pairs.Augmented, cr: np.ndarray, cc: np.ndarray, radius: np.ndarray,
+                         image_index: Optional[np.ndarray]):
+    """Candidate edges ``cr -> cc`` at their exact distances, those within the child's radius (and, when
+    ``image_index`` is given, between two images): ``(cr, cc, d)``."""
+    d = pairs.exact_distances(aug.exact, cr, cc)
+    keep = d < radius[cr]
+    if image_index is not None:
+        keep &= image_index[cr] != image_index[cc]
+    return cr[keep], cc[keep], d[keep]
+
+
 def final_density_bounds(dens_o: np.ndarray, err: np.ndarray):
     """Bounds ``[lo, hi]`` of every final density ``fl(1 + d)``, d within ``err`` of ``dens_o``.
 
@@ -442,12 +453,8 @@ def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, im
         stats["time_parent_pass"] = time.perf_counter() - tp
     else:
         stats["n_pass_edges"] = float(len(cr))
-    # candidate edges, exact distances, within the child's radius
-    d = pairs.exact_distances(aug.exact, cr, cc)
-    keep = d < radius[cr]
-    if other_image:  # the streaming pass has left same-image pairs out already; the dense pass has not
-        keep &= image_index[cr] != image_index[cc]
-    cr, cc, d = cr[keep], cc[keep], d[keep]
+    # the streaming pass has left same-image pairs out already; the dense pass has not
+    cr, cc, d = _edges_within_radius(aug, cr, cc, radius, image_index if other_image else None)
     # refine densities whose order on some candidate edge is not certain (the same rule in both passes,
     # so both refine the same features and end with the same density values)
     uncertain = native.rank_relation(lo, hi, cc, cr) == 0
@@ -531,21 +538,17 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
-    dens_o, cr, cc, scan_stats = inverted_lists.scan(aug, w, active, kernel, radius, n_probe=n_probe, seed=seed,
-                                                     n_threads=threads,
-                                                     progress=feature_progress(progress, "quickmatch (fast)", n))
+    dens_o, cr, cc, scan_stats = inverted_lists.scan(
+        aug, w, active, kernel, radius, n_probe=n_probe, seed=seed, n_threads=threads,
+        image_index=image_index if parent == "other-image" else None,
+        progress=feature_progress(progress, "quickmatch (fast)", n))
     stats.update(scan_stats)
     stats["time_pass"] = time.perf_counter() - t
     LOG.info("list scan (%d lists, %d probed each; %.1f%% of all pairs): %.2f s", scan_stats["n_lists"],
              scan_stats["n_probe"], 100.0 * scan_stats["pairs_computed"] / max(1.0, n * (n - 1.0)),
              stats["time_pass"])
     t = time.perf_counter()
-    d = pairs.exact_distances(aug.exact, cr, cc)
-    keep = d < radius[cr]
-    cr, cc, d = cr[keep], cc[keep], d[keep]
-    if parent == "other-image":
-        keep = image_index[cr] != image_index[cc]
-        cr, cc, d = cr[keep], cc[keep], d[keep]
+    cr, cc, d = _edges_within_radius(aug, cr, cc, radius, None)  # the scan kept other images' pairs only
     stats["time_edges"] = time.perf_counter() - t
     del aug
     return _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,

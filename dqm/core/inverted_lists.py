@@ -38,15 +38,12 @@ and every sum is added in list order whatever the thread count.
 """
 from __future__ import annotations
 
-import logging
 import time
 from typing import Callable, Optional, Tuple
 
 import numpy as np
 
 from . import native, pairs
-
-LOG = logging.getLogger("dqm.core")
 
 #: lists per feature count: n_lists = LISTS_FACTOR * sqrt(n), rounded to a power of two
 LISTS_FACTOR = 2.0
@@ -196,6 +193,7 @@ def scan(
     n_threads: Optional[int] = None,
     progress: ProgressFn = None,
     max_candidates: int = MAX_CANDIDATES,
+    image_index: Optional[np.ndarray] = None,
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Densities (without the self term) and candidate edges from the probed lists.
 
@@ -203,7 +201,8 @@ def scan(
     stats)``: each feature's sum of the kernel terms of the members of the lists it probes (itself
     left out), directed candidate edges ``child -> cand`` whose float32 distance is within
     ``radius[child]`` plus its error bound (each child's ``max_candidates`` nearest), and counts (lists,
-    probes, pairs computed).
+    probes, pairs computed). With ``image_index`` (the parent must come from another image), pairs within
+    one image are left out before the nearest are chosen, so that they do not take a child's places.
     """
     n = aug.n
     left, right = aug.left, aug.right
@@ -238,6 +237,7 @@ def scan(
     rad2p = pairs.search_rad2(aug, radius)[perm]
     bits = _scan_bits(near, scans, k)[perm]
     listp = own[perm].astype(np.int32)
+    imagep = None if image_index is None else image_index[perm]
     probers = where[probe_row[order]]
     tasks = []
     for b in range(k):
@@ -274,6 +274,9 @@ def scan(
             for r, c, g in edges:  # (r, c): the row is the child; (-1 - r, c): the column is
                 rev = r < 0
                 row = rows[np.where(rev, -1 - r, r)]
+                if imagep is not None:
+                    other = imagep[row] != imagep[c]
+                    rev, row, c, g = rev[other], row[other], c[other], g[other]
                 held.add(np.where(rev, c, row), np.where(rev, row, c), g)
             computed += size
             if progress is not None:

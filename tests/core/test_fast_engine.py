@@ -127,3 +127,26 @@ def test_candidates_keep_each_childs_nearest_within_their_bound():
         mine = np.flatnonzero(child == j)
         best = mine[np.lexsort((cand[mine], g[mine]))[:2]]
         assert sorted(cc[cr == j].tolist()) == sorted(cand[best].tolist())
+
+
+def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
+    """parent='other-image': pairs within one image are dropped before each child's nearest are kept, so a
+    tight cap still holds the nearest candidate from another image."""
+    from dqm.core import clustering, pairs
+
+    X, ids, exact = scene
+    _, img = np.unique(ids, return_inverse=True)
+    aug = pairs.Augmented(X)
+    w, active = clustering.kernel_weights(exact.sigma, "gaussian", 0.25)
+    radius = 1.1 * exact.sigma  # wide: many children have candidates in their own image too
+    _, cr, cc, _ = inverted_lists.scan(aug, w, active, "gaussian", radius, max_candidates=10 ** 6)
+    other = img[cr] != img[cc]
+    assert (~other).any()  # same-image candidates exist and would compete for the places
+    cr, cc = cr[other], cc[other]
+    order = np.lexsort((cc, pairs.exact_distances(aug.exact, cr, cc), cr))  # each child's nearest first
+    cr, cc = cr[order], cc[order]
+    first = np.r_[True, cr[1:] != cr[:-1]]
+    best = dict(zip(cr[first].tolist(), cc[first].tolist()))
+    _, kr, kc, _ = inverted_lists.scan(aug, w, active, "gaussian", radius, max_candidates=1, image_index=img)
+    assert (img[kr] != img[kc]).all()
+    assert dict(zip(kr.tolist(), kc.tolist())) == best
