@@ -18,6 +18,8 @@
  * those intrinsics; elsewhere the portable scalar loops run.
  */
 #include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
 #include <math.h>
 #include <float.h>
 
@@ -1032,4 +1034,172 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
         }
     }
     return count > cap ? -1 : count;
+}
+
+/*
+ * The fast engine's candidate keeper: each child's k nearest candidates, ordered by (g, cand).
+ *
+ * Edges come as the scan tile writes them: (r, c) with row r the child (child = rows[r], cand = c) or
+ * (-1 - r, c) with column c the child (child = c, cand = rows[-1 - r]); with image (may be NULL) pairs
+ * within one image are skipped. best_g / best_c hold k slots per child (child * k ...), count how many
+ * are filled, and lim[child] is set, once the k slots are full, to the smallest float above the k-th g:
+ * an edge with g >= lim cannot enter (the scan tile takes lim as a radius: it tests g < lim). The kept
+ * set is each child's k smallest (g, cand) of all edges offered, whatever their order: deterministic.
+ * Returns the number of edges that entered.
+ */
+int64_t dqm_keep_nearest(const int32_t *er, const int32_t *ec, const float *eg, int64_t m,
+                         const int64_t *rows, const int32_t *image, int32_t k,
+                         float *best_g, int32_t *best_c, int32_t *count, float *lim)
+{
+    int64_t entered = 0;
+    for (int64_t e = 0; e < m; ++e) {
+        int64_t child, cand;
+        if (er[e] >= 0) {
+            child = rows[er[e]];
+            cand = ec[e];
+        } else {
+            child = ec[e];
+            cand = rows[-1 - (int64_t)er[e]];
+        }
+        if (image && image[child] == image[cand])
+            continue;
+        float g = eg[e];
+        float *bg = best_g + child * (int64_t)k;
+        int32_t *bc = best_c + child * (int64_t)k;
+        int32_t n = count[child];
+        if (n == k && (g > bg[k - 1] || (g == bg[k - 1] && cand >= bc[k - 1])))
+            continue;
+        int32_t at = n < k ? n : k - 1; /* the slot freed: the end, or the k-th when full */
+        while (at > 0 && (bg[at - 1] > g || (bg[at - 1] == g && bc[at - 1] > cand))) {
+            bg[at] = bg[at - 1];
+            bc[at] = bc[at - 1];
+            --at;
+        }
+        bg[at] = g;
+        bc[at] = (int32_t)cand;
+        if (n < k)
+            count[child] = ++n;
+        if (n == k)
+            lim[child] = nextafterf(bg[k - 1], INFINITY);
+        ++entered;
+    }
+    return entered;
+}
+
+/*
+ * QuickMatch's break/merge (dqm/core/tree.py, merge_clusters): the m tree edges child[e] -> parent[e] at
+ * distance d[e], already in increasing (d, child) order, joined by union-find. Clusters of child and parent
+ * merge iff d < rho * min(scale_child, scale_parent) (a cluster's scale: the least sigma of its members, in
+ * double as the Python loop computes it) and their image sets are disjoint. A cluster's images are held
+ * sorted (the smaller set is looked up in the larger and merged into a new array). Writes every feature's
+ * root to root (n entries). Returns 0, or -4 when memory runs out.
+ */
+static int64_t find_root(int64_t *root, int64_t i)
+{
+    int64_t r = i;
+    while (root[r] != r)
+        r = root[r];
+    while (root[i] != r) {
+        int64_t next = root[i];
+        root[i] = r;
+        i = next;
+    }
+    return r;
+}
+
+static int has_image(const int64_t *set, int64_t len, int64_t img)
+{
+    int64_t lo = 0, hi = len;
+    while (lo < hi) {
+        int64_t mid = lo + (hi - lo) / 2;
+        if (set[mid] < img)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return lo < len && set[lo] == img;
+}
+
+int64_t dqm_merge_clusters(int64_t n, int64_t m, const int64_t *child, const int64_t *parent, const double *d,
+                           const double *sigma, const int64_t *image, double rho, int64_t *root)
+{
+    double *scale = (double *)malloc(sizeof(double) * (size_t)(n > 0 ? n : 1));
+    int64_t **sets = (int64_t **)calloc((size_t)(n > 0 ? n : 1), sizeof(int64_t *)); /* NULL: {image[i]} */
+    int64_t *len = (int64_t *)malloc(sizeof(int64_t) * (size_t)(n > 0 ? n : 1));
+    int64_t code = 0;
+    if (!scale || !sets || !len) {
+        code = -4;
+        goto done;
+    }
+    for (int64_t i = 0; i < n; ++i) {
+        root[i] = i;
+        scale[i] = sigma[i];
+        len[i] = 1;
+    }
+    for (int64_t e = 0; e < m; ++e) {
+        int64_t rj = find_root(root, child[e]), rp = find_root(root, parent[e]);
+        if (rj == rp)
+            continue;
+        double lim = rho * (scale[rp] < scale[rj] ? scale[rp] : scale[rj]); /* Python's min(): NaN as it does */
+        if (!(d[e] < lim))
+            continue;
+        if (len[rj] > len[rp]) { /* look the smaller set up in the larger */
+            int64_t t = rj;
+            rj = rp;
+            rp = t;
+        }
+        const int64_t *sj = sets[rj] ? sets[rj] : &image[rj];
+        const int64_t *sp = sets[rp] ? sets[rp] : &image[rp];
+        int clash = 0;
+        for (int64_t a = 0; a < len[rj] && !clash; ++a)
+            clash = has_image(sp, len[rp], sj[a]);
+        if (clash)
+            continue;
+        int64_t total = len[rj] + len[rp];
+        int64_t *merged = (int64_t *)malloc(sizeof(int64_t) * (size_t)total);
+        if (!merged) {
+            code = -4;
+            goto done;
+        }
+        int64_t a = 0, b = 0, k = 0;
+        while (a < len[rj] && b < len[rp])
+            merged[k++] = sj[a] < sp[b] ? sj[a++] : sp[b++];
+        while (a < len[rj])
+            merged[k++] = sj[a++];
+        while (b < len[rp])
+            merged[k++] = sp[b++];
+        free(sets[rj]);
+        free(sets[rp]);
+        sets[rj] = NULL;
+        sets[rp] = merged;
+        len[rp] = total;
+        root[rj] = rp;
+        scale[rp] = scale[rj] < scale[rp] ? scale[rj] : scale[rp];
+    }
+    for (int64_t i = 0; i < n; ++i)
+        root[i] = find_root(root, i);
+done:
+    if (sets)
+        for (int64_t i = 0; i < n; ++i)
+            free(sets[i]);
+    free(sets);
+    free(scale);
+    free(len);
+    return code;
+}
+
+/*
+ * Exact squared distances of uint8 rows: out[e] = |X[a[e]] - X[b[e]]|^2 (int32 sums: dim <= 32768).
+ */
+void dqm_sq_dist_u8(const uint8_t *X, int64_t dim, const int64_t *a, const int64_t *b, int64_t m, double *out)
+{
+    for (int64_t e = 0; e < m; ++e) {
+        const uint8_t *x = X + a[e] * dim, *y = X + b[e] * dim;
+        int32_t acc = 0;
+        for (int64_t j = 0; j < dim; ++j) {
+            int32_t t = (int32_t)x[j] - (int32_t)y[j];
+            acc += t * t;
+        }
+        out[e] = (double)acc;
+    }
 }

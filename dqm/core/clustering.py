@@ -363,6 +363,7 @@ def quickmatch(
         raise V.InputError(f"approximate must be True or False, got {approximate!r}")
     threads = pairs.default_threads() if n_threads is None else max(1, int(n_threads))
     budget = memory.resolve_budget(max_memory)
+    held = memory.held_bytes(max_memory, X, descriptors)
     if engine not in ENGINES:
         raise V.InputError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
     if approximate and engine == "fast":
@@ -372,16 +373,17 @@ def quickmatch(
     if fast and not approximate and n > 2 and n_images > 1:
         n_probe = V.check_positive_int(n_probe, "n_probe")
         return _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma, n_probe,
-                                int(seed), threads, budget, progress, t0)
+                                int(seed), threads, budget, held, progress, t0)
     if approximate and n > 2:
         X = X.astype(np.float64, copy=False)  # as the approximate mode's measurements were made
         return _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
-                                       n_neighbors, threads, budget, progress, t0)
+                                       n_neighbors, threads, budget, held, progress, t0)
     if X.dtype.kind in "iu":  # integer rows: the operands hold no float copy of the data (exact mode)
         aug = pairs.Augmented(X)
-        base = memory.check_base(n, X.shape[1], threads, budget, itemsize=X.dtype.itemsize if aug.exact_d2 else None)
+        base = memory.check_base(n, X.shape[1], threads, budget, itemsize=X.dtype.itemsize if aug.exact_d2 else None,
+                                 held=held)
     else:
-        base = memory.check_base(n, X.shape[1], threads, budget)
+        base = memory.check_base(n, X.shape[1], threads, budget, held=held)
         aug = pairs.Augmented(X)
     native.warn_if_fallback(n)
     LOG.info("QuickMatch: %s of %s (%d-D %s), rho %g, %s kernel, %s, memory budget %.2f GiB", count(n, "feature"),
@@ -393,8 +395,9 @@ def quickmatch(
     cpu = time.process_time()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
-    max_edges = memory.max_dense_edges(n, base, budget)
+    max_edges = memory.max_dense_edges(n, base + held, budget)
     stats["memory_budget"] = float(budget)
+    stats["memory_held"] = float(held)
     dens_o, err, cr, cc = pairs.kernel_pass(aug, w, active, kernel, radius, n_threads=threads,
                                             progress=feature_progress(progress, "quickmatch", n),
                                             max_edges=max_edges)
@@ -473,11 +476,11 @@ def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, im
 
 
 def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma,
-                            n_neighbors, threads, budget, progress, t0) -> QuickMatchResult:
+                            n_neighbors, threads, budget, held, progress, t0) -> QuickMatchResult:
     """The approximate mode (:mod:`dqm.core.approximate`); arguments already checked."""
     n, dim = X.shape
     k = min(V.check_positive_int(n_neighbors, "n_neighbors"), n - 1)
-    memory.check_approximate(n, dim, k, threads, budget)
+    memory.check_approximate(n, dim, k, threads, budget, held)
     approximate.require_faiss()
     stats: Dict[str, float] = {"n_neighbors": float(k), "memory_budget": float(budget)}
     aug = pairs.Augmented(X)
@@ -526,12 +529,13 @@ def _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, rat
 
 
 def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma, n_probe, seed,
-                     threads, budget, progress, t0) -> QuickMatchResult:
+                     threads, budget, held, progress, t0) -> QuickMatchResult:
     """The fast engine (:mod:`dqm.core.inverted_lists`); arguments already checked."""
     n, dim = X.shape
     aug = pairs.Augmented(X)
     memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
-                      itemsize=X.dtype.itemsize if aug.exact_d2 else None)
+                      itemsize=X.dtype.itemsize if aug.exact_d2 else None, held=held,
+                      max_candidates=inverted_lists.MAX_CANDIDATES)
     stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
     groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
 

@@ -94,53 +94,32 @@ def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_thread
     return out
 
 
-class Candidates:
-    """Candidate edges ``child -> cand`` at float32 squared distance ``g``, held as they come and cut to each
-    child's ``k`` nearest (ties: the lower candidate index) whenever they have doubled since the last cut
-    and exceed 8 per feature: memory O(k n), and O(n) where features have few candidates, as on photos.
-    After a cut, a child that holds k candidates takes only edges no longer than its k-th (cheap to test,
-    and it makes later cuts rare). A cut keeps every child's k nearest of what has come, so when cuts
-    happen does not change the result."""
+class NearestCandidates:
+    """Each child's ``k`` nearest candidate parents (float32 squared distance ``g``, ties: the lower
+    candidate index), kept as the scan's edges come (:func:`dqm.core.native.keep_nearest`): memory
+    ``8 k n`` bytes whatever the number of edges (a physical point seen in hundreds of images gives its
+    features hundreds of candidates: 1M generated features, 14.5 GiB of edges uncut). ``limit[child]``
+    tightens to just above the k-th g once k are held; the scan tile takes it as a radius, so that most
+    far candidates are never written. The kept set does not depend on the order edges come in, so the
+    thread count does not change it."""
 
-    def __init__(self, n: int, k: int):
-        self.n, self.k = n, int(k)
-        self.parts: list = []
-        self.count = 0
-        self.limit = 8 * n + (1 << 20)
-        self.kth = None  # per child: the k-th nearest g held at the last cut (inf: fewer than k)
+    def __init__(self, n: int, k: int, image: Optional[np.ndarray] = None):
+        self.k = int(k)
+        self.g = np.full((n, self.k), np.inf, dtype=np.float32)
+        self.cand = np.zeros((n, self.k), dtype=np.int32)
+        self.count = np.zeros(n, dtype=np.int32)
+        self.limit = np.full(n, np.inf, dtype=np.float32)
+        self.image = None if image is None else np.ascontiguousarray(image, dtype=np.int32)
 
-    def add(self, child: np.ndarray, cand: np.ndarray, g: np.ndarray) -> None:
-        if self.kth is not None:
-            near = g <= self.kth[child]
-            child, cand, g = child[near], cand[near], g[near]
-        self.parts.append((child.astype(np.int32), cand.astype(np.int32), g))
-        self.count += len(child)
-        if self.count > self.limit:
-            self._cut()
-            self.limit = max(self.limit, 2 * self.count)
-
-    def _cut(self) -> None:
-        if not self.parts:
-            return
-        child, cand, g = (np.concatenate(x) for x in zip(*self.parts))
-        self.parts = []
-        order = np.lexsort((cand, g, child))
-        child = child[order]
-        rank = np.arange(len(child)) - np.searchsorted(child, child, side="left")
-        keep = rank < self.k
-        order, child = order[keep], child[keep]
-        self.parts = [(child, cand[order], g[order])]
-        self.count = len(order)
-        self.kth = np.full(self.n, np.inf, dtype=np.float32)
-        full = rank[keep] == self.k - 1
-        self.kth[child[full]] = g[order[full]]
+    def add(self, r: np.ndarray, c: np.ndarray, g: np.ndarray, rows: np.ndarray) -> None:
+        """Offer one scan tile's edges (rows of the tile: ``rows``)."""
+        native.keep_nearest(r, c, g, rows, self.image, self.g, self.cand, self.count, self.limit)
 
     def nearest(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Every child's ``k`` nearest candidates: ``(child, cand)`` as int64."""
-        if not self.parts:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        self._cut()
-        return self.parts[0][0].astype(np.int64), self.parts[0][1].astype(np.int64)
+        """Every child's candidates, child by child, nearest first: ``(child, cand)`` as int64."""
+        child = np.repeat(np.arange(len(self.count), dtype=np.int64), self.count)
+        held = np.arange(self.k)[None, :] < self.count[:, None]
+        return child, self.cand[held].astype(np.int64)
 
 
 def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
@@ -160,10 +139,10 @@ def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def kmeans(left: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1) -> np.ndarray:
     """``k`` centroids of the rows of the augmented operand ``left`` (Lloyd's iterations on a seeded
     sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
-    operand's centred coordinates."""
+    operand's centred coordinates. Sums are float64 whatever the thread count: deterministic."""
     dim = left.shape[1] - 2
     rng = np.random.default_rng(seed)
     n = len(left)
@@ -171,12 +150,11 @@ def kmeans(left: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     S = np.ascontiguousarray(left[sample])
     centroids = S[np.sort(rng.choice(len(S), size=k, replace=False)), :dim].copy()
     for _ in range(KMEANS_ITERATIONS):
-        own = _nearest_centroids(S, centroids, 1)[:, 0]
-        by = np.argsort(own, kind="stable")
+        own = _nearest_centroids(S, centroids, 1, n_threads)[:, 0]
         counts = np.bincount(own, minlength=k)
         filled = np.flatnonzero(counts)
-        sums = np.add.reduceat(S[by, :dim].astype(np.float64), np.searchsorted(own[by], filled), axis=0)
-        centroids[filled] = (sums / counts[filled, None]).astype(np.float32)
+        sums = np.stack([np.bincount(own, weights=S[:, j], minlength=k) for j in range(dim)], axis=1)
+        centroids[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
     return centroids
 
 
@@ -209,7 +187,7 @@ def scan(
     k = n_lists(n) if lists is None else int(lists)
     t = int(min(max(1, n_probe), k))
     t0 = time.perf_counter()
-    centroids = kmeans(left, k, seed)
+    centroids = kmeans(left, k, seed, n_threads)
     near = _nearest_centroids(left, centroids, t, n_threads)
     time_lists = time.perf_counter() - t0
     own = near[:, 0].astype(np.int64)
@@ -237,7 +215,6 @@ def scan(
     rad2p = pairs.search_rad2(aug, radius)[perm]
     bits = _scan_bits(near, scans, k)[perm]
     listp = own[perm].astype(np.int32)
-    imagep = None if image_index is None else image_index[perm]
     probers = where[probe_row[order]]
     tasks = []
     for b in range(k):
@@ -247,6 +224,9 @@ def scan(
         rows = np.concatenate([np.arange(lo, hi), probers[pbounds[b]:pbounds[b + 1]]])
         for r0 in range(0, len(rows), ROWS):
             tasks.append((b, lo, hi, rows[r0:r0 + ROWS], r0))
+
+    held = NearestCandidates(n, max_candidates, None if image_index is None else image_index[perm])
+    limit = held.limit  # read by the workers as the main thread tightens it: any value read is a valid radius
 
     def work(task):
         b, lo, hi, rows, r0 = task
@@ -259,25 +239,20 @@ def scan(
         for c0 in range(lo, hi, native.MAX_ROW):
             c1 = min(hi, c0 + native.MAX_ROW)
             part = dc[c0 - lo:c1 - lo]
-            r, c, g = native.scan_tile(L @ Rp[c0:c1].T, wp[c0:c1], sp[c0:c1], *args, kernel, rad2p[rows],
-                                       rad2p[c0:c1], n_own, lo + r0 - c0, listp[rows], bits[c0:c1], b, dr, part)
+            r, c, g = native.scan_tile(L @ Rp[c0:c1].T, wp[c0:c1], sp[c0:c1], *args, kernel,
+                                       np.minimum(rad2p[rows], limit[rows]), np.minimum(rad2p[c0:c1], limit[c0:c1]),
+                                       n_own, lo + r0 - c0, listp[rows], bits[c0:c1], b, dr, part)
             edges.append((r, c + c0, g))
         return rows, dr, lo, dc, edges, len(rows) * (hi - lo)
 
     dens = np.zeros(n)
-    held = Candidates(n, max_candidates)
     computed = 0
     with pairs.tile_pool(n_threads) as run:
         for done, (rows, dr, lo, dc, edges, size) in enumerate(run(work, tasks), start=1):
             dens[rows] += dr  # a feature scans a list once: rows are distinct
             dens[lo:lo + len(dc)] += dc
             for r, c, g in edges:  # (r, c): the row is the child; (-1 - r, c): the column is
-                rev = r < 0
-                row = rows[np.where(rev, -1 - r, r)]
-                if imagep is not None:
-                    other = imagep[row] != imagep[c]
-                    rev, row, c, g = rev[other], row[other], c[other], g[other]
-                held.add(np.where(rev, c, row), np.where(rev, row, c), g)
+                held.add(r, c, g, rows)
             computed += size
             if progress is not None:
                 progress(done, len(tasks))

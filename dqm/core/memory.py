@@ -10,6 +10,12 @@ streaming is faster) and switches to the streaming pass beyond it; the
 densities of the first pass are kept either way, so the switch wastes nothing
 but the edges collected so far. Before any work, :func:`check_base` refuses in
 one line an input whose O(n) arrays alone exceed the budget.
+
+A budget the caller sets bounds the process's resident memory, so the engine
+plans against it less what the process already holds when the run starts
+(:func:`held_bytes`: the interpreter, its libraries and the caller's data, about
+0.1 GiB in a bare ``dqm match``); the default budget is a fraction of the memory
+still available, which already leaves that out.
 """
 from __future__ import annotations
 
@@ -89,6 +95,34 @@ def resolve_budget(max_memory: Union[None, str, int, float]) -> int:
     return parse_size(max_memory)
 
 
+def process_bytes() -> int:
+    """Resident memory of this process now (bytes; 0 where /proc is not available)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0
+
+
+def held_bytes(max_memory, *inputs) -> int:
+    """What a run must leave out of the budget ``max_memory``: the process's resident memory now,
+    less the ``inputs`` arrays (the models count them); 0 without a budget of the caller's (the default
+    budget comes from the memory still available, which leaves the process out already)."""
+    if max_memory is None:
+        return 0
+    arrays = {}
+    for x in inputs:
+        while getattr(x, "base", None) is not None:  # a view: count the array it views, once
+            x = x.base
+        if hasattr(x, "nbytes"):
+            arrays[id(x)] = int(x.nbytes)
+    return max(0, process_bytes() - sum(arrays.values()))
+
+
+def _beside(held: int) -> str:
+    return f" beside the {format_bytes(held)} this process already holds," if held else ""
+
+
 def format_bytes(b: float) -> str:
     """``1.5 GiB``, ``320 MiB``."""
     if b >= 1 << 30:
@@ -112,56 +146,56 @@ def base_bytes(n: int, dim: int, n_threads: int, itemsize: Optional[int] = None)
 
 
 def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quickmatch",
-               itemsize: Optional[int] = None) -> int:
-    """Refuse, in one line, an input whose arrays alone exceed the budget; returns the base bytes
-    (``itemsize``: see :func:`base_bytes`)."""
+               itemsize: Optional[int] = None, held: int = 0) -> int:
+    """Refuse, in one line, an input whose arrays alone exceed the budget (less ``held``, see
+    :func:`held_bytes`); returns the base bytes (``itemsize``: see :func:`base_bytes`)."""
     base = base_bytes(n, dim, n_threads, itemsize)
-    if base > budget:
+    if base + held > budget:
         raise MemoryBudgetError(
             f"{what}: {n:,} features of dimension {dim} need about {format_bytes(base)} even with the "
-            f"streaming parent pass, more than the memory budget of {format_bytes(budget)} (max_memory / "
+            f"streaming parent pass,{_beside(held)} more than the memory budget of {format_bytes(budget)} (max_memory / "
             "--max-memory); raise the budget, use fewer features, or the approximate mode"
         )
     return base
 
 
-def check_approximate(n: int, dim: int, k: int, n_threads: int, budget: int) -> int:
+def check_approximate(n: int, dim: int, k: int, n_threads: int, budget: int, held: int = 0) -> int:
     """Refuse, in one line, an approximate run that would not fit the budget; returns its estimate.
 
     The exact run's base arrays (sigma is exact), faiss' float32 copy of the
     data, and the neighbour graph with its kernel-term temporaries (~40 bytes
     per edge)."""
     need = base_bytes(n, dim, n_threads) + n * dim * 4 + 40 * n * k
-    if need > budget:
+    if need + held > budget:
         raise MemoryBudgetError(
             f"quickmatch: the approximate mode with {k} neighbours needs about {format_bytes(need)} for "
-            f"{n:,} features of dimension {dim}, more than the memory budget of {format_bytes(budget)} "
+            f"{n:,} features of dimension {dim},{_beside(held)} more than the memory budget of {format_bytes(budget)} "
             "(max_memory / --max-memory); raise the budget or lower n_neighbors")
     return need
 
 
 def check_fast(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, budget: int,
-               itemsize: Optional[int] = None) -> int:
+               itemsize: Optional[int] = None, held: int = 0, max_candidates: int = 32) -> int:
     """Refuse, in one line, a fast-engine run whose arrays would not fit the budget; returns its estimate.
 
     The exact run's base arrays (sigma is exact), the GEMM operands again in list order, and per feature
     and probe about 50 bytes (nearest lists, their sizes, which are scanned, the scanning rows of every
-    list) plus two bitsets of the scanned lists. The candidate edges come on top: at the default rho
-    they are a few per feature; at a high rho the exact engine, which streams its parents, is the one
-    whose memory stays O(n)."""
+    list) plus two bitsets of the scanned lists, and each feature's ``max_candidates`` nearest candidate
+    parents (8 bytes each, then their exact distances: 32 bytes each)."""
     need = (base_bytes(n, dim, n_threads, itemsize) + 2 * n * (dim + 2) * 4 + 50 * n * n_probe
-            + 2 * n * 8 * ((n_lists + 63) // 64))
-    if need > budget:
+            + 2 * n * 8 * ((n_lists + 63) // 64) + 32 * n * max_candidates)
+    if need + held > budget:
         raise MemoryBudgetError(
             f"quickmatch: the fast engine with {n_probe} probes needs about {format_bytes(need)} for {n:,} "
-            f"features of dimension {dim}, more than the memory budget of {format_bytes(budget)} (max_memory / "
+            f"features of dimension {dim},{_beside(held)} more than the memory budget of {format_bytes(budget)} (max_memory / "
             "--max-memory); raise the budget, lower n_probe, or use the exact engine (engine='exact', --exact)")
     return need
 
 
 def max_dense_edges(n: int, base: int, budget: int) -> int:
     """Most candidate edges the dense pass may collect before the engine switches to the
-    streaming parent pass: what fits the budget beside the base arrays, and no more
-    than where the streaming pass becomes the faster one (``n^2 / BREAK_EVEN``)."""
+    streaming parent pass: what fits the budget beside ``base`` (the base arrays and what the
+    process held already), and no more than where the streaming pass becomes the faster one
+    (``n^2 / BREAK_EVEN``)."""
     fits = max(0, budget - base) // BYTES_PER_EDGE
     return int(min(fits, n * n // BREAK_EVEN + (1 << 16)))

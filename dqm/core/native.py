@@ -87,6 +87,14 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, ctypes.c_int64, ctypes.c_int64, i32, u64, ctypes.c_int64, ctypes.c_int32, f64, f64, f32,
             i32, i32, f32, ctypes.c_int64]
         lib.dqm_scan_tile.restype = ctypes.c_int64
+        lib.dqm_keep_nearest.argtypes = [i32, i32, f32, ctypes.c_int64, i64, ctypes.c_void_p, ctypes.c_int32,
+                                         f32, i32, i32, f32]
+        lib.dqm_keep_nearest.restype = ctypes.c_int64
+        lib.dqm_merge_clusters.argtypes = [ctypes.c_int64, ctypes.c_int64, i64, i64, f64, f64, i64, ctypes.c_double,
+                                           i64]
+        lib.dqm_merge_clusters.restype = ctypes.c_int64
+        lib.dqm_sq_dist_u8.argtypes = [u8, ctypes.c_int64, i64, i64, ctypes.c_int64, f64]
+        lib.dqm_sq_dist_u8.restype = None
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
@@ -293,6 +301,86 @@ def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list
             return _head(cr, got), _head(cc, got), _head(cg, got)
         _check_code(got, k)
         cap *= 4
+
+
+def keep_nearest_numpy(er, ec, eg, rows, image, best_g, best_c, count, lim) -> None:
+    """numpy version of ``dqm_keep_nearest`` (see :func:`keep_nearest`)."""
+    k = best_g.shape[1]
+    rev = er < 0
+    at = rows[np.where(rev, -1 - er.astype(np.int64), er)]
+    child = np.where(rev, ec, at).astype(np.int64)
+    cand = np.where(rev, at, ec).astype(np.int64)
+    g = np.asarray(eg, dtype=np.float32)
+    if image is not None:
+        other = image[child] != image[cand]
+        child, cand, g = child[other], cand[other], g[other]
+    full = count[child] == k
+    enter = ~full | (g < best_g[child, k - 1]) | ((g == best_g[child, k - 1]) & (cand < best_c[child, k - 1]))
+    child, cand, g = child[enter], cand[enter], g[enter]
+    if not len(child):
+        return
+    touched = np.unique(child)
+    held = count[touched]
+    hc = np.repeat(touched, held)
+    slot = np.arange(len(hc)) - np.repeat(np.cumsum(held) - held, held)
+    child = np.concatenate([hc, child])
+    cand = np.concatenate([best_c[hc, slot].astype(np.int64), cand])
+    g = np.concatenate([best_g[hc, slot], g])
+    order = np.lexsort((cand, g, child))
+    child, cand, g = child[order], cand[order], g[order]
+    rank = np.arange(len(child)) - np.searchsorted(child, child, side="left")
+    keep = rank < k
+    best_g[child[keep], rank[keep]] = g[keep]
+    best_c[child[keep], rank[keep]] = cand[keep]
+    count[touched] = np.minimum(np.diff(np.searchsorted(child, touched, side="left"), append=len(child)), k)
+    now_full = touched[count[touched] == k]
+    lim[now_full] = np.nextafter(best_g[now_full, k - 1], np.float32(np.inf))
+
+
+def keep_nearest(er, ec, eg, rows, image, best_g, best_c, count, lim, use_native: bool = True) -> None:
+    """Offer the scan tile's edges (``(r, c)``: child ``rows[r]``, candidate ``c``; ``(-1 - r, c)``: child
+    ``c``, candidate ``rows[-1 - r]``) to each child's ``k`` nearest, held in ``best_g`` / ``best_c`` ((n, k),
+    ordered by (g, candidate)) with ``count`` filled; pairs within one ``image`` (if given) are skipped.
+    ``lim[child]`` becomes the smallest float32 above the k-th g once k are held, a radius that the scan
+    tile can test. The kept set does not depend on the order edges come in."""
+    if _LIB is None or not use_native:
+        keep_nearest_numpy(er, ec, eg, rows, image, best_g, best_c, count, lim)
+        return
+    img = None if image is None else np.ascontiguousarray(image, dtype=np.int32)
+    _LIB.dqm_keep_nearest(
+        np.ascontiguousarray(er, dtype=np.int32), np.ascontiguousarray(ec, dtype=np.int32),
+        np.ascontiguousarray(eg, dtype=np.float32), len(er), np.ascontiguousarray(rows, dtype=np.int64),
+        None if img is None else img.ctypes.data, best_g.shape[1], best_g, best_c, count, lim)
+
+
+def sq_distances_u8(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> Optional[np.ndarray]:
+    """Exact squared distances ``|X[a_k] - X[b_k]|^2`` of uint8 rows natively (float64); None without the
+    native kernel or for other inputs (the caller's numpy loop then)."""
+    if _LIB is None or X.dtype != np.uint8 or X.ndim != 2 or X.shape[1] > 32768 or not X.flags.c_contiguous:
+        return None
+    a = np.ascontiguousarray(a, dtype=np.int64)
+    b = np.ascontiguousarray(b, dtype=np.int64)
+    out = np.empty(len(a), dtype=np.float64)
+    if len(a):
+        _LIB.dqm_sq_dist_u8(X, X.shape[1], a, b, len(a), out)
+    return out
+
+
+def merge_roots(n: int, child: np.ndarray, parent: np.ndarray, d: np.ndarray, sigma: np.ndarray,
+                image: np.ndarray, rho: float) -> Optional[np.ndarray]:
+    """Break/merge natively (``dqm_merge_clusters``): every feature's root after merging along the edges
+    ``child -> parent`` (already in increasing (d, child) order); None without the native kernel (the
+    caller runs :func:`dqm.core.tree.merge_clusters`' Python loop)."""
+    if _LIB is None:
+        return None
+    root = np.empty(n, dtype=np.int64)
+    i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    code = _LIB.dqm_merge_clusters(n, len(child), i64(child), i64(parent), f64(d), f64(sigma), i64(image),
+                                   float(rho), root)
+    if code:
+        raise MemoryError("dqm_merge_clusters: out of memory")
+    return root
 
 
 def _terms(d2: np.ndarray, w, s, kernel: str) -> Tuple[np.ndarray, np.ndarray]:

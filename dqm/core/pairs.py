@@ -230,6 +230,9 @@ def exact_sq_distances(X: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int =
     of ``a`` and ``b`` or the machine's other work), so every process that holds
     both features computes the same bits; the distributed mode relies on that.
     """
+    fast = native.sq_distances_u8(X, a, b) if len(a) > 256 else None
+    if fast is not None:
+        return fast
     out = np.empty(len(a), dtype=np.float64)
     if X.dtype == np.uint8 and X.shape[1] <= 32768:
         wide = np.int32  # |diff| <= 255, sum of squares < 2^31

@@ -22,6 +22,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from . import native
+
 
 def ranks_above(density: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Boolean array: does feature ``a[k]`` rank above feature ``b[k]``?"""
@@ -81,9 +83,19 @@ def merge_clusters(
     sigma: np.ndarray,
     image_index: np.ndarray,
     rho: float,
+    use_native: bool = True,
 ) -> np.ndarray:
-    """Break/merge along tree edges; returns labels numbered by first member (0, 1, ...)."""
+    """Break/merge along tree edges; returns labels numbered by first member (0, 1, ...).
+
+    Natively when the kernel is built (:func:`dqm.core.native.merge_roots`), else the Python loop
+    (``use_native=False``); both decide every merge with the same doubles, so the labels are the same."""
     n = len(parent)
+    edges = np.flatnonzero(parent >= 0)
+    order = edges[np.lexsort((edges, pdist[edges]))]
+    if use_native:
+        roots = native.merge_roots(n, order, parent[order], pdist[order], sigma, image_index, rho)
+        if roots is not None:
+            return canonical_labels(roots)
     # the loop runs on Python lists (scalar access to numpy arrays costs several times more); the values,
     # float64 distances and scales, are the same doubles
     root = list(range(n))
@@ -101,8 +113,6 @@ def merge_clusters(
             i = nxt
         return r
 
-    edges = np.flatnonzero(parent >= 0)
-    order = edges[np.lexsort((edges, pdist[edges]))]
     for j, p, d in zip(order.tolist(), parent[order].tolist(), pdist[order].astype(np.float64).tolist()):
         rj, rp = find(j), find(p)
         if rj == rp:

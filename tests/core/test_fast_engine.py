@@ -111,22 +111,44 @@ def test_benchmark_script_small_fast_run():
     assert float(cells[10]) >= 0.99  # F1 against exact
 
 
-def test_candidates_keep_each_childs_nearest_within_their_bound():
-    held = inverted_lists.Candidates(n=50, k=2)
-    held.limit = 600  # cut on the way, so that later parts meet the per-child bound
+@pytest.mark.parametrize("use_native", [True, False])
+@pytest.mark.parametrize("with_image", [False, True])
+def test_candidate_keeper_holds_each_childs_nearest_whatever_the_order(use_native, with_image):
+    """The keeper of the scan's candidates (native and numpy): each child's k nearest by (g, candidate), edges
+    given as tiles write them (row or column the child), ties in g, parts in two orders, the same result; the
+    limit it hands the scan is just above the k-th g."""
+    from dqm.core import native
+
+    if use_native and not native.native_available():
+        pytest.skip("the native kernel is not built")
+    n, k, m = 60, 3, 6000
     rng = np.random.default_rng(1)
-    child = rng.integers(0, 50, 4000)
-    cand = rng.integers(0, 50, 4000)
-    g = rng.random(4000).astype(np.float32)
-    for s in range(0, 4000, 500):  # in parts, as tiles arrive
-        held.add(child[s:s + 500], cand[s:s + 500], g[s:s + 500])
-    assert held.kth is not None and np.isfinite(held.kth).all()  # cuts happened; every child holds 2
-    cr, cc = held.nearest()
-    assert np.bincount(cr, minlength=50).max() == 2
-    for j in range(50):
-        mine = np.flatnonzero(child == j)
-        best = mine[np.lexsort((cand[mine], g[mine]))[:2]]
-        assert sorted(cc[cr == j].tolist()) == sorted(cand[best].tolist())
+    rows = rng.permutation(n).astype(np.int64)[:40]
+    r = rng.integers(0, len(rows), m).astype(np.int32)
+    c = rng.integers(0, n, m).astype(np.int32)
+    rev = rng.random(m) < 0.5
+    r[rev] = -1 - r[rev]
+    g = rng.integers(0, 50, m).astype(np.float32)  # many ties
+    image = rng.integers(0, 4, n).astype(np.int32) if with_image else None
+    at = rows[np.where(rev, -1 - r.astype(np.int64), r)]
+    child, cand = np.where(rev, c, at), np.where(rev, at, c)
+    results = []
+    for order in (np.arange(m), rng.permutation(m)):
+        held = inverted_lists.NearestCandidates(n, k, image)
+        for s in range(0, m, 700):
+            part = order[s:s + 700]
+            native.keep_nearest(r[part], c[part], g[part], rows, held.image, held.g, held.cand, held.count,
+                                held.limit, use_native=use_native)
+        results.append(held)
+    for j in range(n):
+        mine = np.flatnonzero((child == j) & ((image[child] != image[cand]) if with_image else True))
+        best = mine[np.lexsort((cand[mine], g[mine]))[:k]]
+        for held in results:
+            assert held.count[j] == len(best)
+            assert held.cand[j, :len(best)].tolist() == cand[best].tolist()
+            assert held.limit[j] == (np.nextafter(g[best[-1]], np.float32(np.inf)) if len(best) == k else np.inf)
+    cr, cc = results[0].nearest()
+    assert np.array_equal(np.bincount(cr, minlength=n), results[0].count)
 
 
 def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
@@ -139,7 +161,8 @@ def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
     aug = pairs.Augmented(X)
     w, active = clustering.kernel_weights(exact.sigma, "gaussian", 0.25)
     radius = 1.1 * exact.sigma  # wide: many children have candidates in their own image too
-    _, cr, cc, _ = inverted_lists.scan(aug, w, active, "gaussian", radius, max_candidates=10 ** 6)
+    _, cr, cc, _ = inverted_lists.scan(aug, w, active, "gaussian", radius, max_candidates=1500)
+    assert np.bincount(cr).max() < 1500  # no child capped: every candidate of the scan
     other = img[cr] != img[cc]
     assert (~other).any()  # same-image candidates exist and would compete for the places
     cr, cc = cr[other], cc[other]

@@ -225,3 +225,43 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
         assert sorted(zip(r.tolist(), cc.tolist(), g.tolist())) == sorted(zip(rr.tolist(), rc.tolist(), rg.tolist()))
         np.testing.assert_allclose(d, d_ref, rtol=2e-5, atol=1e-12)
         np.testing.assert_allclose(c, c_ref, rtol=2e-5, atol=1e-12)
+
+
+def test_native_break_merge_gives_the_python_loops_labels():
+    """dqm_merge_clusters against tree.merge_clusters' Python loop: ties in distance, NaN scales (Python's
+    min() keeps the first NaN, the C code follows it), images seen many times, one-feature inputs."""
+    from dqm.core import tree
+
+    if not native.native_available():
+        pytest.skip("the native kernel is not built")
+    rng = np.random.default_rng(0)
+    merged = 0
+    for trial in range(150):
+        n = int(rng.integers(1, 300))
+        parent = np.where(rng.random(n) < 0.8, rng.integers(0, n, n), -1)
+        parent[parent == np.arange(n)] = -1
+        pdist = rng.integers(0, 20, n) / 10.0
+        sigma = rng.integers(1, 10, n) / 5.0
+        if trial % 5 == 0:
+            sigma[rng.random(n) < 0.2] = np.nan
+        image = rng.integers(0, max(1, n // int(rng.integers(1, 20))), n)
+        fast = tree.merge_clusters(parent, pdist, sigma, image, 1.3)
+        slow = tree.merge_clusters(parent, pdist, sigma, image, 1.3, use_native=False)
+        np.testing.assert_array_equal(fast, slow)
+        merged += n - len(np.unique(fast))
+    assert merged > 1000  # the cases do merge, and refuse merges (image clashes, scales)
+
+
+def test_native_uint8_distances_are_the_exact_integers():
+    if not native.native_available():
+        pytest.skip("the native kernel is not built")
+    rng = np.random.default_rng(3)
+    X = rng.integers(0, 256, (500, 130)).astype(np.uint8)
+    X[7] = 255
+    X[8] = 0  # the largest difference in every dimension
+    a = np.r_[7, rng.integers(0, 500, 5000)]
+    b = np.r_[8, rng.integers(0, 500, 5000)]
+    want = ((X[a].astype(np.int64) - X[b]) ** 2).sum(axis=1).astype(np.float64)
+    np.testing.assert_array_equal(native.sq_distances_u8(X, a, b), want)
+    np.testing.assert_array_equal(pairs.exact_sq_distances(X, a, b), want)
+    assert native.sq_distances_u8(X.astype(np.int16), a, b) is None  # other dtypes: the numpy loop
