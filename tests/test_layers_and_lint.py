@@ -9,13 +9,28 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: a layer and the packages above it, which it must not import (docs/ARCHITECTURE.md)
+TOP = ["dqm.commands", "dqm.cli"]
+APPLICATION = ["dqm.vision", "dqm.evaluation", "dqm.plots", "dqm.camnet", "dqm.benchmark"]
+#: a layer (a package folder or a module file) and the packages above it, which it must not import
+#: (docs/ARCHITECTURE.md); every package and module of dqm is in one (a test checks it)
 ABOVE = {
-    "dqm/core": ["dqm.distributed", "dqm.runtime", "dqm.vision", "dqm.evaluation", "dqm.experiments",
-                 "dqm.commands", "dqm.cli"],
-    "dqm/distributed": ["dqm.runtime", "dqm.vision", "dqm.evaluation", "dqm.experiments", "dqm.commands",
-                        "dqm.cli"],
+    "dqm/core": ["dqm.distributed", "dqm.runtime"] + APPLICATION + TOP,
+    "dqm/distributed": ["dqm.runtime"] + APPLICATION + TOP,
+    "dqm/runtime": APPLICATION + TOP,
+    "dqm/vision": ["dqm.distributed", "dqm.runtime", "dqm.evaluation", "dqm.plots", "dqm.camnet", "dqm.benchmark"]
+    + TOP,
+    "dqm/evaluation.py": ["dqm.distributed", "dqm.runtime", "dqm.plots", "dqm.camnet", "dqm.benchmark"] + TOP,
+    "dqm/plots.py": ["dqm.distributed", "dqm.runtime", "dqm.camnet", "dqm.benchmark"] + TOP,
+    "dqm/camnet": ["dqm.distributed", "dqm.runtime", "dqm.benchmark"] + TOP,
+    "dqm/benchmark.py": ["dqm.distributed", "dqm.runtime", "dqm.camnet"] + TOP,
+    "dqm/commands": ["dqm.cli"],
 }
+#: the support modules under every layer: they import none of the layers
+SUPPORT = ["__init__", "__main__", "cli", "io", "lazy_exports", "logging_config", "outputs", "progress", "signals",
+           "synthetic", "validation", "wording"]
+for _name in SUPPORT:
+    if _name not in ("__init__", "__main__", "cli"):  # the package's face and the program import the layers
+        ABOVE[f"dqm/{_name}.py"] = ["dqm.core", "dqm.distributed", "dqm.runtime"] + APPLICATION + TOP
 
 
 def imported_modules(path: Path) -> set:
@@ -43,10 +58,74 @@ def test_resolution_of_relative_imports(tmp_path):
     assert "dqm.core.pairs" in imported_modules(ROOT / "dqm" / "core" / "online.py")  # from . import pairs
 
 
+def layer_files(layer: str):
+    path = ROOT / layer
+    return [path] if path.suffix == ".py" else sorted(path.rglob("*.py"))
+
+
+def module_graph() -> dict:
+    """Every dqm module and the dqm modules it imports (at any depth: imports inside functions count)."""
+    files = {}
+    for path in sorted((ROOT / "dqm").rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for name, path in files.items():
+        deps = set()
+        for imported in imported_modules(path):
+            while imported and imported not in files:  # "from x import name": the module x
+                imported = imported.rpartition(".")[0]
+            if imported and imported != name and imported != "dqm":  # the package's face: lazy names only
+                deps.add(imported)
+        graph[name] = deps
+    return graph
+
+
+def test_every_package_and_module_is_in_a_layer():
+    covered = {path for layer in ABOVE for path in layer_files(layer)}
+    missing = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "dqm").rglob("*.py"))
+               if p not in covered and p.parent != ROOT / "dqm"]
+    missing += [str(p.relative_to(ROOT)) for p in sorted((ROOT / "dqm").glob("*.py"))
+                if p not in covered and p.stem not in ("__init__", "__main__", "cli")]
+    assert not missing, "not in any layer of the import contract: " + ", ".join(missing)
+
+
+def test_no_module_imports_itself_through_others():
+    """No import cycle among dqm's modules (Tarjan's strongly connected components)."""
+    graph = module_graph()
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not cycles, "import cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
+
+
 @pytest.mark.parametrize("layer", sorted(ABOVE))
 def test_lower_layers_import_nothing_above_them(layer):
     offenders = []
-    for path in sorted((ROOT / layer).rglob("*.py")):
+    for path in layer_files(layer):
         bad = sorted(name for name in imported_modules(path)
                      if any(name == top or name.startswith(top + ".") for top in ABOVE[layer]))
         if bad:

@@ -160,6 +160,12 @@ def agent_features(sets: Sequence[io.FeatureSet], agent: int, sources: Optional[
     return AgentFeatures(all_ids, wire, np.concatenate(descs), catalog)
 
 
+def load_agent_features(paths: Sequence, agent: int) -> AgentFeatures:
+    """An agent's own features from FEATURES files (each read once): global ids from ``feature_ids`` or
+    (agent << 32) + row, images named by their source (:func:`agent_features`)."""
+    return agent_features([io.load_features(p) for p in paths], agent, [str(p) for p in paths])
+
+
 def catalog_names(catalog: Dict[str, np.ndarray]) -> List[str]:
     """The image names of a catalog's image table ("" for every image when it has none)."""
     n = len(catalog["image_local"])

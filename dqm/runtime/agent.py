@@ -32,7 +32,7 @@ from .measure import probe_answer
 log = logging.getLogger("dqm.runtime")
 
 __all__ = ["AgentHost", "CoordinatorLost", "GatherSource", "JobAborted", "Refused", "RouterLost",
-           "fault_pause_from_env", "load_agent_features", "main_agent", "parse_peer_features"]
+           "fault_pause_from_env", "main_agent", "parse_peer_features"]
 
 
 def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
@@ -57,14 +57,6 @@ def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
             time.sleep(0.05)
 
     return pause
-
-
-def load_agent_features(paths, me: int) -> sources.AgentFeatures:
-    """Own features from FEATURES files (each read once): global ids from ``feature_ids`` or
-    (agent << 32) + row, images named by their source (:func:`dqm.distributed.sources.agent_features`)."""
-    from ..io import load_features
-
-    return sources.agent_features([load_features(p) for p in paths], me, [str(p) for p in paths])
 
 
 class Refused(RuntimeError):
@@ -166,7 +158,7 @@ class AgentHost:
         self.phase_timeout_s = phase_timeout_s
         self.on_state = on_state
         self.features: Dict[int, sources.AgentFeatures] = {
-            home: own if own is not None else load_agent_features(paths[home], home)}
+            home: own if own is not None else sources.load_agent_features(paths[home], home)}
         bus.dim = self.features[home].descriptors.shape[1]
         self.slots: Dict[int, object] = {}  # AgentDriver, or GatherSource in a gather job
         #: the configuration of the running epoch: ``cfg`` with, when ``cfg.mode`` is auto, the coordinator's pick
@@ -190,7 +182,7 @@ class AgentHost:
                 raise Refused(f"cannot take over agent {agent}: this process has no path to its FEATURES files "
                               f"(start agents with --peer-features {agent}=FILE)")
             try:
-                self.features[agent] = load_agent_features(self.paths[agent], agent)
+                self.features[agent] = sources.load_agent_features(self.paths[agent], agent)
             except (OSError, ValueError) as exc:
                 raise Refused(f"cannot take over agent {agent}: {exc}") from None
         return self.features[agent]
@@ -331,7 +323,7 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     files = dict(peers or {})
     files[me] = list(paths)
     tag_lines(f"agent {me}")
-    own = load_agent_features(paths, me)
+    own = sources.load_agent_features(paths, me)
     session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
     check_job_free(session, keys.alive_agent(cfg.job, me), f"agent {me}", cfg.job, endpoint)
     host = None

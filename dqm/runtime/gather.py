@@ -193,7 +193,7 @@ class Gathering:
 
 
 def _main(argv=None) -> int:
-    from .agent import load_agent_features
+    from ..distributed.sources import load_agent_features
     from .bus import RouterUnreachable, open_client
 
     p = argparse.ArgumentParser(prog="python -m dqm.runtime.gather", description=__doc__.split("\n\n")[0])
