@@ -28,12 +28,14 @@ the truncation drops, and why parents differ; then 1M generated features
     python scripts/bench_quickmatch.py [--sizes 6254,25000,100000] [--repeat 3]
     python scripts/bench_quickmatch.py --memory --sizes '' --no-graf
     python scripts/bench_quickmatch.py --approximate --million --sizes '' --no-graf
+    python scripts/bench_quickmatch.py --budgets --fast-million --sizes '' --no-graf
 """
 import argparse
 import atexit
 import json
 import multiprocessing as mp
 import os
+import queue
 import tempfile
 import resource
 import shutil
@@ -125,13 +127,23 @@ def dense_quickmatch(X, ids, rho):
 
 
 def measure(task, q):
+    """One measurement in this (fresh) process, put on ``q``; a failure is put there too, as ``{"error": ...}``,
+    so that the parent never waits for a result that will not come."""
+    try:
+        _measure(task, q)
+    except Exception as exc:  # the bench reports it; the parent must not hang
+        q.put({"error": f"{type(exc).__name__}: {exc}"})
+
+
+def _measure(task, q):
     name, what = task[:2]
     opts = task[2] if len(task) > 2 else {}
     X, ids = load(name)
     import dqm
 
     dqm.quickmatch  # the engine's modules load here, not inside the timed call
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    reset_peak()
+    base = peak_kib()
     t = time.perf_counter()
     info = {}
     if what == "quickmatch":
@@ -148,7 +160,7 @@ def measure(task, q):
         if save:
             np.savez(save, labels=r.labels, parent=r.parent, density=r.density)
         if opts.get("approximate") and recall_sample:
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+            peak = peak_kib()
             info["graph_recall"] = graph_recall(X, int(r.stats["n_neighbors"]), recall_sample)
             info["peak_before_recall_mib"] = peak / 1024
     elif what == "knn_numpy":
@@ -162,22 +174,54 @@ def measure(task, q):
     elif what == "dense":
         dense_quickmatch(X, ids, dqm.DEFAULT_RHO)
     wall = time.perf_counter() - t
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    peak = peak_kib()
     q.put({"wall": wall, "peak_rss_mib": peak / 1024, "base_rss_mib": base / 1024, "n": len(X), **info})
 
 
-def run(task, repeat=1, target=None):
-    """``target(task, queue)`` (default :func:`measure`) in a fresh process, ``repeat`` times; the fastest result."""
+def peak_kib():
+    """Peak resident memory of this process in KiB: VmHWM (which ``reset_peak`` can lower to the present), else
+    ru_maxrss."""
+    try:
+        with open("/proc/self/status") as fh:
+            return int(next(line for line in fh if line.startswith("VmHWM")).split()[1])
+    except (OSError, StopIteration, ValueError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def reset_peak():
+    """Start the peak over from the present resident memory (Linux: clear_refs 5), so that the peak is the
+    measured call's and not the data generation's before it."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:
+        pass
+
+
+def run(task, repeat=1, target=None, errors=False):
+    """``target(task, queue)`` (default :func:`measure`) in a fresh process, ``repeat`` times; the fastest result.
+    A failed measurement ends the bench with its message, or is returned (``{"error": ...}``) with ``errors``."""
     ctx = mp.get_context("spawn")
     best = None
     for _ in range(repeat):
         q = ctx.Queue()
         p = ctx.Process(target=target or measure, args=(task, q))
         p.start()
-        res = q.get()
+        while True:
+            try:
+                res = q.get(timeout=1.0)
+                break
+            except queue.Empty:
+                if not p.is_alive():  # killed (out of memory, a signal) before it could answer
+                    res = {"error": f"the measuring process ended with exit code {p.exitcode}"}
+                    break
         p.join()
         if res is None:
             return None
+        if "error" in res:
+            if errors:
+                return res
+            raise SystemExit(f"bench_quickmatch: {task[0]} {task[1]}: {res['error']}")
         if best is None or res["wall"] < best["wall"]:
             best = res
     return best
@@ -302,6 +346,34 @@ def fast_million():
           f"generated data); phases: sigma {big['time_sigma']:.0f} s, lists {big['time_lists']:.0f} s, scan "
           f"{scan:.0f} s ({big['pairs_computed'] / big['n'] ** 2:.4f} of n^2 pairs, {big['n_lists']:.0f} lists), "
           f"edges and tree {big['time_edges'] + big['time_tree']:.0f} s", flush=True)
+
+
+#: (generated features, engine, --max-memory) of --budgets: the exact engine streams to fit, the fast one fits or
+#: refuses; the exact engine at 1M (about an hour on 2 AVX2 cores) is not run
+BUDGET_ROWS = (("100000", "exact", "400M"), ("300000", "exact", "1G"), ("100000", "fast", "800M"),
+               ("300000", "fast", "2G"), ("1000000", "fast", "6G"))
+
+
+def budgets_section(rows=BUDGET_ROWS):
+    """Issue 37: ``max_memory`` against the measured peak resident memory of the whole process (VmHWM, fresh
+    process; its peak restarted after the data are generated, so what the process held before the call counts
+    and the generator's temporaries do not)."""
+    print("\n### A memory budget against the measured peak\n")
+    print("| generated n | engine | budget | peak RSS (whole process) | held before the call | peak / budget | "
+          "parents | wall s |")
+    print("|---|---|---|---|---|---|---|---|")
+    from dqm.core import memory
+
+    for n, engine, budget in rows:
+        r = run((n, "quickmatch", {"engine": engine, "max_memory": budget}), errors=True)
+        b = memory.parse_size(budget)
+        if "error" in r:  # a refusal before any work is an answer too
+            print(f"| {int(n):,} | {engine} | {memory.format_bytes(b)} | {r['error']} | | | | |", flush=True)
+            continue
+        how = "streamed" if r.get("streaming") else "kept" if engine == "exact" else "32 nearest kept"
+        print(f"| {int(n):,} | {engine} | {memory.format_bytes(b)} | {r['peak_rss_mib'] / 1024:.2f} GiB | "
+              f"{r['base_rss_mib'] / 1024:.2f} GiB | {r['peak_rss_mib'] * 2 ** 20 / b:.2f} | {how} | {r['wall']:.1f} |",
+              flush=True)
 
 
 def gemm_schedule(task, q):
@@ -454,6 +526,9 @@ def main(argv=None):
     ap.add_argument("--fast-million", action="store_true",
                     help="the fast engine on 1M generated features (wall time, peak RSS; exact takes an hour here)")
     ap.add_argument("--million", action="store_true", help="with --approximate: also 1M generated features")
+    ap.add_argument("--budgets", nargs="?", const=",".join(":".join(r) for r in BUDGET_ROWS), default=None,
+                    metavar="N:ENGINE:BUDGET,...",
+                    help="--max-memory against the measured peak RSS (default: 100k, 300k and 1M generated features)")
     ap.add_argument("--real", nargs="?", const=str(ROOT.parent / "shared" / "data" / "sacre_coeur"), default=None,
                     metavar="IMAGES", help="real photos (default sacre_coeur): dqm import + match + export against "
                     "COLMAP's exhaustive matcher on COLMAP's features, and the pass against the GEMM rate")
@@ -472,6 +547,8 @@ def main(argv=None):
         fast_section([x for x in args.fast.split(",") if x])
     if args.fast_million:
         fast_million()
+    if args.budgets:
+        budgets_section([tuple(row.split(":")) for row in args.budgets.split(",") if row])
     if args.approximate:
         approximate_section([x for x in args.approx_sets.split(",") if x], args.million)
     names = [x for x in args.sizes.split(",") if x]

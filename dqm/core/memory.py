@@ -153,8 +153,8 @@ def check_base(n: int, dim: int, n_threads: int, budget: int, what: str = "quick
     if base + held > budget:
         raise MemoryBudgetError(
             f"{what}: {n:,} features of dimension {dim} need about {format_bytes(base)} even with the "
-            f"streaming parent pass,{_beside(held)} more than the memory budget of {format_bytes(budget)} (max_memory / "
-            "--max-memory); raise the budget, use fewer features, or the approximate mode"
+            f"streaming parent pass,{_beside(held)} more than the memory budget of {format_bytes(budget)} "
+            "(max_memory / --max-memory); raise the budget, use fewer features, or the approximate mode"
         )
     return base
 
@@ -187,8 +187,9 @@ def check_fast(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, bud
     if need + held > budget:
         raise MemoryBudgetError(
             f"quickmatch: the fast engine with {n_probe} probes needs about {format_bytes(need)} for {n:,} "
-            f"features of dimension {dim},{_beside(held)} more than the memory budget of {format_bytes(budget)} (max_memory / "
-            "--max-memory); raise the budget, lower n_probe, or use the exact engine (engine='exact', --exact)")
+            f"features of dimension {dim},{_beside(held)} more than the memory budget of {format_bytes(budget)} "
+            "(max_memory / --max-memory); raise the budget, lower n_probe, or use the exact engine "
+            "(engine='exact', --exact)")
     return need
 
 

@@ -345,10 +345,25 @@ def test_a_budget_holds_the_measured_peak_of_the_whole_process(tmp_path):
     and 8 MiB: too little for the candidate edges, so the pass must stream them, and the peak stays under
     the budget. Without leaving out what the process held (the interpreter, numpy, the data: ~50 MiB) the
     engine planned that memory for edges and kept them (streaming 0); at 100k features under 400 MiB that
-    took the peak 10% past the budget (scripts/bench_quickmatch.py --memory measures the large sizes)."""
+    took the peak 10% past the budget (scripts/bench_quickmatch.py --budgets measures the large sizes)."""
     p = subprocess.run([sys.executable, "-c", PEAK_SCRIPT, "20000"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     budget, peak, held, streaming, recorded = (float(v) for v in p.stdout.split())
     assert held > 20 << 20 and recorded > 0  # the process held memory before the run, and the run saw it
     assert streaming == 1.0  # the budget was binding: the candidate edges did not fit
     assert peak <= budget, (peak / 2 ** 20, budget / 2 ** 20)
+
+
+def test_benchmark_script_small_budgets_run():
+    """The small version of scripts/bench_quickmatch.py --budgets (the full one: 100k, 300k, 1M features)."""
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "bench_quickmatch.py"
+    p = subprocess.run([sys.executable, str(script), "--budgets", "12000:exact:250M,12000:fast:400M,12000:exact:100M",
+                        "--sizes", "", "--no-graf"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = [line for line in p.stdout.splitlines() if line.startswith("| 12,000 |")]
+    assert [r.split("|")[2].strip() for r in rows] == ["exact", "fast", "exact"]
+    for r in rows[:2]:
+        assert 0 < float(r.split("|")[6]) <= 1.0  # measured peak over the budget
+    assert "MemoryBudgetError" in rows[2] and "more than the memory budget of 100 MiB" in rows[2]  # refused
