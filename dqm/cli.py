@@ -201,7 +201,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated
         print(f"dqm {args.command}: {signals.word(exc)}", file=sys.stderr)
         return signals.exit_code(exc)
-    except Exception as exc:  # noqa: BLE001 - no traceback reaches the user
+    except Exception as exc:  # no traceback reaches the user
         stop = signals.stopped_by_signal()
         if stop is not None:  # the signal landed inside a library's lock handling and surfaced as this error
             print(f"dqm {args.command}: {signals.word(stop)}", file=sys.stderr)

@@ -49,7 +49,6 @@ import numpy as np
 from . import outputs
 from .validation import InputError, check_descriptors, check_image_ids
 
-
 #: the optional per-feature and per-image arrays of a FEATURES file, in the order they are written
 OPTIONAL_FIELDS = ("keypoints", "image_names", "point_ids", "feature_ids")
 

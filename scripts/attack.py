@@ -44,12 +44,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dqm import synthetic  # noqa: E402
-from dqm.distributed import DQMConfig, keys, messages, simulate  # noqa: E402
-from dqm.runtime.bus import RouterUnreachable, client_config, open_client  # noqa: E402
-from dqm.runtime.launcher import (Processes, client_tls, finish_job, free_port, make_certs, start_job,  # noqa: E402
-                                  tls_options, write_agent_files)
-from dqm.runtime.multihost import start_router  # noqa: E402
+from dqm import synthetic
+from dqm.distributed import DQMConfig, keys, messages, simulate
+from dqm.runtime.bus import RouterUnreachable, client_config, open_client
+from dqm.runtime.launcher import (
+    Processes,
+    client_tls,
+    finish_job,
+    free_port,
+    make_certs,
+    start_job,
+    tls_options,
+    write_agent_files,
+)
+from dqm.runtime.multihost import start_router
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "runtime.md"
 BEGIN, END = "<!-- attack table: begin -->", "<!-- attack table: end -->"

@@ -27,9 +27,8 @@ sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
 from dqm import synthetic  # noqa: E402
-from dqm.distributed import DQMConfig  # noqa: E402
+from dqm.distributed import DQMConfig, simulate  # noqa: E402
 from dqm.runtime.launcher import run_job  # noqa: E402
-from dqm.distributed import simulate  # noqa: E402
 
 
 def datasets(sizes, graf):
@@ -37,7 +36,8 @@ def datasets(sizes, graf):
         ds = synthetic.sized(n)
         yield f"synthetic {len(ds)}", ds.descriptors, ds.image_ids
     if graf:
-        from dqm.vision import datasets as D, features
+        from dqm.vision import datasets as D
+        from dqm.vision import features
 
         p = ROOT.parent / "shared" / "data" / "oxford" / "graf"
         if p.exists():

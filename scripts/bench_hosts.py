@@ -43,8 +43,16 @@ sys.path.insert(0, str(ROOT))
 from dqm import evaluation, synthetic  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.runtime.launcher import Processes, work_folder, write_agent_files  # noqa: E402
-from dqm.runtime.multihost import (HOST_MODES, ROUTER_PORT, EmulatedHosts, NamespacesUnavailable,  # noqa: E402
-                                   _wait_ready_file, netns_unavailable_reason, run_on_hosts, start_router)
+from dqm.runtime.multihost import (  # noqa: E402
+    HOST_MODES,
+    ROUTER_PORT,
+    EmulatedHosts,
+    NamespacesUnavailable,
+    _wait_ready_file,
+    netns_unavailable_reason,
+    run_on_hosts,
+    start_router,
+)
 
 
 def load(name: str):

@@ -36,11 +36,11 @@ import json
 import multiprocessing as mp
 import os
 import queue
-import tempfile
 import resource
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -131,7 +131,7 @@ def measure(task, q):
     so that the parent never waits for a result that will not come."""
     try:
         _measure(task, q)
-    except Exception as exc:  # the bench reports it; the parent must not hang
+    except Exception as exc:  # noqa: BLE001 - the bench reports it; the parent must not hang
         q.put({"error": f"{type(exc).__name__}: {exc}"})
 
 
@@ -141,7 +141,7 @@ def _measure(task, q):
     X, ids = load(name)
     import dqm
 
-    dqm.quickmatch  # the engine's modules load here, not inside the timed call
+    _ = dqm.quickmatch  # the engine's modules load here, not inside the timed call
     reset_peak()
     base = peak_kib()
     t = time.perf_counter()
@@ -443,6 +443,7 @@ def real_section(folders, rows, brute_images, rates=True):
     import shutil
 
     import pycolmap
+
     from dqm.evaluation import comembership_scores
 
     work = Path(tempfile.mkdtemp(prefix="dqm-bench-real-"))

@@ -150,7 +150,7 @@ def summary_table(results: dict) -> str:
     for data, d in results.items():
         rows = {(r["mode"], r["m"]): r for r in d["rows"] if not r.get("skipped")}
         for m in sorted({r["m"] for r in d["rows"]}):
-            def cell(mode, *fields):
+            def cell(mode, *fields, rows=rows, m=m):  # this row's (bound now: the loop moves on)
                 r = rows.get((mode, m))
                 return ["–"] * len(fields) if r is None else [f"{r[f]:.2f}" for f in fields]
             b = cell("balanced", "bytes_over_raw", "max_pair_share", "cpu_over_central")
@@ -281,8 +281,8 @@ def main(argv=None):
         rows = dict(prev)  # every row made before stays until a new one replaces it
         order = {name: i for i, name in enumerate(MODES)}
 
-        def listed():
-            return sorted(rows.values(), key=lambda r: (order.get(r["mode"], 99), r["m"]))
+        def listed(rows=rows, order=order):  # this data set's rows (bound now: the loop moves on)
+            return sorted(rows.values(), key=lambda e: (order.get(e["mode"], 99), e["m"]))
 
         for mode in modes:
             for m in ms:

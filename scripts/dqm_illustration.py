@@ -21,9 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
-from dqm.distributed import partition  # noqa: E402
+from dqm.distributed import DQMConfig, partition, simulate  # noqa: E402
 from dqm.evaluation import comembership_scores  # noqa: E402
-from dqm.distributed import DQMConfig, simulate  # noqa: E402
 
 
 def data(seed: int):

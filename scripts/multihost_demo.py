@@ -27,13 +27,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dqm import io, synthetic  # noqa: E402
-from dqm.distributed import DQMConfig  # noqa: E402
-from dqm.distributed.protocol import traffic_table  # noqa: E402
-from dqm.runtime.launcher import work_folder  # noqa: E402
-from dqm.runtime.multihost import (NamespacesUnavailable, Namespaces, make_certs, netns_unavailable_reason,  # noqa: E402
-                                   run_across_namespaces)
-from dqm.distributed import simulate  # noqa: E402
+from dqm import io, synthetic
+from dqm.distributed import DQMConfig, simulate
+from dqm.distributed.protocol import traffic_table
+from dqm.runtime.launcher import work_folder
+from dqm.runtime.multihost import (
+    Namespaces,
+    NamespacesUnavailable,
+    make_certs,
+    netns_unavailable_reason,
+    run_across_namespaces,
+)
 
 
 def main(argv=None) -> int:

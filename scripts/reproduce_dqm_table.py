@@ -27,8 +27,8 @@ sys.path.insert(0, str(ROOT))
 
 import dqm  # noqa: E402
 from dqm import evaluation  # noqa: E402
-from dqm.vision import datasets, features  # noqa: E402
 from dqm.distributed import DQMConfig, simulate  # noqa: E402
+from dqm.vision import datasets, features  # noqa: E402
 
 
 def truly_contested(ref_labels, cells):

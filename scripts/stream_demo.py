@@ -167,7 +167,7 @@ def percentile_line(values_ms) -> str:
             f"(mean {v.mean():.0f} ms) over {len(v)} images")
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> int:  # noqa: C901 - a demo's steps in order
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cameras", type=int, default=3, help="camera processes (default 3)")
     p.add_argument("--frames", type=int, default=12, help="frames per camera (default 12: 6 s at 2 Hz)")
@@ -327,7 +327,7 @@ def report(args, wd: Path, inbox, received, rc: int, bad_sent: Counter, total: i
     # latency: the camera's put (its clock) -> this process received the change set of that add
     lat = {m["image_id"]: (t - m["time"]) * 1e3 for t, m in received if m["op"] == "add"}
     print(f"\n{'image':>10} {'camera':>6} {'frame':>5} {'features':>8} {'events':>6} {'latency':>9}")
-    for t, m in received:
+    for _, m in received:
         if m["op"] != "add":
             continue
         i = m["image_id"]

@@ -60,8 +60,9 @@ def graf_sift():
 def router():
     """A zenoh router process on a free loopback port (one per test module): its endpoint."""
     pytest.importorskip("zenoh")
-    from dqm.runtime.launcher import free_port, wait_listening
     from runtime_helpers import start_dqm
+
+    from dqm.runtime.launcher import free_port, wait_listening
 
     port = free_port()
     p = start_dqm(["router", "--listen", f"tcp/127.0.0.1:{port}"])

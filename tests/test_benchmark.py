@@ -8,11 +8,11 @@ after it pin down where QuickMatch's remaining errors come from.
 """
 import numpy as np
 import pytest
+from conftest import assert_consistent, require_data
 
 import dqm
 from dqm import benchmark as BM
 from dqm.vision.baselines import MATCHERS, TRACK_POLICIES
-from conftest import assert_consistent, require_data
 
 TRACKS = [f"{m}-{p}" for m in MATCHERS for p in TRACK_POLICIES]
 SCENES = ("scene:0", "scene:1", "scene:2")

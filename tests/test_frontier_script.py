@@ -1,6 +1,7 @@
 """scripts/dqm_frontier.py at a small size: the table, the figure and the docs block it writes."""
 import json
 from pathlib import Path
+
 from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[1]

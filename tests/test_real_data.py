@@ -1,8 +1,9 @@
 """QuickMatch on real data with ground truth (skipped when ../shared is absent)."""
+from conftest import assert_consistent, require_data
+
 import dqm
 from dqm import evaluation
 from dqm.vision import datasets, features
-from conftest import assert_consistent, require_data
 
 
 def test_cmu_hotel_landmarks_at_default_rho():

@@ -17,8 +17,14 @@ bounding box of a RANSAC homography. Modules:
 
 Command line: ``dqm experiment localization`` (see ``dqm experiment --help``).
 """
-from .experiment import (ExperimentResult, common_errors, detection_curve, localization_errors,
-                         operating_point, run_experiment)
+from .experiment import (
+                         ExperimentResult,
+                         common_errors,
+                         detection_curve,
+                         localization_errors,
+                         operating_point,
+                         run_experiment,
+)
 from .geometry import Camera, Intrinsics
 from .pipeline import METHODS, PipelineConfig
 from .simulator import SimConfig, World, build_world

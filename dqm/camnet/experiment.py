@@ -32,12 +32,20 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..evaluation import PRCurve, pr_auc
-from ..vision.features import ImageFeatures, extract
 from ..progress import ProgressArg, resolve_progress
 from ..validation import InputError, check_choice
+from ..vision.features import ImageFeatures, extract
 from .geometry import Camera, bounding_box, calibrate_range, estimate_homography, projected_quad
-from .pipeline import (METHODS, PAPER_METHODS, Detection, PipelineConfig, detect, match_all,
-                       pairwise_pair_candidates, quickmatch_matches)
+from .pipeline import (
+    METHODS,
+    PAPER_METHODS,
+    Detection,
+    PipelineConfig,
+    detect,
+    match_all,
+    pairwise_pair_candidates,
+    quickmatch_matches,
+)
 from .simulator import FrameTruth, SimConfig, World, build_world
 
 DEFAULT_RHOS = (0.5, 0.6, 0.75, 0.9, 1.0, 1.1, 1.2, 1.4, 1.6)
@@ -278,7 +286,7 @@ def _behind(world: World) -> List[float]:
     return [td / 2.0, tw / 2.0, td / 2.0, tw / 2.0]
 
 
-def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineConfig] = None,
+def run_experiment(sim: Optional[SimConfig] = None, pipeline: Optional[PipelineConfig] = None,  # noqa: C901 - the steps in order
                    methods: Sequence[str] = METHODS, *, sweep: bool = False,
                    rhos: Sequence[float] = DEFAULT_RHOS, ratios: Sequence[float] = DEFAULT_RATIOS,
                    snapshot_step: Optional[int] = -1, progress: ProgressArg = None) -> ExperimentResult:

@@ -36,10 +36,10 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..vision.baselines import DEFAULT_RATIO, PairwiseCandidates, pairwise_candidates
 from ..core import quickmatch
-from ..vision.features import PRESETS, ImageFeatures, create_sift
 from ..validation import InputError, check_choice
+from ..vision.baselines import DEFAULT_RATIO, PairwiseCandidates, pairwise_candidates
+from ..vision.features import PRESETS, ImageFeatures, create_sift
 from .geometry import Camera, bounding_box, estimate_homography, localize_from_box, projected_quad
 
 METHODS = ("quickmatch", "bf", "flann", "quickmatch-quadratic", "quickmatch-online")

@@ -38,9 +38,16 @@ import numpy as np
 from ..outputs import write_text
 from ..plots import save
 from .experiment import ExperimentResult
+from .figures import (
+    clusters_patches_figure,
+    discovery_figure,
+    errors_figure,
+    pr_detection_figure,
+    pr_parameter_figure,
+    trajectories_figure,
+    views_figure,
+)
 from .pipeline import LABELS, PAPER_RHO
-from .figures import (clusters_patches_figure, discovery_figure, errors_figure, pr_detection_figure,
-                      pr_parameter_figure, trajectories_figure, views_figure)
 from .summary import PAPER, QM_VARIANTS, CamnetSummary, SeedsSummary, build_summary, seed_row
 
 __all__ = ["PAPER", "QM_VARIANTS", "markdown", "online_markdown", "paper_notes", "seed_row", "seeds_markdown",

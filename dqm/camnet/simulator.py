@@ -43,8 +43,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..vision.scenes import texture
 from ..validation import InputError
+from ..vision.scenes import texture
 from .geometry import Camera, Intrinsics, clip_near, look_at_yaw, plane_homography
 
 #: near clipping plane, metres

@@ -20,8 +20,16 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from ..evaluation import PRCurve
-from .experiment import (Calibration, ErrorStats, ExperimentResult, Sweep, common_errors, detection_curve,
-                         localization_errors, operating_point)
+from .experiment import (
+    Calibration,
+    ErrorStats,
+    ExperimentResult,
+    Sweep,
+    common_errors,
+    detection_curve,
+    localization_errors,
+    operating_point,
+)
 from .pipeline import KERNEL, LABELS, PAPER_METHODS, PAPER_RHO, PipelineConfig
 from .simulator import SimConfig
 

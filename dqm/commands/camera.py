@@ -133,7 +133,7 @@ def run(args) -> int:
     from ..runtime import stream
     from ..runtime.bus import AccessDenied, RouterUnreachable, check_endpoint
     from ..validation import InputError
-    from ..vision.features import collect_images, check_preset, unreadable_images
+    from ..vision.features import check_preset, collect_images, unreadable_images
 
     check_endpoint(args.connect)
     keys.check_job(args.job)

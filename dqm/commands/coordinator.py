@@ -14,8 +14,8 @@ interrupted, 143 terminated (SIGTERM).
 import argparse
 
 from .. import outputs
-from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 from ..distributed.config import DEFAULT_SEED
+from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"

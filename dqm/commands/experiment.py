@@ -22,12 +22,12 @@ import time
 from typing import List
 
 from .. import outputs
-from ..vision.baselines import DEFAULT_RATIO
 from ..camnet.experiment import DEFAULT_RATIOS, DEFAULT_RHOS
 from ..camnet.pipeline import DETECTION_RHO, METHODS
-from ..vision.features import PRESETS
 from ..progress import ProgressBar
 from ..validation import InputError
+from ..vision.baselines import DEFAULT_RATIO
+from ..vision.features import PRESETS
 
 LOG = logging.getLogger("dqm.commands")
 

@@ -19,10 +19,10 @@ import logging
 import sys
 import time
 
-from ..wording import count
 from .. import io, outputs
 from ..progress import ProgressBar
 from ..vision.features import DEFAULT_PRESET, PRESET_NAMES, SFM_PRESET
+from ..wording import count
 
 LOG = logging.getLogger("dqm.commands")
 

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from ..wording import count
 from .. import io, outputs
+from ..wording import count
 
 NAME = "import"
 HELP = "convert a COLMAP database or an hloc .h5 feature file to a FEATURES .npz"

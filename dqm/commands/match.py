@@ -28,15 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import io, outputs
-from .extract import add_image_options, extract
-from ..vision.features import SFM_PRESET
-from .param_options import add_quickmatch_params
 from ..core import DEFAULT_NEIGHBORS, quickmatch
 from ..core.clustering import ENGINES, FAST_FROM
 from ..core.memory import parse_size
 from ..core.params import DEFAULT_KERNEL, QuickMatchParams
 from ..progress import ProgressBar
 from ..validation import InputError, positive_int_arg
+from ..vision.features import SFM_PRESET
+from .extract import add_image_options, extract
+from .param_options import add_quickmatch_params
 
 NAME = "match"
 HELP = "cluster features (from a .npz or from images) with QuickMatch"

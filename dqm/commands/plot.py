@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import HelpFormatter
 from .. import io, outputs, plots
 from ..evaluation import PRCurve, cluster_pairs, reprojection_error
 from ..validation import InputError
+from . import HelpFormatter
 
 NAME = "plot"
 HELP = "draw matches (pair, clusters), cluster sizes or PR curves"

@@ -28,10 +28,10 @@ import time
 import numpy as np
 
 from .. import outputs
-from .runtime_options import add_algorithm, config_from
 from ..distributed.config import DEFAULT_SEED
 from ..validation import positive_int_arg
 from ..wording import count
+from .runtime_options import add_algorithm, config_from
 
 LOG = logging.getLogger("dqm.commands")
 

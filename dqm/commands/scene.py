@@ -11,8 +11,8 @@ every dqm command that reads images or homography sequences reads it:
 from __future__ import annotations
 
 from .. import outputs
-from ..vision.scenes import generate_scene
 from ..validation import InputError
+from ..vision.scenes import generate_scene
 
 NAME = "scene"
 #: what dqm scene writes in its folder (an Oxford-layout sequence), refused when already there

@@ -44,13 +44,20 @@ from typing import Dict, List, Optional, Union
 
 import numpy as np
 
-from ..wording import count
 from .. import validation as V
 from ..progress import ProgressArg, resolve_progress
+from ..wording import count
 from . import approximate, inverted_lists, memory, native, pairs, tree
 from .pairs import duplicate_groups
-from .params import (DEFAULT_KERNEL, DEFAULT_PARENT, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, KERNELS, PARENT_MODES,
-                     QuickMatchParams)
+from .params import (
+    DEFAULT_KERNEL,
+    DEFAULT_PARENT,
+    DEFAULT_RATIO_DENSITY,
+    DEFAULT_RHO,
+    KERNELS,
+    PARENT_MODES,
+    QuickMatchParams,
+)
 
 LOG = logging.getLogger("dqm.core")
 

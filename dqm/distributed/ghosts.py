@@ -32,6 +32,7 @@ from typing import Tuple
 
 import numpy as np
 
+
 def orientation(m: int, rule: str) -> np.ndarray:
     """(m, m) bool: does cell a ship copies to cell b?"""
     a = np.arange(m)[:, None]

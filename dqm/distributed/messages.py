@@ -283,7 +283,7 @@ def unpack_body(payload: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> Any:
     return body
 
 
-def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = None,
+def decode(payload: bytes, job: Optional[str] = None, agents: Optional[int] = None,  # noqa: C901 - a check per field, in wire order
            max_bytes: int = MAX_MESSAGE_BYTES, dim: Optional[int] = None, sender: Optional[int] = None,
            owners: Optional[np.ndarray] = None) -> Dict[str, Any]:
     """Decode and validate a message; raise MessageError naming the problem.
@@ -377,7 +377,7 @@ def _nonneg(arr: np.ndarray, what: str, allow_inf: bool = False) -> None:
         raise MessageError(f"{what} must be {'non-negative' if allow_inf else 'finite and non-negative'}")
 
 
-def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: Optional[int]) -> None:
+def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: Optional[int]) -> None:  # noqa: C901 - one rule per kind, the wire contract in one place
     """Checks beyond types: lengths, ranges, finiteness, agent indices, dimensions."""
     if "parts" in out and not 0 <= out["part"] < out["parts"] <= 1 << 20:
         raise MessageError(f"{kind} message has a bad part {out['part']} of {out['parts']}")

@@ -18,8 +18,8 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..validation import InputError, check_descriptors, check_image_ids, check_magnitude
 from .. import io
+from ..validation import InputError, check_descriptors, check_image_ids, check_magnitude
 from . import protocol
 from .balanced import BalancedCore
 from .config import DQMConfig

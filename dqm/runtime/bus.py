@@ -27,10 +27,9 @@ import time
 from collections import defaultdict
 from typing import Callable, Dict, List, Optional, Tuple
 
-from ..wording import seconds
-from ..distributed import messages, protocol
+from ..distributed import keys, messages, protocol
 from ..distributed.ledger import Meter
-from ..distributed import keys
+from ..wording import seconds
 
 LOG = logging.getLogger("dqm.runtime")
 ROUTER_RETRY_S = 5.0
@@ -167,7 +166,7 @@ def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = R
         left = deadline_s - (time.monotonic() - t0)
         try:
             return zenoh.open(client_config(endpoint, tls, open_timeout_s=min(10.0, max(0.2, left))))
-        except Exception as exc:  # zenoh raises ZError (or others) when nothing listens
+        except Exception as exc:  # noqa: BLE001 - zenoh raises ZError (or others) when nothing listens
             if last is None:
                 LOG.info("no zenoh router answers at %s yet; retrying for up to %s", endpoint, seconds(deadline_s))
             last = exc
@@ -274,7 +273,7 @@ def identity_of(tls: Optional[dict]) -> str:
     cert = tls.get("connect_certificate")
     if cert:
         try:
-            subject = ssl._ssl._test_decode_cert(cert).get("subject", ())  # noqa: SLF001 - stdlib's PEM reader
+            subject = ssl._ssl._test_decode_cert(cert).get("subject", ())  # the stdlib's own PEM reader
             for rdn in subject:
                 for name, value in rdn:
                     if name == "commonName":
@@ -477,7 +476,7 @@ class Bus:
         with self._lock:
             due = [(k, v) for k, v in self._pending.items()
                    if now - v[0] >= self.retransmit.timeout(k[1], v[1])]
-        for (src, dst, seq), (t, tries, payload, kind) in due:
+        for (src, dst, seq), (_sent, tries, payload, kind) in due:
             with self._lock:
                 if (src, dst, seq) not in self._pending:
                     continue  # acknowledged meanwhile (or a new epoch)

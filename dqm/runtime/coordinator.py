@@ -46,15 +46,14 @@ from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
 
-from ..wording import count, seconds
-from .. import signals
-from .. import io
+from .. import io, signals
 from ..distributed import costmodel, keys, messages, protocol, sources
 from ..distributed.config import DQMConfig
 from ..distributed.driver import start_fields
 from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
 from ..validation import InputError
+from ..wording import count, seconds
 from . import measure
 from .bus import AccessDenied, Bus, check_job_free, open_client
 from .gather import GatheredParts, match_gathered

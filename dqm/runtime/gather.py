@@ -35,9 +35,10 @@ from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from ..distributed import keys, messages, protocol
 from ..core.params import FINITE_KERNEL, QuickMatchParams
+from ..distributed import keys, messages, protocol
 from ..validation import InputError
+
 
 def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:
     """One source's features as the payload of its ``gather`` message (descriptors as they travel: uint8,
@@ -99,6 +100,7 @@ def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarr
     job's :attr:`~dqm.distributed.config.DQMConfig.params`): ``(ids, labels)``, labels numbered canonically.
     Feature ids must be unique."""
     import dqm
+
     from ..distributed.sources import assemble_labels
 
     if len(np.unique(ids)) != len(ids):
@@ -124,10 +126,10 @@ def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
                                f"({keys.alive_gather(job)})")
         key = keys.gather_from(job, me)
         sent = 0
-        payload = gather_payload(features.ids, features.image_ids, features.descriptors)
-        for payload in protocol.data_messages("gather", job, me, payload):
-            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-            sent += len(payload) + len(key)
+        whole = gather_payload(features.ids, features.image_ids, features.descriptors)
+        for part in protocol.data_messages("gather", job, me, whole):
+            session.put(key, part, congestion_control=zenoh.CongestionControl.BLOCK)
+            sent += len(part) + len(key)
         t0 = time.monotonic()
         while watch.present:
             if time.monotonic() - t0 > wait_s:

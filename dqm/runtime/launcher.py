@@ -20,18 +20,18 @@ import sys
 import tempfile
 import time
 from contextlib import contextmanager
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Iterator, List, Optional, Sequence
 
 import numpy as np
 
-from ..wording import seconds
 from .. import io
 from ..distributed.config import DQMConfig, config_args
 from ..distributed.sources import split_features
-from .coordinator import failure_paragraph, failure_path
+from ..wording import seconds
 from .bus import LEASE_MS
+from .coordinator import failure_paragraph, failure_path
 from .lifeline import PARENT_ENV, child_preexec, signals_deferred
 from .roster import job_roster
 

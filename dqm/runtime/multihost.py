@@ -27,8 +27,16 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
-from .launcher import (Processes, finish_job, make_certs, secure_router_args, start_job, tls_options,  # noqa: F401
-                       wait_listening, write_agent_files)
+from .launcher import (  # noqa: F401
+    Processes,
+    finish_job,
+    make_certs,
+    secure_router_args,
+    start_job,
+    tls_options,
+    wait_listening,
+    write_agent_files,
+)
 
 SUBNET = "10.213"
 ROUTER_PORT = 7447

@@ -41,11 +41,11 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from ..wording import count
 from .. import signals
 from ..core.clustering import DEFAULT_RHO
 from ..distributed import keys, messages
 from ..validation import InputError
+from ..wording import count
 
 #: exit code of ``dqm stream``: done (--images reached, idle, or nothing more to do); 130 / 143: dqm.signals
 EXIT_OK = 0
@@ -266,8 +266,8 @@ def main_stream(endpoint: str, job: str, *, rho: float = DEFAULT_RHO, window: Op
     import zenoh
 
     from .bus import JobIdInUse, check_job_free, check_token_admitted, identity_of, open_client
-    from .roster import Identity
     from .lifeline import watch_parent
+    from .roster import Identity
 
     keys.check_job(job)
 
@@ -462,7 +462,7 @@ def _sleep_until(t: float, stop: signals.StopFlag) -> None:
         time.sleep(min(0.05, left))
 
 
-def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *, rate: float,
+def main_camera(endpoint: str, job: str, camera: int, frames: Iterable[Frame], *, rate: float,  # noqa: C901 - one process's life
                 first_index: int = 0, tls: Optional[dict] = None, connect_timeout_s: float = 5.0,
                 wait_s: float = 30.0, progress: Optional[Callable[[int], None]] = None,
                 lines: bool = False) -> int:

@@ -96,7 +96,7 @@ def _in_new_thread(fn, *args):
     def work():
         try:
             fn(*args, stop)
-        except BaseException as e:  # re-raised in the caller's thread
+        except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
             box["err"] = e
 
     th = threading.Thread(target=work, name="dqm-flann", daemon=True)

@@ -279,7 +279,7 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
         cameras: dict[int, tuple[object, int]] = {}  # camera group -> (pycolmap camera, rig id)
         db = pycolmap.Database.open(tmp)
         try:
-            for k, (path, name) in enumerate(zip(paths, names)):
+            for k, name in enumerate(names):
                 if groups[k] not in cameras:
                     w, h, exif = facts[k]
                     focal = exif if exif else DEFAULT_FOCAL_FACTOR * max(w, h)

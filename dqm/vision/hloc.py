@@ -475,7 +475,7 @@ def read_h5_matches(path: PathLike, name0: str, name1: str) -> np.ndarray:
     h5py = require_h5py()
     path = _check_h5_file(h5py, Path(path))
     with h5py.File(str(path), "r") as fd:
-        for key, flip in ((names_to_pair(name0, name1), False), (names_to_pair(name1, name0), True)):
+        for key, flip in ((names_to_pair(name0, name1), False), (names_to_pair(name1, name0), True)):  # noqa: B007 - read after the break
             if key in fd and isinstance(fd[key], h5py.Group) and "matches0" in fd[key]:
                 m0 = np.asarray(fd[key]["matches0"][()], np.int64)
                 break

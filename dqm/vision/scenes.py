@@ -46,9 +46,8 @@ class Scene:
         """Save as an Oxford-layout folder and return it loaded as a HomographySequence."""
         import cv2
 
-        from .datasets import load_homography_sequence
-
         from ..outputs import atomic_output
+        from .datasets import load_homography_sequence
 
         root = Path(folder)
         for k, img in enumerate(self.images):

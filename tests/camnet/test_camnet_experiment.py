@@ -6,14 +6,19 @@ import numpy as np
 import pytest
 
 from dqm import InputError
-from dqm.camnet.experiment import (calibrate, common_errors, detection_curve, localization_errors,
-                                   operating_point, run_experiment)
+from dqm.camnet.experiment import (
+    calibrate,
+    common_errors,
+    detection_curve,
+    localization_errors,
+    operating_point,
+    run_experiment,
+)
 from dqm.camnet.geometry import Camera
-from dqm.camnet.pipeline import (METHODS, PipelineConfig, detect, match_all, pairwise_pair_candidates,
-                                 quickmatch_matches)
-from dqm.core import quickmatch
+from dqm.camnet.pipeline import METHODS, PipelineConfig, detect, match_all, pairwise_pair_candidates, quickmatch_matches
 from dqm.camnet.simulator import BoxObject, SimConfig, build_world
 from dqm.cli import main
+from dqm.core import quickmatch
 from dqm.vision.features import extract
 
 #: the small experiment: the default 30 s loop of seed 0 sampled every 3 s (10 steps x 5 cameras)

@@ -3,15 +3,14 @@ import csv
 import json
 
 import numpy as np
+import pytest
+from conftest import assert_consistent
 
 import dqm
-import pytest
-
 from dqm import io, plots
-from dqm.vision import scenes
 from dqm.cli import main
 from dqm.evaluation import PRCurve
-from conftest import assert_consistent
+from dqm.vision import scenes
 
 
 def png_ok(path):

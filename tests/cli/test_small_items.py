@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from script_modules import load_script
 
 import dqm
 from dqm import benchmark, synthetic
 from dqm.cli import build_parser, main
 from dqm.core.events import ClusterEvent
 from dqm.vision import scenes
-from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 

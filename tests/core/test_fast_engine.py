@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import io as dqm_io
@@ -11,7 +12,6 @@ from dqm.core import inverted_lists
 from dqm.core.clustering import FAST_FROM
 from dqm.evaluation import comembership_scores
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,9 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
+from dense_reference import dense_quickmatch, same_partition
+from generators.points import clustered
 
 import dqm
 from dqm import io as dqm_io
@@ -12,9 +15,6 @@ from dqm.core import memory, native, pairs
 from dqm.evaluation import comembership_scores
 from dqm.progress import ProgressBar
 from dqm.synthetic import sift_like, sized
-from conftest import assert_consistent
-from dense_reference import dense_quickmatch, same_partition
-from generators.points import clustered
 
 
 @pytest.fixture(autouse=True)
@@ -293,6 +293,7 @@ def test_benchmark_script_small_real_run(tmp_path):
     """The small version of scripts/bench_quickmatch.py --real (the full one: all ten sacre_coeur photos,
     two COLMAP SIFT settings, COLMAP's brute-force matcher): two photos, one row, read back."""
     from pathlib import Path
+
     from conftest import require_data
 
     pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")

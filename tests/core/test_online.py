@@ -3,12 +3,12 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import assert_consistent, require_data
 
 import dqm
 from dqm import synthetic
 from dqm.core.events import replay
 from dqm.vision import datasets, features
-from conftest import assert_consistent, require_data
 
 
 def batch_labels(om: dqm.OnlineQuickMatch) -> np.ndarray:

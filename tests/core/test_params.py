@@ -11,8 +11,15 @@ from dqm import synthetic
 from dqm.commands import runtime_options
 from dqm.commands.param_options import add_quickmatch_params
 from dqm.core import clustering
-from dqm.core.params import (DEFAULT_KERNEL, DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS,
-                             PARENT_MODES, QuickMatchParams)
+from dqm.core.params import (
+    DEFAULT_KERNEL,
+    DEFAULT_RATIO_DENSITY,
+    DEFAULT_RHO,
+    FINITE_KERNEL,
+    KERNELS,
+    PARENT_MODES,
+    QuickMatchParams,
+)
 from dqm.distributed.config import SHARED_PARAMS, DQMConfig
 from dqm.validation import InputError
 

@@ -3,11 +3,11 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import InputError, QuickMatch
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
 
 
 @pytest.fixture(scope="module")

@@ -1,13 +1,13 @@
 """The fast engine against the dense reference (tests/dense_reference.py)."""
 import numpy as np
 import pytest
+from conftest import assert_consistent
+from dense_reference import dense_quickmatch, same_partition
+from generators.points import clustered
 
 import dqm
 from dqm.core import native
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
-from dense_reference import dense_quickmatch, same_partition
-from generators.points import clustered
 
 KERNELS = ["gaussian", "quadratic"]
 PARENTS = ["any", "other-image"]

@@ -3,11 +3,11 @@ computes, the densities' error bounds hold against float64, integer descriptors 
 float32 distances, and the pass can hand its edges to a consumer tile by tile."""
 import numpy as np
 import pytest
+from generators.points import clustered
 
 import dqm
 from dqm.core import clustering, native, pairs
 from dqm.synthetic import sift_like
-from generators.points import clustered
 
 needs_native = pytest.mark.skipif(not native.native_available(), reason="the native tile kernel is not built")
 
@@ -133,7 +133,7 @@ def test_edges_handed_over_tile_by_tile_are_the_collected_ones(monkeypatch):
         _, _, cr, cc = pairs.kernel_pass(aug, zero, zero, "quadratic", 1.3 * sig, rows_limit=limit)
         got = []
         _, _, r2, c2 = pairs.kernel_pass(aug, zero, zero, "quadratic", 1.3 * sig, rows_limit=limit,
-                                         on_edges=lambda r, c: got.append((r, c)))
+                                         on_edges=lambda r, c, got=got: got.append((r, c)))
         assert len(r2) == 0 and len(got) > 1
         r = np.concatenate([g[0] for g in got])
         c = np.concatenate([g[1] for g in got])

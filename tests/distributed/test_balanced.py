@@ -3,13 +3,13 @@ import math
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import InputError
 from dqm.core import density
 from dqm.distributed import DQMConfig, boundary, forest, ghosts, messages, partition, protocol, simulate, sketch
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
 
 
 def _same_as_central(r, central):

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from script_modules import load_script
 
 from dqm.distributed import DQMConfig, costmodel
 from dqm.distributed.config import MODES, RUNTIME_MODES
 from dqm.distributed.costmodel import FITTED, Hosts, JobShape, choose, predict
 from dqm.validation import InputError
-from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 MBIT = 1e6 / 8  # bytes/s per Mbit/s

@@ -1,14 +1,13 @@
 """Distributed QuickMatch: partition, boundary distances, contested test, simulator."""
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import InputError
-from dqm.distributed import boundary, contested, partition
+from dqm.distributed import DQMConfig, boundary, contested, partition, simulate
 from dqm.evaluation import comembership_scores
-from dqm.distributed import DQMConfig, simulate
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
 
 
 @pytest.fixture(scope="module")

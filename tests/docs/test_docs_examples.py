@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from dqm import io, synthetic
-from dqm.cli import build_parser, contradiction, join_negative_values, main, _command_parser
+from dqm.cli import _command_parser, build_parser, contradiction, join_negative_values, main
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", ROOT / "deploy" / "README.md"] + sorted((ROOT / "docs").glob("*.md"))

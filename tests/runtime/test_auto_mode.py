@@ -8,12 +8,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from runtime_helpers import job_data
 
 import dqm
 from dqm import io
 from dqm.distributed import DQMConfig, costmodel, simulate
 from dqm.runtime import measure
-from runtime_helpers import job_data
 
 MBIT = 1e6 / 8
 

@@ -4,13 +4,20 @@ import subprocess
 
 import numpy as np
 import pytest
+from script_modules import load_script
 
 from dqm import evaluation, synthetic
 from dqm.distributed import DQMConfig
 from dqm.runtime.launcher import Processes, write_agent_files
-from dqm.runtime.multihost import (ROUTER_PORT, EmulatedHosts, NamespacesUnavailable, _wait_ready_file,
-                                   netns_unavailable_reason, run_on_hosts, start_router)
-from script_modules import load_script
+from dqm.runtime.multihost import (
+    ROUTER_PORT,
+    EmulatedHosts,
+    NamespacesUnavailable,
+    _wait_ready_file,
+    netns_unavailable_reason,
+    run_on_hosts,
+    start_router,
+)
 
 pytest.importorskip("zenoh")
 

@@ -11,6 +11,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+from runtime_helpers import start_dqm
 
 import dqm
 from dqm import io
@@ -20,7 +21,6 @@ from dqm.distributed import keys, messages
 from dqm.runtime.stream import IMAGES_PER_CAMERA, camera_image_id, split_image_id
 from dqm.vision import scenes
 from dqm.vision.features import extract
-from runtime_helpers import start_dqm
 
 MAX_FEATURES = 150
 

@@ -8,13 +8,13 @@ import sys
 import time
 
 import pytest
+from runtime_helpers import alive
 
 from dqm.cli import main
 from dqm.distributed.protocol import traffic_table
 from dqm.runtime.launcher import MAX_AGENTS_PER_CORE, JobFailure, check_scale, overload_note
 from dqm.runtime.lifeline import launched_by
 from dqm.validation import InputError
-from runtime_helpers import alive
 
 pytest.importorskip("zenoh")
 

@@ -8,13 +8,10 @@ import time
 
 import numpy as np
 import pytest
-
-from dqm.distributed import messages
-from dqm.distributed import DQMConfig
-from dqm.distributed import keys
-from dqm.runtime.launcher import run_job
-from dqm.distributed import simulate
 from runtime_helpers import job_data
+
+from dqm.distributed import DQMConfig, keys, messages, simulate
+from dqm.runtime.launcher import run_job
 
 pytest.importorskip("zenoh")
 

@@ -4,10 +4,9 @@ each gives its own simulator's clusters."""
 import numpy as np
 
 from dqm import synthetic
-from dqm.distributed import DQMConfig
+from dqm.distributed import DQMConfig, simulate
 from dqm.runtime.launcher import Processes, free_port, write_agent_files
 from dqm.runtime.multihost import finish_job, start_job, start_router
-from dqm.distributed import simulate
 
 M = 3
 

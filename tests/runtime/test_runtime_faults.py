@@ -10,11 +10,11 @@ import time
 
 import numpy as np
 import pytest
+from runtime_helpers import alive, job_data, start_held_job
 
 from dqm.distributed import DQMConfig, simulate
-from dqm.runtime.launcher import JobFailure, WORKDIR_PREFIX, run_job
+from dqm.runtime.launcher import WORKDIR_PREFIX, JobFailure, run_job
 from dqm.runtime.lifeline import launched_by
-from runtime_helpers import alive, job_data, start_held_job
 
 pytest.importorskip("zenoh")
 

@@ -11,10 +11,14 @@ import numpy as np
 import pytest
 
 from dqm import synthetic
-from dqm.distributed import DQMConfig
-from dqm.runtime.multihost import (Namespaces, NamespacesUnavailable, make_certs, netns_unavailable_reason,
-                                   run_across_namespaces)
-from dqm.distributed import simulate
+from dqm.distributed import DQMConfig, simulate
+from dqm.runtime.multihost import (
+    Namespaces,
+    NamespacesUnavailable,
+    make_certs,
+    netns_unavailable_reason,
+    run_across_namespaces,
+)
 
 
 @pytest.fixture(scope="module")

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from dqm import synthetic
-from dqm.distributed import DQMConfig
+from dqm.distributed import DQMConfig, simulate
 from dqm.runtime.launcher import Processes, free_port, write_agent_files
-from dqm.runtime.multihost import finish_job, make_certs, start_job, start_router, tls_options as tls_args
-from dqm.distributed import simulate
+from dqm.runtime.multihost import finish_job, make_certs, start_job, start_router
+from dqm.runtime.multihost import tls_options as tls_args
 
 M = 3
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from runtime_helpers import start_dqm
 
 import dqm
 from dqm import io
@@ -16,7 +17,6 @@ from dqm.core.online import OnlineQuickMatch
 from dqm.core.tree import canonical_labels
 from dqm.distributed import keys, messages
 from dqm.synthetic import sift_like
-from runtime_helpers import start_dqm
 
 JOB = "stream-test"
 DIM = 128

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 from dqm import InputError
-from dqm.vision import baselines as B
 from dqm.synthetic import sift_like
-from conftest import assert_consistent
+from dqm.vision import baselines as B
 
 
 def brute_force_ratio(X, ids):

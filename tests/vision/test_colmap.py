@@ -4,13 +4,13 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import InputError, io
 from dqm.vision import colmap, features
 from dqm.vision.scenes import generate_scene
 from dqm.vision.verify import verify_clusters
-from conftest import assert_consistent
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
 

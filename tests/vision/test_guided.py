@@ -1,6 +1,7 @@
 """Geometry-guided cluster growth (dqm.vision.guided) and the colmap SIFT preset."""
 import numpy as np
 import pytest
+from conftest import assert_consistent
 
 import dqm
 from dqm import InputError
@@ -9,7 +10,6 @@ from dqm.vision import features
 from dqm.vision.guided import consistent_pairs, grow_clusters, guided_labels
 from dqm.vision.scenes import generate_scene
 from dqm.vision.verify import PairModel, fit_pairs, verify_clusters
-from conftest import assert_consistent
 
 
 @pytest.fixture(scope="module")
@@ -135,8 +135,9 @@ def test_images_match_guided_export_colmap_reconstruct_every_image(tmp_path, cap
     """images -> dqm match --guided -> dqm export colmap -> pycolmap mapper (guided growth is opt-in since it
     cost SfM cameras in scripts/bench_sfm.py; the chain must still reconstruct every image)."""
     pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
-    from dqm import io
     from generators.scenes3d import generate_scene3d
+
+    from dqm import io
 
     sc = generate_scene3d(seed=0, n_images=6)
     sc.save(tmp_path / "img")

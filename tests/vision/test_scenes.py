@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from dqm import InputError, evaluation
-from dqm.vision import datasets, features, scenes
 from dqm.vision import baselines as B
+from dqm.vision import datasets, features, scenes
 
 
 @pytest.fixture(scope="module")

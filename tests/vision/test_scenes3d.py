@@ -4,10 +4,10 @@ import json
 import cv2
 import numpy as np
 import pytest
+from generators.scenes3d import generate_scene3d
 
 from dqm import InputError
 from dqm.vision import features
-from generators.scenes3d import generate_scene3d
 
 
 @pytest.fixture(scope="module")

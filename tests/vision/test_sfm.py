@@ -28,8 +28,9 @@ def write_strecha(scene, folder: Path) -> Path:
 
 
 def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path, capsys):
-    from dqm import io
     from generators.scenes3d import generate_scene3d
+
+    from dqm import io
 
     scene = generate_scene3d(seed=0, n_images=6)
     images = scene.save(tmp_path / "img")
@@ -82,8 +83,9 @@ def test_bench_sfm_small_with_ground_truth(tmp_path):
     """scripts/bench_sfm.py on a generated 4-image scene with its true cameras (Strecha files), dqm's default
     beside COLMAP's pipeline: both register every image, and the JSON's AUC is the AUC of its pairwise
     errors. (The benchmark's real runs are on photos: docs/sfm.md.)"""
-    from dqm.vision import poses
     from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import poses
 
     scene = generate_scene3d(seed=0, n_images=4)
     saved = scene.save(tmp_path / "scene")
@@ -127,10 +129,10 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     against the generated scene), the model gains points seen in 3+ images, and its cameras are the
     mapper's, bit for bit (--no-triangulate gives the same poses)."""
     import pycolmap
+    from generators.scenes3d import generate_scene3d
 
     from dqm import io
     from dqm.vision.triangulation import model_guided_matches
-    from generators.scenes3d import generate_scene3d
 
     scene = generate_scene3d(seed=2, n_images=5)
     images = scene.save(tmp_path / "img")
