@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import queue
 import sys
 import time
@@ -38,6 +39,8 @@ import numpy as np
 from ..core.params import FINITE_KERNEL, QuickMatchParams
 from ..distributed import keys, messages, protocol
 from ..validation import InputError
+
+LOG = logging.getLogger("dqm.runtime")
 
 
 def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:
@@ -130,6 +133,8 @@ def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:
         for part in protocol.data_messages("gather", job, me, whole):
             session.put(key, part, congestion_control=zenoh.CongestionControl.BLOCK)
             sent += len(part) + len(key)
+        LOG.info("source %d: %d features put for the gathering host of job %s (%d bytes)", me, len(features.ids),
+                 job, sent)
         t0 = time.monotonic()
         while watch.present:
             if time.monotonic() - t0 > wait_s:
@@ -162,9 +167,11 @@ class Gathering:
         try:
             msg = messages.decode(raw, job=self.job, agents=self.sources, dim=self.dim, sender=sender)
         except messages.MessageError as exc:
+            LOG.warning("gathering: rejected a message on %s: %s", key, exc)
             self.rejected.append(str(exc))
             return
         if msg["kind"] != "gather" or sender == 0:
+            LOG.warning("gathering: rejected a %s message of source %d on the gather key", msg["kind"], sender)
             self.rejected.append(f"a {msg['kind']} message of source {sender} on the gather key")
             return
         self.bytes += len(raw) + len(key)

@@ -11,6 +11,7 @@ by the next run.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -34,6 +35,8 @@ from .bus import LEASE_MS
 from .coordinator import failure_paragraph, failure_path
 from .lifeline import PARENT_ENV, child_preexec, signals_deferred
 from .roster import job_roster
+
+LOG = logging.getLogger("dqm.runtime")
 
 #: temporary folders of ``dqm run``: dqm-run-<launcher pid>-<random>
 WORKDIR_PREFIX = "dqm-run-"
@@ -212,6 +215,7 @@ class Processes:
                 self.procs.append(p)
         finally:
             fh.close()
+        LOG.debug("started %s (pid %d), output to %s", " ".join(args[:3]), p.pid, log_path)
         return p
 
     def stop_all(self, grace_s: float = 5.0) -> None:
@@ -227,6 +231,7 @@ class Processes:
             try:
                 p.wait(timeout=left)
             except subprocess.TimeoutExpired:
+                LOG.warning("pid %d did not end %.1f s after SIGTERM; killed", p.pid, grace_s)
                 p.kill()
                 p.wait(timeout=5)
 
@@ -385,6 +390,8 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
     report["agent_exit_codes"] = [p.returncode for p in job.agents]
     report["workdir"] = str(job.workdir)
     report["wall_s"] = time.monotonic() - job.started
+    LOG.info("job %s finished in %.2f s (coordinator exit %s, agents %s)", job.cfg.job, report["wall_s"], rc,
+             report["agent_exit_codes"])
     return report
 
 

@@ -12,12 +12,15 @@ process, after a grace period for a clean exit, so that even SIGKILL of
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import signal
 import threading
 import time
 from contextlib import contextmanager
 from typing import Iterator, List
+
+LOG = logging.getLogger("dqm.runtime")
 
 PARENT_ENV = "DQM_PARENT_PID"
 _PR_SET_PDEATHSIG = 1
@@ -91,6 +94,7 @@ def watch_parent(grace_s: float = 3.0, poll_s: float = 0.5) -> None:
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(poll_s)
+        LOG.warning("the launching process %d is gone; this process ends", parent)
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(grace_s)
         os._exit(1)

@@ -33,6 +33,7 @@ coordinator's link.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -40,6 +41,8 @@ from pathlib import Path
 from typing import Callable, Optional, Tuple
 
 import numpy as np
+
+LOG = logging.getLogger("dqm.runtime")
 
 #: the first probe pair's size: past the smallest tc tbf burst of the emulated hosts (96 KiB)
 START_PROBE_BYTES = 128 << 10
@@ -137,6 +140,8 @@ def measure_link(process: int, send_pair: Callable[[int, int, int, int], None],
         spread = max(tb - ta, 1e-6)
         pairs.append((size, round(spread, 6)))
         if spread >= MIN_SPREAD_S or size >= MAX_PROBE_BYTES or rounds == MAX_ROUNDS:
+            LOG.debug("link to process %d: %.3g MB/s from %d probe pairs (last %d bytes)", process,
+                      size / spread / 1e6, rounds, size)
             return LinkRate(process, size / spread, size, rounds, clock() - t0, sent, tuple(pairs))
         seen = size / spread
         size = int(min(MAX_PROBE_BYTES, MAX_GROWTH * size, max(2 * size, power_of_two(seen * TARGET_SPREAD_S))))

@@ -18,6 +18,7 @@ host -> router -> receiver host), so the router-side counters of the veths
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import subprocess
@@ -38,6 +39,7 @@ from .launcher import (  # noqa: F401
     write_agent_files,
 )
 
+LOG = logging.getLogger("dqm.runtime")
 SUBNET = "10.213"
 ROUTER_PORT = 7447
 
@@ -226,6 +228,9 @@ class EmulatedHosts(Namespaces):
             detail = getattr(exc, "stderr", "") or str(exc)
             self.delete()
             raise NamespacesUnavailable(f"cannot emulate the hosts: {str(detail).strip()}") from None
+        LOG.info("%d emulated hosts (%s): links %s, CPU %s", self.hosts, self.tag,
+                 "unlimited" if self.rate_mbit is None else f"{self.rate_mbit:g} Mbit/s",
+                 "unlimited" if self.cpu_cores is None else f"{self.cpu_cores:g} cores each")
         return self
 
     def host_prefix(self, h: int) -> List[str]:

@@ -24,6 +24,7 @@ certificates); an agent or camera index belongs to one identity.
 """
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 from ..distributed import keys
 from ..validation import InputError
+
+LOG = logging.getLogger("dqm.runtime")
 
 #: roles an identity may hold; agent and camera take an index
 ROLES = ("coordinator", "agent", "stream", "camera", "viewer")
@@ -135,7 +138,9 @@ def load_roster(path: str) -> Roster:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise RosterError(f"the roster {path} is not UTF-8 text") from None
-    return parse_roster(text, str(path))
+    roster = parse_roster(text, str(path))
+    LOG.info("roster %s: %d identities, jobs %s", path, len(roster.identities), ", ".join(roster.jobs) or "any")
+    return roster
 
 
 def job_roster(agents: int, jobs: Sequence[str] = ()) -> Roster:
