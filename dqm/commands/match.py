@@ -65,7 +65,8 @@ def add_cluster_options(p) -> None:
                                            "run and dqm stream use (docs/quickmatch.md)"})
     p.add_argument("--threads", type=positive_int_arg, default=None, help="worker threads (default: all cores)")
     p.add_argument("--max-memory", type=memory_size, default=None, metavar="SIZE",
-                   help="memory budget, e.g. 8G or 512M (default: 70%% of the available memory); an exact run "
+                   help="memory budget of the whole process's peak, e.g. 8G or 512M, what it already holds included "
+                        "(default: 70%% of the available memory); an exact run "
                         "whose candidate edges would not fit streams its parents instead (same clusters), and "
                         "an input that cannot fit at all is refused before any work")
     p.add_argument("--engine", choices=ENGINES, default="auto",
