@@ -36,7 +36,6 @@ import json
 import multiprocessing as mp
 import os
 import queue
-import resource
 import shutil
 import subprocess
 import sys
@@ -179,13 +178,11 @@ def _measure(task, q):
 
 
 def peak_kib():
-    """Peak resident memory of this process in KiB: VmHWM (which ``reset_peak`` can lower to the present), else
-    ru_maxrss."""
-    try:
-        with open("/proc/self/status") as fh:
-            return int(next(line for line in fh if line.startswith("VmHWM")).split()[1])
-    except (OSError, StopIteration, ValueError):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    """Peak resident memory of this process in KiB (:func:`dqm.core.memory.peak_bytes`; ``reset_peak`` lowers it
+    to the present)."""
+    from dqm.core import memory
+
+    return memory.peak_bytes() / 1024
 
 
 def reset_peak():

@@ -25,12 +25,12 @@ ABOVE = {
     "dqm/benchmark.py": ["dqm.distributed", "dqm.runtime", "dqm.camnet"] + TOP,
     "dqm/commands": ["dqm.cli"],
 }
-#: the support modules under every layer: they import none of the layers
-SUPPORT = ["__init__", "__main__", "cli", "io", "lazy_exports", "logging_config", "outputs", "progress", "signals",
-           "synthetic", "validation", "wording"]
+#: the support modules under every layer: they import none of the layers (the package's face, __init__, and the
+#: program, __main__ and cli, import them all)
+SUPPORT = ["io", "lazy_exports", "logging_config", "outputs", "progress", "signals", "synthetic", "validation",
+           "wording"]
 for _name in SUPPORT:
-    if _name not in ("__init__", "__main__", "cli"):  # the package's face and the program import the layers
-        ABOVE[f"dqm/{_name}.py"] = ["dqm.core", "dqm.distributed", "dqm.runtime"] + APPLICATION + TOP
+    ABOVE[f"dqm/{_name}.py"] = ["dqm.core", "dqm.distributed", "dqm.runtime"] + APPLICATION + TOP
 
 
 def imported_modules(path: Path) -> set:

@@ -104,6 +104,22 @@ def process_bytes() -> int:
         return 0
 
 
+def peak_bytes() -> int:
+    """Peak resident memory of this process (bytes): VmHWM, which writing 5 to /proc/self/clear_refs restarts
+    from the present; else the resource module's ru_maxrss (KiB on Linux); 0 where neither is there."""
+    try:
+        with open("/proc/self/status") as fh:
+            return int(next(line for line in fh if line.startswith("VmHWM")).split()[1]) * 1024
+    except (OSError, StopIteration, ValueError, IndexError):
+        pass
+    try:
+        import resource
+
+        return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    except (ImportError, OSError):
+        return 0
+
+
 def held_bytes(max_memory, *inputs) -> int:
     """What a run must leave out of the budget ``max_memory``: the process's resident memory now,
     less the ``inputs`` arrays (the models count them); 0 without a budget of the caller's (the default

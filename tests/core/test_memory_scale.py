@@ -326,16 +326,12 @@ import dqm
 from dqm.core import memory
 from dqm.synthetic import sized
 
-def peak():
-    with open("/proc/self/status") as fh:
-        return int(next(l for l in fh if l.startswith("VmHWM")).split()[1]) * 1024
-
 ds = sized(int(sys.argv[1]), seed=0)
 X, ids = ds.descriptors, ds.image_ids
 held = memory.process_bytes()
 budget = held + memory.base_bytes(len(X), X.shape[1], 2, itemsize=1) + (8 << 20)
 r = dqm.quickmatch(X, ids, max_memory=budget, n_threads=2, rho=1.0)
-print(budget, peak(), held, r.stats["streaming"], r.stats["memory_held"])
+print(budget, memory.peak_bytes(), held, r.stats["streaming"], r.stats["memory_held"])
 """
 
 
