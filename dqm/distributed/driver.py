@@ -10,8 +10,9 @@ statistics to the coordinator.
 
 Two transports feed the same driver:
 
-* the simulator's in-memory bus (:class:`MemoryBus`): messages are encoded,
-  metered, decoded and queued, all in one process;
+* the simulator's in-memory network (:class:`dqm.distributed.network.MemoryBus`, one per
+  process): messages are encoded, metered, decoded and queued, all in one process, through the
+  same delivery layer (:mod:`dqm.distributed.delivery`) on a virtual clock;
 * the runtime's zenoh bus (:class:`dqm.runtime.bus.Bus`), one OS process per
   agent (or per process hosting several agents after a takeover).
 
@@ -28,7 +29,7 @@ from typing import Callable, Deque, Dict, List, Optional, Protocol, Sequence, Tu
 
 import numpy as np
 
-from . import cascade, keys, messages, partition, protocol, seeding
+from . import cascade, messages, partition, protocol, seeding
 from .balanced import ROUNDS, BalancedCore
 from .config import DQMConfig, params_hash
 from .ledger import COORDINATOR, Meter
@@ -429,45 +430,3 @@ class AgentDriver:
         if self.state != "wait_finish" and time.monotonic() - self.phase_started > self.phase_timeout_s:
             raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s in state "
                                f"{self.state!r}")
-
-
-class MemoryBus:
-    """The simulator's transport: every message is encoded by the driver, metered as the runtime meters
-    it (payload plus key; each acknowledged kind's ack back), decoded again (so the codec is on the
-    path) and queued for its receiver. ``unmetered`` kinds (the agents' progress reports and final
-    statistics, which are not the algorithm's traffic) are queued but not counted."""
-
-    def __init__(self, job: str, m: int, dim: int, unmetered: Sequence[str] = ("progress", "stats")):
-        self.job = job
-        self.m = m
-        self.dim = dim
-        self.meter = Meter()
-        self.unmetered = tuple(unmetered)
-        self.queue: Deque[Tuple[int, dict]] = deque()
-        # every agent is its own process here (the runtime's processes start out that way)
-        self.key_bytes = {(src, dst): len(keys.message_key(job, src, dst, dst))
-                          for src in range(-1, m) for dst in range(-1, m)}
-        self.seqs: Dict[Tuple[int, int], int] = defaultdict(int)
-        #: features carried per phase (``route``, ``handdown``)
-        self.features_moved: Dict[str, int] = defaultdict(int)
-
-    def next_seq(self, src: int, dst: int, count: int = 1) -> int:
-        seq = self.seqs[(src, dst)]
-        self.seqs[(src, dst)] = seq + count
-        return seq
-
-    def send(self, src: int, dst: int, kind: str, payload: bytes, seq: Optional[int] = None) -> None:
-        if kind not in self.unmetered:
-            self.meter.add(src, dst, kind, len(payload) + self.key_bytes[(src, dst)])
-        if seq is not None and kind in protocol.ACKED:
-            self.meter.add(dst, src, "ack", len(protocol.ack(self.job, dst, src, seq)) + self.key_bytes[(dst, src)])
-        msg = messages.decode(payload, job=self.job, agents=self.m, dim=self.dim, sender=src)
-        if kind == "features":
-            self.features_moved[msg["phase"]] += len(msg["ids"])
-        self.queue.append((dst, msg))
-
-    def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
-        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=self.next_seq(src, dst), **fields))
-
-    def unacknowledged(self, src: Optional[int] = None) -> int:
-        return 0  # every message is delivered (and acknowledged) as it is sent

@@ -111,7 +111,7 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
 
 #: kinds that are acknowledged by the receiver and resent until they are (bulk payloads)
 ACKED = ("features", "sigmas", "bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density",
-         "proposal", "notify", "fragments", "assign", "component", "catalog")
+         "proposal", "notify", "fragments", "assign", "component", "catalog", "gather")
 
 
 def ack(job: str, src: int, dst: int, seq: int, epoch: int = 0) -> bytes:

@@ -1,10 +1,13 @@
 """In-process simulator of Distributed QuickMatch: all agents' steps in one process.
 
-Every agent is the runtime's own driver (:class:`dqm.distributed.driver.AgentDriver`),
-fed from an in-memory queue (:class:`dqm.distributed.driver.MemoryBus`) instead
-of the zenoh bus: the same choreography, the same messages on every link, metered
-by the same ledger (:mod:`dqm.distributed.ledger`), and decoded again so the codec
-is on the path. It is the reference the runtime is tested against.
+Every process is the runtime's own process host (:class:`dqm.distributed.hosting.ProcessHost`,
+with the one agent driver :class:`dqm.distributed.driver.AgentDriver` per hosted agent), and the
+coordinator is the runtime's own core (:class:`dqm.distributed.coordination.CoordinatorCore`), fed
+from the in-memory network (:mod:`dqm.distributed.network`, the zenoh bus's delivery layer on a
+virtual clock) instead of the zenoh bus: the same choreography, the same messages on every link,
+metered by the same ledger (:mod:`dqm.distributed.ledger`), and decoded again so the codec is on the
+path. It is the reference the runtime is tested against; its fault plan replays lost acks,
+duplicates, delays and lost processes deterministically.
 
 Agents start with the features of their own images (image k of the sorted
 image ids belongs to agent k mod m), so routing is real traffic.
@@ -12,7 +15,6 @@ image ids belongs to agent k mod m), so routing is real traffic.
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -23,9 +25,12 @@ from ..validation import InputError, check_descriptors, check_image_ids, check_m
 from . import protocol
 from .balanced import BalancedCore
 from .config import DQMConfig
-from .driver import SETUP_STATES, AgentDriver, MemoryBus, ready_fields, start_fields
+from .coordination import CoordinatorCore
+from .driver import SETUP_STATES, AgentDriver, states_for
+from .hosting import ProcessHost
 from .ledger import COORDINATOR, TrafficLedger
-from .sources import agent_features, assemble_labels, image_owners, split_features
+from .network import LOST, FaultPlan, LoseProcess, MemoryNetwork
+from .sources import AgentFeatures, agent_features, assemble_labels, image_owners, split_features
 
 #: the simulator's name for the one traffic ledger (kept for callers of ``dqm.distributed.Traffic``)
 Traffic = TrafficLedger
@@ -59,6 +64,9 @@ class DQMResult:
     density: Optional[np.ndarray] = None  # balanced: every feature's density (as its owner computed it)
     parent: Optional[np.ndarray] = None  # balanced: tree parent (-1: none within rho sigma)
     parent_distance: Optional[np.ndarray] = None
+    #: the processes the coordinator lost (as in a runtime report: process, phase, epoch) and the epochs run
+    lost: List[dict] = field(default_factory=list)
+    epochs: int = 1
 
     @property
     def n_clusters(self) -> int:
@@ -72,82 +80,153 @@ class DQMResult:
 
 
 class _Clock:
-    """CPU seconds per agent (the simulator runs agents one after another, so process time is theirs)."""
+    """CPU seconds per process (the simulator runs them one after another, so process time is theirs)."""
 
     def __init__(self, m: int):
         self.cpu = np.zeros(m)
 
-    def run(self, a: int, fn: Callable, *args, **kwargs):
+    def run(self, p: int, fn: Callable, *args, **kwargs):
         t = time.process_time()
-        out = fn(*args, **kwargs)
-        self.cpu[a] += time.process_time() - t
-        return out
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.cpu[p] += time.process_time() - t
 
 
-class _Coordinator:
-    """The coordinator's side in memory: start, ready, go, then results and catalogs, then finish."""
+class _ProcessLost(Exception):
+    """The fault plan's loss of a process, raised where its agent enters the planned state."""
 
-    def __init__(self, bus: MemoryBus, cfg: DQMConfig, catalog: bool):
-        self.bus = bus
-        self.cfg = cfg
-        self.catalog = catalog
-        self.results: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
-        self.catalog_parts: Dict[int, int] = defaultdict(int)
-
-    def start(self, hosted: List[np.ndarray], dim_of: Callable[[int], np.ndarray]) -> None:
-        m = self.cfg.agents
-        fields = start_fields(self.cfg, np.arange(m, dtype=np.int64), self.catalog)
-        for a in range(m):
-            self.bus.send_single(COORDINATOR, a, "start", **fields)
-        for a in range(m):
-            self.bus.send_single(a, COORDINATOR, "ready", **ready_fields(dim_of(a), [a], len(hosted[a])))
-        for a in range(m):
-            self.bus.send_single(COORDINATOR, a, "go")
-
-    def take(self, msg: dict) -> None:
-        if msg["kind"] == "result":
-            self.results[msg["src"]] = (msg["ids"], msg["labels"])
-
-    def finish(self, n_clusters: int) -> None:
-        for a in range(self.cfg.agents):  # the coordinator's end of job
-            self.bus.send_single(COORDINATOR, a, "finish", clusters=n_clusters)
+    def __init__(self, process: int):
+        super().__init__(process)
+        self.process = process
 
 
-def _pump(drivers: List[AgentDriver], bus: MemoryBus, coord: _Coordinator, clock: _Clock,
-          progress: Optional[Callable[[int, int], None]]) -> float:
-    """Deliver queued messages and let every agent advance until the job is done; returns the wall
-    seconds the set-up (up to routing) took."""
-    t0 = time.perf_counter()
-    t_setup = None
-    routed = SETUP_STATES.index("wait_routed")
-    total = len(drivers[0].states) - 1
-    shown = -1
-    while True:
-        for a, d in enumerate(drivers):
-            clock.run(a, d.settle)
-        step = min(d.step_index for d in drivers)
-        if t_setup is None and step >= routed:
-            t_setup = time.perf_counter() - t0
-        if progress and step > shown:
-            shown = step
-            progress(step, total)
-        if not bus.queue:
-            break
-        while bus.queue:
-            dst, msg = bus.queue.popleft()
-            if dst == COORDINATOR:
-                coord.take(msg)
-            elif msg["src"] != COORDINATOR:  # start and go were played by the coordinator's side
-                clock.run(dst, drivers[dst].handle, msg)
-    stuck = [d.me for d in drivers if d.state != "wait_finish"]
-    if stuck:
-        raise RuntimeError(f"the simulated job stopped with agents {stuck} in state {drivers[stuck[0]].state!r} "
-                           "(a bug)")
-    return t_setup if t_setup is not None else time.perf_counter() - t0
+class _Job:
+    """One simulated job: the processes (:class:`~dqm.distributed.hosting.ProcessHost`), the coordinator
+    (:class:`~dqm.distributed.coordination.CoordinatorCore`) and the network between them."""
+
+    def __init__(self, cfg: DQMConfig, held: List[AgentFeatures], net: MemoryNetwork, catalog: bool,
+                 max_lost: Optional[int]):
+        self.cfg, self.net, self.held = cfg, net, held
+        self.clock = _Clock(cfg.agents)
+        self.core = CoordinatorCore(cfg, max_lost=max_lost, catalog=catalog)
+        self.coord = net.endpoint(COORDINATOR)
+        losses = net.plan.losses()
+        self.hosts: Dict[int, ProcessHost] = {}
+        self.gone: Dict[int, ProcessHost] = {}  # lost processes (one that had delivered everything keeps its part)
+        for p in range(cfg.agents):
+            on_state = self._loss_hook(p, losses[p]) if p in losses else None
+            self.hosts[p] = ProcessHost(p, cfg, net.endpoint(p), held[p], lambda a: self.held[a],
+                                        on_state=on_state, trace=True, on_state_always=True)
+
+    def _loss_hook(self, process: int, when: LoseProcess):
+        def hook(agent: int, entered: str) -> None:
+            if entered == when.state and self.hosts[process].epoch == when.epoch:
+                raise _ProcessLost(process)
+        return hook
+
+    def flush(self) -> None:
+        """Send what the coordinator decided (entering its epoch first)."""
+        if self.coord.epoch != self.core.epoch:
+            self.coord.set_epoch(self.core.epoch)
+            self.coord.set_owners(self.core.owners)
+        for p, kind, fields in self.core.take_outbox():
+            self.coord.send_single(COORDINATOR, p, kind, **fields)
+        self.core.take_events()
+
+    def _at(self, p: int, fn: Callable, *args) -> None:
+        """Run a step of process p; a planned loss there kills it and tells the coordinator."""
+        try:
+            self.clock.run(p, fn, *args)
+        except _ProcessLost as lost:
+            self.net.lose(lost.process)
+            self.gone[lost.process] = self.hosts.pop(lost.process)
+
+    def drivers(self) -> List:
+        """The final epoch's driver of every agent."""
+        every = {**self.gone, **self.hosts}
+        return [every[int(self.core.owners[a])].slots[a] for a in range(self.cfg.agents)]
+
+    def run(self, progress: Optional[Callable[[int, int], None]]) -> float:
+        """Deliver messages and let every process advance until the coordinator has everything; returns the
+        wall seconds the set-up (up to routing) took."""
+        t0 = time.perf_counter()
+        t_setup = None
+        routed = SETUP_STATES.index("wait_routed")
+        total = len(states_for(self.cfg.mode)) - 1
+        shown = -1
+        self.core.begin()
+        self.flush()
+        while not self.core.done:
+            for p in sorted(self.hosts):
+                if p in self.hosts:
+                    self._at(p, self.hosts[p].settle)
+            slots = [s for h in self.hosts.values() for s in h.slots.values() if hasattr(s, "step_index")]
+            step = min((s.step_index for s in slots), default=0)
+            if t_setup is None and step >= routed and slots:
+                t_setup = time.perf_counter() - t0
+            if progress and step > shown:
+                shown = step
+                progress(step, total)
+            if not self._deliver_now():
+                break
+        if not self.core.done:
+            stuck = {a: s.state for h in self.hosts.values() for a, s in h.slots.items() if s.state != "wait_finish"}
+            raise RuntimeError(f"the simulated job stopped with agents in states {stuck}, the coordinator in phase "
+                               f"{self.core.phase!r} (a bug)")
+        return t_setup if t_setup is not None else time.perf_counter() - t0
+
+    def _deliver_now(self) -> bool:
+        """Deliver every message that arrives at the current virtual time (at least one, advancing the clock
+        if none does); False when nothing is in flight or pending."""
+        item = self.net.next()
+        if item is None:
+            return False
+        clock = self.net.clock
+        while item is not None:
+            self._deliver(*item)
+            if self.core.done or not self.net.peek_now(clock):
+                break
+            item = self.net.next()
+        return True
+
+    def _deliver(self, p: int, dst: int, msg: dict) -> None:
+        if p == COORDINATOR:
+            lost = msg["kind"] == LOST
+            if lost or self.coord.accept(dst, msg):
+                try:
+                    if lost:
+                        self.core.processes_lost([msg["src"]])
+                    else:
+                        self.core.handle(msg)
+                finally:
+                    self.flush()
+            return
+        host = self.hosts.get(p)
+        if host is None or not self.net.endpoint(p).accept(dst, msg):
+            return
+        if msg["src"] == COORDINATOR:
+            self._at(p, host.control, msg)
+        else:
+            self._at(p, host.deliver, dst, msg)
+
+    def finish(self) -> Tuple[np.ndarray, np.ndarray]:
+        """The job's labels; ``finish`` to every process."""
+        try:
+            ids, labels = self.core.result()
+        finally:
+            self.flush()
+        while True:
+            item = self.net.next()
+            if item is None:
+                break
+            self._deliver(*item)
+        return ids, labels
 
 
 def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: bool = False,
-             features: Optional[io.FeatureSet] = None) -> DQMResult:
+             features: Optional[io.FeatureSet] = None, faults: Optional[FaultPlan] = None,
+             max_lost: Optional[int] = None) -> DQMResult:
     """Run Distributed QuickMatch for ``config.agents`` agents in this process.
 
     Agent a starts with the features of its images (:func:`dqm.distributed.sources.image_owners`),
@@ -157,7 +236,10 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     states. ``catalog``: also meter the ``catalog`` messages that a runtime job writing a CLUSTERS
     file sends with its results; ``features``: the FEATURES set the descriptors and image ids come
     from, whose keypoints, image names and ground truth then travel in the catalogs as they do at the
-    runtime's agents.
+    runtime's agents. ``faults``: what the network does wrong (:class:`~dqm.distributed.network.FaultPlan`:
+    dropped, duplicated or delayed messages, lost processes), ``max_lost``: how many processes the
+    coordinator may lose (default: half). With faults the labels are those of the fault-free run, and the
+    traffic includes what the faults cost (resends, acks, the restarted epochs).
     """
     t_all = time.perf_counter()
     X = check_descriptors(descriptors, keep_integer=True)
@@ -176,45 +258,38 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
         raise InputError(f"features has {len(features)} rows, the descriptors {n}: pass the set they come from")
     whole = io.FeatureSet(store, ids) if features is None else features
     held = [agent_features([part], a) for a, part in enumerate(split_features(whole, m))]
-    bus = MemoryBus(cfg.job, m, dim)
-    clock = _Clock(m)
-    coord = _Coordinator(bus, cfg, catalog)
-    coord.start([h.ids for h in held], lambda a: held[a].descriptors)
-    drivers = [clock.run(a, AgentDriver, a, cfg, bus, h.ids, h.image_ids, h.descriptors,
-                         catalog=h.catalog if catalog else None, trace=True) for a, h in enumerate(held)]
-    for d in drivers:
-        d.begin(cfg.seed)
-    stats: Dict[str, float] = {"time_setup": _pump(drivers, bus, coord, clock, progress)}
-
-    results = [coord.results[a] for a in range(m)]
+    net = MemoryNetwork(cfg.job, m, dim, faults)
+    job = _Job(cfg, held, net, catalog, max_lost)
+    stats: Dict[str, float] = {"time_setup": job.run(progress)}
+    drivers = job.drivers()
+    results = [(job.core.results[a]["ids"], job.core.results[a]["labels"]) for a in range(m)]
     res = (_balanced_outcome if cfg.mode == "balanced" else _cascade_outcome)(drivers, results, n)
-    n_clusters = int(res["labels"].max()) + 1
-    coord.finish(n_clusters)
+    job.finish()
     cells = np.zeros(n, np.int64)
     for d in drivers:
         cells[(d.core.own if cfg.mode == "balanced" else d.core.shard).ids] = d.me
     source = drivers[0].source
     res.update(cells=cells, owners=owners, sites=source.seeds, weights=source.weights, config=drivers[0].cfg,
-               traffic=bus.meter)
+               traffic=net.meter)
     per_agent = [dict(d.core_stats) for d in drivers]
     for a in range(m):
-        per_agent[a]["cpu_s"] = float(clock.cpu[a])
+        per_agent[a]["cpu_s"] = float(job.clock.cpu[a])
     raw = n * dim * store.dtype.itemsize
     central_pairs = max(1, n * (n - 1) // 2)
     stats.update(res.pop("stats"))
     stats.update(
         time_total=time.perf_counter() - t_all,
-        routed_moves=float(bus.features_moved["route"]),
-        transfers_per_feature=sum(bus.features_moved.values()) / n,
+        routed_moves=float(net.features_moved["route"]),
+        transfers_per_feature=sum(net.features_moved.values()) / n,
         max_features_share=max(p["max_held"] for p in per_agent) / n,
         max_pair_share=max(p["pairs"] for p in per_agent) / central_pairs,
-        bytes_over_raw=bus.meter.total() / raw,
-        busiest_cpu_s=float(clock.cpu.max()),
+        bytes_over_raw=net.meter.total() / raw,
+        busiest_cpu_s=float(job.clock.cpu.max()),
         largest_cell_share=float(np.bincount(cells, minlength=m).max() * m / n),
     )
     if cfg.mode != "balanced":
-        stats["handdown_moves"] = float(bus.features_moved["handdown"])
-    return DQMResult(per_agent=per_agent, stats=stats, **res)
+        stats["handdown_moves"] = float(net.features_moved["handdown"])
+    return DQMResult(per_agent=per_agent, stats=stats, lost=job.core.lost, epochs=job.core.runs, **res)
 
 
 def _holder(results: List[Tuple[np.ndarray, np.ndarray]], n: int) -> np.ndarray:

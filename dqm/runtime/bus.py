@@ -24,10 +24,10 @@ import queue
 import re
 import threading
 import time
-from collections import defaultdict
 from typing import Callable, Dict, List, Optional, Tuple
 
-from ..distributed import keys, messages, protocol
+from ..distributed import keys, messages
+from ..distributed.delivery import Delivery
 from ..distributed.ledger import Meter
 from ..wording import seconds
 
@@ -312,19 +312,15 @@ class Bus:
         self.agents = agents
         self.dim = dim
         self.max_bytes = max_bytes
-        self.epoch = 0
         self.inbox: "queue.Queue" = queue.Queue()  # (inbox agent, decoded message) for the main thread
         self._raw: "queue.Queue" = queue.Queue()  # (key, payload) as they arrive
         self.meter = Meter()
         self.alive: Dict[str, bool] = {}
         self._alive_lock = threading.Lock()
-        self._lock = threading.Lock()  # epoch, pending, seen, owners, hosted
+        self._lock = threading.Lock()  # owners, hosted
         self._closed = False
-        # (src, dst, seq) -> (t, tries, payload, kind)
-        self._pending: Dict[Tuple[int, int, int], Tuple[float, int, bytes, str]] = {}
-        self.retransmit = protocol.Retransmit()
-        self._seen: set = set()
-        self._next_seq: Dict[Tuple[int, int], int] = defaultdict(int)
+        #: sequence numbers, acks, resends, duplicates and epochs (the one delivery layer)
+        self.delivery = Delivery(job, self.meter)
         self._owners = np.arange(agents, dtype=np.int64)  # agent -> process hosting it (agent p on process p)
         self._hosted = frozenset([home]) if home >= 0 else frozenset()
         self._probes: Dict[bytes, threading.Event] = {}  # check_access: nonce -> arrived on the probe key
@@ -389,13 +385,14 @@ class Bus:
                                           "" if self.home < 0 else
                                           " (or start this agent with the --id its certificate is for)"))
 
+    @property
+    def epoch(self) -> int:
+        """The epoch this process is in."""
+        return self.delivery.epoch
+
     def set_epoch(self, epoch: int) -> None:
         """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
-        with self._lock:
-            self.epoch = int(epoch)
-            self._pending.clear()
-            self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
-            self._next_seq.clear()
+        self.delivery.set_epoch(epoch)
 
     # ------------------------------------------------------------------ callbacks (tiny)
     def _on_sample(self, sample) -> None:
@@ -425,10 +422,7 @@ class Bus:
     # ------------------------------------------------------------------ sending
     def next_seq(self, src: int, dst: int, count: int = 1) -> int:
         """The first of ``count`` sequence numbers on the link ``src -> dst`` in this epoch."""
-        with self._lock:
-            s = self._next_seq[(src, dst)]
-            self._next_seq[(src, dst)] = s + count
-            return s
+        return self.delivery.next_seq(src, dst, count)
 
     def _put(self, src: int, dst: int, kind: str, payload: bytes) -> None:
         key = self._key(dst)
@@ -441,49 +435,25 @@ class Bus:
         Kinds in :data:`protocol.ACKED` (pass their ``seq``) are kept until
         acknowledged and resent by :meth:`resend_due`.
         """
-        acked = seq is not None and kind in protocol.ACKED
-        if acked:
-            with self._lock:  # before the put: the ack may come back at once
-                self._pending[(src, dst, seq)] = (time.monotonic(), 1, payload, kind)
+        kept = self.delivery.sending(src, dst, kind, payload, seq, time.monotonic())
         self._put(src, dst, kind, payload)
-        if acked:
-            self._sent_now((src, dst, seq))
-
-    def _sent_now(self, key: Tuple[int, int, int]) -> None:
-        """Start a pending message's ack timer when its put returns: a put blocked behind a full link
-        (congestion control BLOCK) is not yet waiting for its ack."""
-        with self._lock:
-            entry = self._pending.get(key)
-            if entry is not None:
-                self._pending[key] = (time.monotonic(),) + entry[1:]
+        if kept:
+            self.delivery.put_returned(src, dst, seq, time.monotonic())
 
     def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
         """Encode and send one message of this epoch, numbered on its link (``src -> dst``)."""
-        with self._lock:
-            epoch = self.epoch
+        epoch = self.delivery.epoch
         self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=self.next_seq(src, dst), epoch=epoch,
                                                   **fields))
 
     def unacknowledged(self, src: Optional[int] = None) -> int:
-        with self._lock:
-            return sum(1 for k in self._pending if src is None or k[0] == src)
+        return self.delivery.unacknowledged(src)
 
     def resend_due(self) -> None:
-        """Resend messages whose ack is overdue (:class:`dqm.distributed.protocol.Retransmit`: adaptive
-        per link, doubling per resend). A lost receiver is the coordinator's business: it starts a new
-        epoch, which drops what is pending."""
-        now = time.monotonic()
-        with self._lock:
-            due = [(k, v) for k, v in self._pending.items()
-                   if now - v[0] >= self.retransmit.timeout(k[1], v[1])]
-        for (src, dst, seq), (_sent, tries, payload, kind) in due:
-            with self._lock:
-                if (src, dst, seq) not in self._pending:
-                    continue  # acknowledged meanwhile (or a new epoch)
-                self._pending[(src, dst, seq)] = (now, tries + 1, payload, kind)
-            self._put(src, dst, kind, payload)
-            self._sent_now((src, dst, seq))
-            self.meter.resend()
+        """Resend messages whose ack is overdue (:meth:`Delivery.due`)."""
+        for r in self.delivery.due(time.monotonic()):
+            self._put(r.src, r.dst, r.kind, r.payload)
+            self.delivery.put_returned(r.src, r.dst, r.seq, time.monotonic())
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:
@@ -528,35 +498,11 @@ class Bus:
         msg["_bytes"] = len(raw)
         msg["_key"] = key
         msg["_t"] = time.monotonic()  # when it was decoded here (a probe's answer is timed by it)
-        kind, src, seq = msg["kind"], msg["src"], msg["seq"]
-        with self._lock:
-            epoch = self.epoch
-        if msg["epoch"] < epoch:
-            self.meter.reject("message of an earlier epoch")
+        verdict = self.delivery.receive(msg, dst, msg["_t"])
+        if verdict.ack is not None:
+            self._put(dst, msg["src"], "ack", verdict.ack)
+        if not verdict.deliver:
             return None
-        if msg["epoch"] > epoch and kind != "start":
-            self.meter.reject("message of a later epoch")
-            return None
-        if kind == "ack":
-            if msg["dst"] != dst:
-                self.meter.reject("ack for another agent")
-                return None
-            with self._lock:
-                entry = self._pending.pop((dst, src, seq), None)
-                if entry is not None:
-                    self.retransmit.acknowledged(src, time.monotonic() - entry[0], entry[1])
-            return None
-        if kind not in messages.UNNUMBERED:
-            key = (msg["epoch"], dst, src, seq)
-            if kind in protocol.ACKED:
-                # acknowledge every copy (the first ack may have been lost), process once
-                self._put(dst, src, "ack", protocol.ack(self.job, dst, src, seq, epoch=msg["epoch"]))
-            with self._lock:
-                dup = key in self._seen
-                self._seen.add(key)
-            if dup:
-                self.meter.duplicate()
-                return None
         return dst, msg
 
     def receive(self, timeout: float = 0.2) -> Optional[Tuple[int, dict]]:

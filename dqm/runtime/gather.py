@@ -1,6 +1,7 @@
 """Gather: every source sends its features to one host, which runs centralized QuickMatch.
 
-Two users share the functions here: the stand-alone baseline that the distributed modes must beat on
+Two users share the gather of :mod:`dqm.distributed.gathering` (the payload, the parts, the match):
+the stand-alone baseline that the distributed modes must beat on
 real links (``scripts/bench_hosts.py``, the command lines below) and the coordinator of a ``dqm run``
 job in ``--mode gather`` (or ``auto`` when it picks gather), whose agents send the same ``gather``
 messages on their own keys to the coordinator (:mod:`dqm.runtime.coordinator`, :mod:`dqm.runtime.agent`).
@@ -32,86 +33,14 @@ import logging
 import queue
 import sys
 import time
-from typing import Dict, Iterable, List, Optional, Tuple
-
-import numpy as np
+from typing import List, Optional
 
 from ..core.params import FINITE_KERNEL, QuickMatchParams
 from ..distributed import keys, messages, protocol
+from ..distributed.gathering import GatheredParts, gather_payload, match_gathered
 from ..validation import InputError
 
 LOG = logging.getLogger("dqm.runtime")
-
-
-def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:
-    """One source's features as the payload of its ``gather`` message (descriptors as they travel: uint8,
-    or float32), split into parts by :func:`dqm.distributed.protocol.data_messages` like every round
-    message (:func:`dqm.distributed.protocol.part_count` parts)."""
-    return {"ids": np.asarray(ids, np.int64), "image_ids": np.asarray(image_ids, np.int64),
-            "descriptors": protocol.wire_descriptors(descriptors)}
-
-
-class GatheredParts:
-    """The ``gather`` parts received, per source: complete when every expected source's parts are in."""
-
-    def __init__(self, sources: Iterable[int]):
-        self.sources = sorted(set(int(s) for s in sources))
-        self.parts: Dict[int, Dict[int, dict]] = {}
-        self.expected: Dict[int, int] = {}
-
-    def take(self, msg: dict) -> None:
-        """Keep one decoded ``gather`` message of an expected source (a repeated part replaces itself)."""
-        src = int(msg["src"])
-        if src not in self.sources:
-            raise ValueError(f"a gather message of source {src}, which is not among {self.sources}")
-        self.expected[src] = msg["parts"]
-        self.parts.setdefault(src, {})[msg["part"]] = msg
-
-    def done(self, src: int) -> bool:
-        """Whether every part of source ``src`` is in."""
-        return src in self.expected and len(self.parts[src]) == self.expected[src]
-
-    def complete(self) -> bool:
-        return all(self.done(s) for s in self.sources)
-
-    def progress(self) -> Dict[int, str]:
-        """Parts in per source, ``got/expected`` (``?``: none yet), for a message."""
-        return {s: f"{len(self.parts.get(s, {}))}/{self.expected.get(s, '?')}" for s in self.sources}
-
-    def features(self, own=None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(ids, image_ids, descriptors) of every source (and ``own``: an object with ``ids``, ``image_ids``
-        and ``descriptors``, the gathering host's own features), ordered by feature id."""
-        blocks = [] if own is None else [(own.ids, own.image_ids, protocol.wire_descriptors(own.descriptors))]
-        for s in sorted(self.parts):
-            m = protocol.merge_parts("gather", list(self.parts[s].values()))
-            blocks.append((m["ids"], m["image_ids"], m["descriptors"]))
-        if not blocks:
-            raise ValueError("nothing was gathered")
-        dtypes = {b[2].dtype for b in blocks if len(b[2])}
-        if len(dtypes) > 1:
-            raise ValueError(f"the sources sent descriptors of different types {sorted(map(str, dtypes))}")
-        ids, image_ids, X = (np.concatenate([b[i] for b in blocks]) for i in range(3))
-        order = np.argsort(ids, kind="stable")
-        return ids[order], image_ids[order], X[order]
-
-
-def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarray,
-                   params: Optional[QuickMatchParams] = None, approximate: bool = False
-                   ) -> Tuple[np.ndarray, np.ndarray]:
-    """:func:`dqm.quickmatch` of the gathered features (in feature-id order, as :meth:`GatheredParts.features`
-    gives them) with ``params`` (default: the quadratic kernel, the rest QuickMatch's defaults; a distributed
-    job's :attr:`~dqm.distributed.config.DQMConfig.params`): ``(ids, labels)``, labels numbered canonically.
-    Feature ids must be unique."""
-    import dqm
-
-    from ..distributed.sources import assemble_labels
-
-    if len(np.unique(ids)) != len(ids):
-        raise ValueError("two sources sent the same feature id (feature ids must be unique across the job: give "
-                         "each FEATURES file its own feature_ids, or none)")
-    r = dqm.quickmatch(descriptors, image_ids, params=params or QuickMatchParams(kernel=FINITE_KERNEL),
-                       approximate=approximate)
-    return assemble_labels([(ids, r.labels)])
 
 
 def send(session, job: str, me: int, features, wait_s: float = 60.0) -> int:

@@ -4,35 +4,39 @@ import pytest
 
 from dqm import synthetic
 from dqm.distributed import DQMConfig, simulate
-from dqm.distributed.driver import STATES, AgentDriver, MemoryBus, states_for
+from dqm.distributed.driver import STATES, AgentDriver, states_for
 from dqm.distributed.ledger import COORDINATOR, TrafficLedger
+from dqm.distributed.network import MemoryNetwork
 from dqm.distributed.sources import agent_features, split_features
 from dqm.io import FeatureSet
 
 
 def _drive(X, ids, cfg):
-    """Run a job with bare drivers on a MemoryBus: deliver, settle, repeat. Returns drivers, bus, visited states."""
+    """Run a job with bare drivers on the memory network (no coordinator, no process host): deliver,
+    settle, repeat. Returns drivers, network, visited states."""
     held = [agent_features([p], a) for a, p in enumerate(split_features(FeatureSet(X, ids), cfg.agents))]
-    bus = MemoryBus(cfg.job, cfg.agents, X.shape[1])
+    net = MemoryNetwork(cfg.job, cfg.agents, X.shape[1])
     seen = {a: [] for a in range(cfg.agents)}
-    drivers = [AgentDriver(a, cfg, bus, h.ids, h.image_ids, h.descriptors,
+    drivers = [AgentDriver(a, cfg, net.endpoint(a), h.ids, h.image_ids, h.descriptors,
                            on_state=lambda agent, state: seen[agent].append(state)) for a, h in enumerate(held)]
     for d in drivers:
         d.begin(cfg.seed)
     results = {}
-    for _ in range(10_000):
+    for _ in range(100_000):
         for d in drivers:
             d.settle()
-        if not bus.queue:
+        item = net.next()
+        if item is None:
             break
-        while bus.queue:
-            dst, msg = bus.queue.popleft()
-            if dst == COORDINATOR:
-                if msg["kind"] == "result":
-                    results[msg["src"]] = msg
-            else:
-                drivers[dst].handle(msg)
-    return drivers, bus, seen, results
+        p, dst, msg = item
+        if not net.endpoint(p).accept(dst, msg):
+            continue
+        if dst == COORDINATOR:
+            if msg["kind"] == "result":
+                results[msg["src"]] = msg
+        else:
+            drivers[dst].handle(msg)
+    return drivers, net, seen, results
 
 
 @pytest.mark.parametrize("mode", ["balanced", "lean"])
@@ -77,7 +81,7 @@ def test_ledger_stats_fields_round_trip():
 def test_driver_refuses_a_state_outside_its_mode():
     ds = synthetic.sized(400, seed=1)
     cfg = DQMConfig(agents=2, mode="lean").validated(len(ds.descriptors))
-    bus = MemoryBus(cfg.job, 2, ds.descriptors.shape[1])
-    d = AgentDriver(0, cfg, bus, np.arange(10), ds.image_ids[:10], ds.descriptors[:10])
+    net = MemoryNetwork(cfg.job, 2, ds.descriptors.shape[1])
+    d = AgentDriver(0, cfg, net.endpoint(0), np.arange(10), ds.image_ids[:10], ds.descriptors[:10])
     with pytest.raises(AssertionError, match="no state 'wait_ghost' in a lean job"):
         d._enter("wait_ghost")

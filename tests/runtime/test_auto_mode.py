@@ -97,18 +97,18 @@ def test_cgroup_quota_is_read_along_the_path(tmp_path):
 
 # ---------------------------------------------------------------------- an agent started with mode auto
 def test_an_auto_agent_takes_the_mode_the_coordinator_names(data):
+    from dqm.distributed.hosting import ProcessHost
     from dqm.distributed.sources import agent_features
-    from dqm.runtime.agent import AgentHost
 
     X, ids = data
     own = agent_features([io.FeatureSet(X[:10], ids[:10])], 0)
     bus = SimpleNamespace(dim=None)
-    auto = AgentHost(0, DQMConfig(agents=2, mode="auto", job="j"), bus, {}, own=own)
+    auto = ProcessHost(0, DQMConfig(agents=2, mode="auto", job="j"), bus, own, load=None)
     for mode in ("auto", "gather", "lean", "balanced"):
         assert auto.job_config(DQMConfig(agents=2, mode=mode, job="j").params_text()).mode == mode
     # a mode auto never picks stays a difference the parameter check names
     assert auto.job_config(DQMConfig(agents=2, mode="paper").params_text()).mode == "auto"
-    fixed = AgentHost(0, DQMConfig(agents=2, mode="balanced", job="j"), bus, {}, own=own)
+    fixed = ProcessHost(0, DQMConfig(agents=2, mode="balanced", job="j"), bus, own, load=None)
     assert fixed.job_config(DQMConfig(agents=2, mode="auto").params_text()).mode == "balanced"
 
 

@@ -1,0 +1,168 @@
+"""Reliable delivery, sans I/O: one process's sequence numbers, acknowledgements, resends,
+duplicates and epochs.
+
+Both buses keep one :class:`Delivery` per process and call it around their own puts: the zenoh
+bus (:mod:`dqm.runtime.bus`) with the wall clock, the simulator's memory network
+(:mod:`dqm.distributed.network`) with its virtual clock. It never sends and never reads a clock:
+
+* :meth:`Delivery.next_seq` numbers the messages of a link (``src -> dst`` agents; -1 is the
+  coordinator) in the current epoch;
+* :meth:`Delivery.sending` keeps a message of an acknowledged kind (:data:`protocol.ACKED`)
+  until its ack comes back; :meth:`Delivery.put_returned` starts its timer once the put
+  returned (a put blocked behind a full link is not yet waiting for its ack);
+* :meth:`Delivery.due` names the messages whose ack is overdue by the adaptive timeout
+  (:class:`dqm.distributed.protocol.Retransmit`) and counts them resent;
+* :meth:`Delivery.receive` judges a decoded incoming message: of an earlier epoch, or of a
+  later one that is not its ``start``: refused and counted; an ack: its message is done; an
+  acknowledged kind: the ack to send back (every copy is acknowledged, the first ack may have
+  been lost); a numbered message seen before: a duplicate, counted and dropped.
+
+:meth:`Delivery.set_epoch` starts numbering, pending acknowledgements and duplicate detection
+afresh. The counters (resends, duplicates, refusals per reason) go to the process's
+:class:`~dqm.distributed.ledger.Meter`. A lock makes it safe to call from the zenoh bus's
+receiver thread and its main thread at once.
+"""
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Dict, List, NamedTuple, Optional, Tuple
+
+from . import messages, protocol
+from .ledger import Meter
+
+#: a pending message: (sending agent, receiving agent, sequence number)
+Link = Tuple[int, int, int]
+
+
+@dataclass
+class Pending:
+    """A message kept until acknowledged: when its last send's put returned, how often it was sent."""
+
+    sent_at: float
+    tries: int
+    payload: bytes
+    kind: str
+
+
+class Resend(NamedTuple):
+    """A message to put again: its link, kind and encoded bytes."""
+
+    src: int
+    dst: int
+    seq: int
+    kind: str
+    payload: bytes
+
+
+class Verdict(NamedTuple):
+    """What to do with a received message: hand it over (``deliver``), and the ack to send back."""
+
+    deliver: bool
+    ack: Optional[bytes] = None
+
+
+class Delivery:
+    """One process's delivery state (see the module's text). ``job``: the job id acks carry."""
+
+    def __init__(self, job: str, meter: Meter, retransmit: Optional[protocol.Retransmit] = None):
+        self.job = job
+        self.meter = meter
+        self.retransmit = retransmit or protocol.Retransmit()
+        self.epoch = 0
+        self._pending: Dict[Link, Pending] = {}
+        self._seen: set = set()
+        self._next: Dict[Tuple[int, int], int] = defaultdict(int)
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ epochs and numbering
+    def set_epoch(self, epoch: int) -> None:
+        """Enter ``epoch``: numbering, pending acknowledgements and duplicate detection start afresh."""
+        with self._lock:
+            self.epoch = int(epoch)
+            self._pending.clear()
+            self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
+            self._next.clear()
+
+    def next_seq(self, src: int, dst: int, count: int = 1) -> int:
+        """The first of ``count`` sequence numbers on the link ``src -> dst`` in this epoch."""
+        with self._lock:
+            s = self._next[(src, dst)]
+            self._next[(src, dst)] = s + count
+            return s
+
+    # ------------------------------------------------------------------ sending
+    def sending(self, src: int, dst: int, kind: str, payload: bytes, seq: Optional[int], now: float) -> bool:
+        """Before a put: keep the message until acknowledged if its kind is acknowledged (and it has its
+        ``seq``); returns whether it is kept."""
+        if seq is None or kind not in protocol.ACKED:
+            return False
+        with self._lock:  # before the put: the ack may come back at once
+            self._pending[(src, dst, seq)] = Pending(now, 1, payload, kind)
+        return True
+
+    def put_returned(self, src: int, dst: int, seq: int, now: float) -> None:
+        """The put of a kept message returned: its ack timer starts now."""
+        with self._lock:
+            entry = self._pending.get((src, dst, seq))
+            if entry is not None:
+                entry.sent_at = now
+
+    def unacknowledged(self, src: Optional[int] = None) -> int:
+        """Messages (of agent ``src``, or of every agent here) still waiting for their ack."""
+        with self._lock:
+            return sum(1 for k in self._pending if src is None or k[0] == src)
+
+    def next_due(self) -> Optional[float]:
+        """When the earliest pending message is due again (None: nothing pending)."""
+        with self._lock:
+            times = [p.sent_at + self.retransmit.timeout(k[1], p.tries) for k, p in self._pending.items()]
+        return min(times) if times else None
+
+    def due(self, now: float) -> List[Resend]:
+        """The messages whose ack is overdue at ``now``, counted as resent (put them again, then call
+        :meth:`put_returned`). A lost receiver is not this layer's business: the coordinator starts a new
+        epoch, which drops what is pending."""
+        out = []
+        with self._lock:
+            for (src, dst, seq), p in self._pending.items():
+                if now - p.sent_at >= self.retransmit.timeout(dst, p.tries):
+                    p.sent_at, p.tries = now, p.tries + 1
+                    out.append(Resend(src, dst, seq, p.kind, p.payload))
+        for _ in out:
+            self.meter.resend()
+        return out
+
+    # ------------------------------------------------------------------ receiving
+    def receive(self, msg: dict, dst: int, now: float) -> Verdict:
+        """Judge the decoded message ``msg`` for hosted agent ``dst`` (see the module's text)."""
+        kind, src, seq = msg["kind"], msg["src"], msg["seq"]
+        with self._lock:
+            epoch = self.epoch
+        if msg["epoch"] < epoch:
+            self.meter.reject("message of an earlier epoch")
+            return Verdict(False)
+        if msg["epoch"] > epoch and kind != "start":
+            self.meter.reject("message of a later epoch")
+            return Verdict(False)
+        if kind == "ack":
+            if msg["dst"] != dst:
+                self.meter.reject("ack for another agent")
+                return Verdict(False)
+            with self._lock:
+                entry = self._pending.pop((dst, src, seq), None)
+            if entry is not None:
+                self.retransmit.acknowledged(src, now - entry.sent_at, entry.tries)
+            return Verdict(False)
+        if kind in messages.UNNUMBERED:
+            return Verdict(True)
+        # acknowledge every copy (the first ack may have been lost), hand over once
+        ack = protocol.ack(self.job, dst, src, seq, epoch=msg["epoch"]) if kind in protocol.ACKED else None
+        key = (msg["epoch"], dst, src, seq)
+        with self._lock:
+            dup = key in self._seen
+            self._seen.add(key)
+        if dup:
+            self.meter.duplicate()
+        return Verdict(not dup, ack)

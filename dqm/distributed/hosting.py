@@ -1,0 +1,180 @@
+"""One agent process's control plane, sans I/O: the coordinator's ``start``, ``go``, ``abort`` and
+``finish``, and the drivers of the agents the process hosts.
+
+A process starts out hosting its own agent (``home``). Each ``start`` opens an epoch: the process
+checks the job's parameters against its own, takes the agents the ``owners`` field gives it (its
+own, and a lost agent's cell after a takeover, whose features ``load`` provides), and makes a
+driver for each: an :class:`~dqm.distributed.driver.AgentDriver` (balanced, lean, paper) or a
+:class:`~dqm.distributed.gathering.GatherDriver` (gather); in an ``auto`` epoch none (the
+coordinator measures the links first). It then answers ``ready``. ``go`` begins every driver.
+
+The zenoh agent process (:mod:`dqm.runtime.agent`) and the simulator (:mod:`dqm.distributed.simulator`)
+both run :class:`ProcessHost`; its transport is their bus, which also learns the epoch, the owners
+and the hosted agents from it.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Dict, Optional, Protocol
+
+import numpy as np
+
+from .config import DQMConfig, differing_param, params_hash, parse_params
+from .costmodel import AUTO_MODES
+from .driver import AgentDriver, JobAborted, Transport, ready_fields
+from .gathering import GatherDriver
+from .ledger import COORDINATOR
+from .sources import AgentFeatures
+
+log = logging.getLogger("dqm.distributed")
+
+
+
+class Refused(RuntimeError):
+    """This process will not take part in the job (a parameter differs, a takeover is impossible)."""
+
+
+class HostTransport(Transport, Protocol):
+    """A :class:`~dqm.distributed.driver.Transport` that also follows the job's epochs and hosts."""
+
+    dim: Optional[int]
+
+    def set_epoch(self, epoch: int) -> None: ...
+
+    def set_owners(self, owners) -> None: ...
+
+    def host(self, agents) -> None: ...
+
+
+class ProcessHost:
+    """One process's agents (see the module's text). ``features``: the home agent's features;
+    ``load(agent)``: another agent's features for a takeover (raises :class:`Refused` when it
+    cannot); ``on_state(agent, state)``: handed to the home agent's driver in the first epoch that
+    computes (a test's fault injection), or in every epoch with ``on_state_always``; ``trace``: the
+    drivers keep what the simulator reports."""
+
+    def __init__(self, home: int, cfg: DQMConfig, transport: HostTransport, features: AgentFeatures,
+                 load: Callable[[int], AgentFeatures], phase_timeout_s: float = 120.0,
+                 on_state: Optional[Callable[[int, str], None]] = None, trace: bool = False,
+                 on_state_always: bool = False):
+        self.home = home
+        self.cfg = cfg
+        self.bus = transport
+        self.load = load
+        self.phase_timeout_s = phase_timeout_s
+        self.on_state = on_state
+        self.on_state_always = on_state_always
+        self.trace = trace
+        self.features: Dict[int, AgentFeatures] = {home: features}
+        transport.dim = features.descriptors.shape[1]
+        self.slots: Dict[int, object] = {}  # AgentDriver, or GatherDriver in a gather job
+        #: the configuration of the running epoch: ``cfg`` with, when ``cfg.mode`` is auto, the coordinator's pick
+        self.job_cfg = cfg
+        self.ran = False  # whether an epoch of a mode that computes has started (fault injection: the first)
+        self.epoch = -1
+        self.seed: Optional[int] = None
+        self.done = False
+
+    @property
+    def phase(self) -> str:
+        """Where this process is, for messages: its own agent's state."""
+        slot = self.slots.get(self.home)
+        return slot.state if slot is not None else "wait_start"
+
+    def _features(self, agent: int) -> AgentFeatures:
+        if agent not in self.features:
+            self.features[agent] = self.load(agent)
+        return self.features[agent]
+
+    def job_config(self, params: str) -> DQMConfig:
+        """This process's configuration for a ``start`` whose parameter text is ``params``: its own, except
+        that a process started with mode auto takes the mode the coordinator names (auto while it measures,
+        then gather, lean or balanced); the parameter check that follows compares everything else."""
+        if self.cfg.mode != "auto":
+            return self.cfg
+        theirs = parse_params(params).get("mode", "").strip("'\"")
+        return self.cfg.but(mode=theirs) if theirs in AUTO_MODES + ("auto",) else self.cfg
+
+    def _refuse(self, reason: str, param: str = "") -> None:
+        self.bus.send_single(self.home, COORDINATOR, "refuse", reason=reason, param=param)
+        raise Refused(reason)
+
+    def control(self, msg: dict) -> bool:
+        """Handle a message of the coordinator; False for a kind that is not the control plane's (``probe``:
+        the shell answers it). Raises :class:`Refused` (after telling the coordinator) or
+        :class:`~dqm.distributed.driver.JobAborted`."""
+        kind = msg["kind"]
+        if kind == "start":
+            self._start(msg)
+        elif kind == "go" and msg["epoch"] == self.epoch:
+            for slot in self.slots.values():
+                slot.begin(self.seed)
+        elif kind == "abort":
+            raise JobAborted(f"the coordinator aborted the job: {msg['reason']}")
+        elif kind == "finish":
+            self.done = True
+        elif kind != "go":
+            return False
+        return True
+
+    def _start(self, msg: dict) -> None:
+        if msg["epoch"] <= self.epoch:
+            return  # a repeated start of this epoch
+        self.bus.set_epoch(msg["epoch"])
+        self.bus.set_owners(msg["owners"])
+        cfg = self.job_config(msg["params"])
+        mine = cfg.params_text()
+        if msg["params_hash"] != params_hash(mine) or msg["agents"] != self.cfg.agents:
+            name, ours, theirs = differing_param(mine, msg["params"]) or ("params", "?", "?")
+            self._refuse(f"parameter {name} differs: this agent has {name}={ours}, the coordinator "
+                         f"{name}={theirs}; start every process of a job with the same algorithm options", name)
+        hosted = [int(a) for a in np.flatnonzero(np.asarray(msg["owners"]) == self.home)]
+        if self.home not in hosted:
+            self._refuse(f"the coordinator gave this process's own agent {self.home} to another process")
+        try:
+            feats = {a: self._features(a) for a in hosted}
+        except Refused as exc:
+            self._refuse(str(exc))
+        dims = {f.descriptors.shape[1] for f in feats.values()}  # the home agent is among them
+        if len(dims) != 1:
+            self._refuse(f"the FEATURES files of agents {hosted} have different dimensions {sorted(dims)}",
+                         "dimension")
+        self.bus.dim = dims.pop()
+        self.bus.host(hosted)
+        self.epoch = msg["epoch"]
+        self.seed = msg["seed"]
+        previous, self.job_cfg = self.job_cfg.mode, cfg
+        if "auto" in (cfg.mode, previous):
+            log.info("epoch %d: mode %s", self.epoch, cfg.mode)
+        catalog = bool(msg["catalog"])
+        if cfg.mode == "auto":  # the coordinator measures the links, then starts the mode it picked
+            self.slots = {}
+        elif cfg.mode == "gather":
+            self.slots = {a: GatherDriver(a, cfg, self.bus, f, self.epoch, self.home, catalog, self.phase_timeout_s)
+                          for a, f in feats.items()}
+        else:
+            first = not self.ran or self.on_state_always  # faults are injected into the first run only
+            self.slots = {a: AgentDriver(a, cfg, self.bus, f.ids, f.image_ids, f.descriptors,
+                                         phase_timeout_s=self.phase_timeout_s, epoch=self.epoch, home=self.home,
+                                         catalog=f.catalog if catalog else None, trace=self.trace,
+                                         on_state=self.on_state if first and a == self.home else None)
+                          for a, f in feats.items()}
+            self.ran = True
+        if self.epoch > 0 and previous != "auto":  # a restart (not the start of the mode auto picked)
+            log.info("epoch %d: hosting agents %s", self.epoch, hosted)
+        self.bus.send_single(self.home, COORDINATOR, "ready", **ready_fields(
+            self.features[self.home].descriptors, hosted, sum(len(f) for f in feats.values())))
+
+    def deliver(self, dst: int, msg: dict) -> None:
+        """A message of another agent for hosted agent ``dst``."""
+        if dst in self.slots:
+            self.slots[dst].handle(msg)
+
+    def settle(self) -> None:
+        """Let every hosted agent advance as far as its messages allow."""
+        for a in sorted(self.slots):
+            self.slots[a].settle()
+
+    def check_timeouts(self) -> None:
+        for slot in self.slots.values():
+            slot.check_timeout()

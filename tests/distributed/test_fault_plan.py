@@ -1,0 +1,106 @@
+"""The simulator's fault plan: lost acks, duplicates, delays and lost processes replayed without zenoh,
+deterministically, through the same delivery layer, coordinator core and process host as the runtime."""
+import numpy as np
+import pytest
+
+from dqm import synthetic
+from dqm.distributed import DQMConfig, protocol, simulate
+from dqm.distributed.driver import states_for
+from dqm.distributed.network import Delay, Drop, Duplicate, FaultPlan, LoseProcess
+from dqm.validation import InputError
+
+
+@pytest.fixture(scope="module")
+def data():
+    ds = synthetic.sized(3000, seed=4)
+    return ds.descriptors, ds.image_ids
+
+
+@pytest.fixture(scope="module")
+def clean(data):
+    X, ids = data
+    return {mode: simulate(X, ids, DQMConfig(agents=3, seed=2, mode=mode)) for mode in ("balanced", "lean", "paper")}
+
+
+def _run(data, mode, faults, **kw):
+    X, ids = data
+    plan = FaultPlan(faults)
+    return simulate(X, ids, DQMConfig(agents=3, seed=2, mode=mode), faults=plan, **kw), plan
+
+
+@pytest.mark.parametrize("mode,kind", [("balanced", "ghost"), ("balanced", "features"), ("lean", "features")])
+def test_a_lost_ack_is_resent_and_the_copy_dropped(data, clean, mode, kind):
+    r, plan = _run(data, mode, [Drop("ack", src=2, dst=0, nth=1), Drop(kind, src=1, nth=1)])
+    assert len(plan.struck) == 2  # both faults happened
+    np.testing.assert_array_equal(r.labels, clean[mode].labels)
+    resends, dups = r.traffic.counters()[2], r.traffic.counters()[1]
+    assert resends == 2  # the message whose ack was lost, and the dropped one
+    assert dups == 1  # the resent copy of the message that had arrived: acknowledged again, used once
+    assert r.epochs == 1 and r.lost == []
+    # the resends and their acks are extra bytes; nothing else changes
+    assert r.traffic.total() > clean[mode].traffic.total()
+
+
+@pytest.mark.parametrize("kind", ["features", "sketch", "component", "start", "result"])
+def test_a_duplicated_message_is_used_once(data, clean, kind):
+    r, plan = _run(data, "balanced", [Duplicate(kind, nth=1)])
+    assert len(plan.struck) == 1
+    np.testing.assert_array_equal(r.labels, clean["balanced"].labels)
+    assert r.traffic.counters()[1] == 1
+    # the network made the copy, not the sender: only an acknowledged kind's second ack is extra traffic
+    extra = r.traffic.total() - clean["balanced"].traffic.total()
+    assert extra == r.traffic.per_kind()["ack"][0] - clean["balanced"].traffic.per_kind()["ack"][0]
+    assert (extra > 0) == (kind in protocol.ACKED)
+
+
+@pytest.mark.parametrize("seconds,resent", [(1.0, 0), (30.0, 1)])
+def test_a_delayed_part_arrives_late_or_is_overtaken_by_its_resend(data, clean, seconds, resent):
+    """Delayed less than the first resend timeout (2 s): it arrives after the messages sent after it, and
+    nothing is resent. Delayed longer: the resent copy arrives first; the late one is a duplicate."""
+    r, plan = _run(data, "balanced", [Delay("density", src=0, dst=1, nth=1, seconds=seconds)])
+    assert len(plan.struck) == 1
+    np.testing.assert_array_equal(r.labels, clean["balanced"].labels)
+    assert r.traffic.counters()[2] == resent and r.traffic.counters()[1] == resent
+
+
+def test_only_resent_kinds_may_be_dropped():
+    with pytest.raises(InputError, match="only acknowledged kinds"):
+        FaultPlan([Drop("result")])
+    with pytest.raises(InputError, match="nth must be at least 1"):
+        FaultPlan([Duplicate("features", nth=0)])
+
+
+def _states(mode):
+    # the set-up's fill and weights rounds happen only when the job needs them (these jobs: weights only
+    # in balanced mode, which weighs its cells; fill never)
+    skip = {"wait_fill"} | ({"wait_weights"} if mode != "balanced" else set())
+    return [(mode, s) for s in states_for(mode) if s not in skip]
+
+
+@pytest.mark.parametrize("mode,state", _states("balanced") + _states("lean") + _states("paper"))
+def test_a_process_lost_in_any_state_gives_the_fault_free_labels(data, clean, mode, state):
+    r, _ = _run(data, mode, [LoseProcess(1, state)])
+    np.testing.assert_array_equal(r.labels, clean[mode].labels)
+    if state == "wait_finish":  # it had delivered its results and statistics: nothing to redo
+        assert r.lost == [] and r.epochs == 1
+    else:
+        assert [x["process"] for x in r.lost] == [1] and r.epochs == 2
+        assert r.lost[0]["epoch"] == 0
+
+
+@pytest.mark.parametrize("state", ["wait_seeds", "wait_ghost", "wait_acks"])
+def test_the_leader_lost_and_then_its_heir(data, clean, state):
+    """Process 0 leads the set-up; lost, its agent goes to process 1, which is then lost in the next epoch
+    while it hosts both: agents 0 and 1 go to process 2, the last one."""
+    r, _ = _run(data, "balanced", [LoseProcess(0, state), LoseProcess(1, "wait_component", epoch=1)],
+                max_lost=2)
+    np.testing.assert_array_equal(r.labels, clean["balanced"].labels)
+    assert [x["process"] for x in r.lost] == [0, 1] and r.epochs == 3
+    assert r.lost[1]["epoch"] == 1
+
+
+def test_more_losses_than_allowed_fail_the_job(data):
+    from dqm.distributed.coordination import JobFailed
+
+    with pytest.raises(JobFailed, match="more than the limit of 0"):
+        _run(data, "balanced", [LoseProcess(1, "wait_ghost")], max_lost=0)
