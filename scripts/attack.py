@@ -310,7 +310,7 @@ def main(argv=None) -> int:
         attackers = open_attackers(endpoint, certs, job, m)
         job_run = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
                             client_args=lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}"),
-                            env=env, job_timeout_s=120.0)
+                            env=env)
         t0 = time.monotonic()
         while not marker.exists() and time.monotonic() - t0 < 60:
             if job_run.coordinator.poll() is not None:

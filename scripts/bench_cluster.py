@@ -29,6 +29,7 @@ import dqm  # noqa: E402
 from dqm import synthetic  # noqa: E402
 from dqm.distributed import DQMConfig, simulate  # noqa: E402
 from dqm.runtime.launcher import run_job  # noqa: E402
+from dqm.runtime.limits import RuntimeLimits  # noqa: E402
 
 
 def datasets(sizes, graf):
@@ -68,7 +69,7 @@ def main(argv=None):
             sim = simulate(X, ids, cfg)
             t_sim = time.perf_counter() - t
             t = time.perf_counter()
-            rep = run_job(X, ids, cfg, timeout_s=3600)
+            rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=3600))
             t_run = time.perf_counter() - t
             same = bool(np.array_equal(np.asarray(rep["labels"]), sim.labels))
             slowest = max(rep["per_agent"].values(), key=lambda s: s.get("cpu_s", 0))
@@ -82,7 +83,7 @@ def main(argv=None):
                        equal_to_simulator=same, phases_slowest_agent=phases)
             if args.secure:
                 t = time.perf_counter()
-                sec = run_job(X, ids, cfg, timeout_s=3600, secure=True)
+                sec = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=3600), secure=True)
                 row.update(secure_s=time.perf_counter() - t, secure_job_s=sec["time_run_s"],
                            secure_bytes=sec["total_bytes"], secure_wire=sec["wire_bytes_received_by_router"],
                            secure_equal=bool(np.array_equal(np.asarray(sec["labels"]), sim.labels)))

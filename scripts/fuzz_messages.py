@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from dqm.distributed import DQMConfig, keys, messages, simulate  # noqa: E402
 from dqm.runtime.launcher import run_job  # noqa: E402
+from dqm.runtime.limits import RuntimeLimits  # noqa: E402
 from dqm.synthetic import sift_like  # noqa: E402
 
 LIMIT = 1 << 21  # the agents' --max-message-bytes in this job
@@ -162,7 +163,7 @@ def main(argv=None) -> int:
 
     t0 = time.monotonic()
     try:
-        rep = run_job(X, ids, cfg, timeout_s=900, env=env, on_started=on_started,
+        rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=900), env=env, on_started=on_started,
                       agent_args=["--max-message-bytes", str(LIMIT), "--phase-timeout", "900"])
     except RuntimeError as exc:
         print(f"the job failed under fuzzing: {exc}")

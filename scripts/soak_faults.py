@@ -31,6 +31,7 @@ from dqm.distributed import DQMConfig, simulate  # noqa: E402
 from dqm.runtime.coordinator import default_max_lost  # noqa: E402
 from dqm.runtime.launcher import JobFailure, run_job  # noqa: E402
 from dqm.runtime.lifeline import launched_by  # noqa: E402
+from dqm.runtime.limits import RuntimeLimits  # noqa: E402
 from dqm.synthetic import sift_like  # noqa: E402
 
 BLOCK = ("<!-- soak: written by scripts/soak_faults.py --out docs -->", "<!-- /soak -->")
@@ -80,7 +81,8 @@ def one_run(k: int, rng: np.random.Generator, X, ids, sims, job_s: dict, timeout
 
     def go():
         try:
-            outcome["report"] = run_job(X, ids, cfg, timeout_s=timeout_s, on_started=on_started, ready_timeout_s=15)
+            outcome["report"] = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=timeout_s, ready_timeout_s=15),
+                                        on_started=on_started)
         except JobFailure as exc:
             outcome["failure"] = exc
         except Exception as exc:  # noqa: BLE001 - a crash of the launcher is a finding, not a soak crash
@@ -112,7 +114,8 @@ def one_run(k: int, rng: np.random.Generator, X, ids, sims, job_s: dict, timeout
         rep = outcome["report"]
         same = np.array_equal(np.asarray(rep["labels"]), sims[(m, cfg.seed)])
         row.update(outcome="completed identical" if same else "completed DIFFERENT", epochs=rep["epochs"],
-                   lost=[x["process"] for x in rep["lost"]], wall_s=round(outcome["t_end"] - t0, 2))
+                   lost=[x["process"] for x in rep["lost"]], recovery=[x.get("recovery") for x in rep["lost"]],
+                   wall_s=round(outcome["t_end"] - t0, 2))
     elif "failure" in outcome:
         exc = outcome["failure"]
         # the kill that broke the limit is the (limit+1)-th one
@@ -148,9 +151,11 @@ def summary_table(rows, args, took) -> str:
         f"{count('unclean failure') + count('crash')} | {count('hang')} | {sum(r['left'] for r in rows)} |",
     ]
     restarted = [r for r in rows if r.get("epochs", 1) > 1]
+    taken = [r for r in rows if "takeover" in r.get("recovery", [])]
     lines.append("")
-    lines.append(f"Runs that restarted at a new epoch: {len(restarted)} (the others were killed after delivering "
-                 "their results, or after the job ended). "
+    lines.append(f"Runs recovered by a takeover (the lost agents run again at a survivor, the others keep their work): "
+                 f"{len(taken)}; runs that restarted at a new epoch (a loss before the job ran): {len(restarted)} (the "
+                 "others were killed after delivering their results, or after the job ended). "
                  + (f"Clean failures failed {min(fails):.1f}-{max(fails):.1f} s after the kill that broke the "
                     "limit." if fails else ""))
     return "\n".join(lines)
@@ -173,7 +178,8 @@ def main(argv=None) -> int:
     # how long an undisturbed job takes, per agent count (kill moments are drawn inside it)
     job_s = {}
     for m in (3, 4):
-        rep = run_job(X, ids, DQMConfig(agents=m, seed=1, job=f"soak-{os.getpid()}-base{m}"), timeout_s=120)
+        rep = run_job(X, ids, DQMConfig(agents=m, seed=1, job=f"soak-{os.getpid()}-base{m}"),
+                      RuntimeLimits(job_timeout_s=120))
         job_s[m] = rep["time_run_s"]
     print(f"undisturbed job, from start to results: {job_s[3]:.1f} s (3 agents), {job_s[4]:.1f} s (4 agents)",
           flush=True)

@@ -36,14 +36,20 @@ def alive(pid):
 def start_held_job(X, ids, cfg, marker, env, **kw):
     """Start ``run_job`` in a thread and wait until an agent holds at its fault-hook phase (``marker`` written).
 
-    Returns (thread, started processes, outcome): outcome gets "ok" (the report) or "error" (JobFailure)."""
+    Returns (thread, started processes, outcome): outcome gets "ok" (the report) or "error" (JobFailure).
+    ``timeout_s``, ``ready_timeout_s``, ``max_lost``, ``recovery``: the job's runtime limits."""
     from dqm.runtime.launcher import JobFailure, run_job
+    from dqm.runtime.limits import RuntimeLimits
+
+    names = {"timeout_s": "job_timeout_s", "ready_timeout_s": "ready_timeout_s", "max_lost": "max_lost",
+             "recovery": "recovery"}
+    limits = RuntimeLimits(**{names[k]: kw.pop(k) for k in list(kw) if k in names})
 
     started, outcome = {}, {}
 
     def go():
         try:
-            outcome["ok"] = run_job(X, ids, cfg, env=env, on_started=started.update, **kw)
+            outcome["ok"] = run_job(X, ids, cfg, limits, env=env, on_started=started.update, **kw)
         except JobFailure as exc:
             outcome["error"] = exc
 

@@ -147,6 +147,7 @@ RUNTIME_WITHOUT_LOGGER = {
     "__init__": "the package's face",
     "console": "the job's console view: its lines are the product, on the stream the user gave",
     "router": "its [router] lines are the `dqm router` command's own output (ready, listening, refusals)",
+    "limits": "a data class and its options: nothing happens there to log",
 }
 
 

@@ -10,6 +10,7 @@ Exit codes: 0 done, 2 bad input or no router, 3 job failed or aborted,
 4 refused (a parameter differs from the coordinator's), 5 the coordinator was
 lost, 130 interrupted, 143 terminated (SIGTERM).
 """
+from ..runtime.limits import AGENT, add_limits, limits_from
 from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "agent"
@@ -20,16 +21,13 @@ def add_arguments(p) -> None:
     p.add_argument("--id", type=int, required=True, help="agent index 0..M-1")
     p.add_argument("--agents", type=int, required=True, help="number of agents M")
     p.add_argument("--connect", required=True, help="router endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--connect-timeout", type=float, default=5.0,
-                   help="seconds of retries to reach the router")
-    p.add_argument("--phase-timeout", type=float, default=120.0, help="longest wait in one protocol phase")
-    p.add_argument("--max-message-bytes", type=int, default=64 << 20, help="reject larger messages")
     p.add_argument("--peer-features", action="append", metavar="AGENT=FILE[,FILE...]",
                    help="where another agent's FEATURES files can be read, so that this process can take over "
                         "that agent's images and cell if its process is lost (repeat per agent; across hosts: "
                         "shared storage)")
     p.add_argument("features", nargs="+", help="FEATURES.npz file(s) of this agent's images")
     add_algorithm(p)
+    add_limits(p, AGENT)
     add_tls(p)
 
 
@@ -52,7 +50,6 @@ def run(args) -> int:
         raise InputError(f"--peer-features names agent {bad[0]}, outside 0..{args.agents - 1}")
     try:
         return main_agent(args.id, cfg, args.connect, args.features, tls_from(args, listen=False),
-                          connect_timeout_s=args.connect_timeout, phase_timeout_s=args.phase_timeout,
-                          max_message_bytes=args.max_message_bytes, peers=peers)
+                          limits=limits_from(args), peers=peers)
     except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

@@ -15,6 +15,7 @@ import argparse
 
 from .. import outputs
 from ..distributed.config import DEFAULT_SEED
+from ..runtime.limits import COORDINATOR, add_limits, limits_from
 from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "coordinator"
@@ -35,13 +36,6 @@ def add_arguments(p) -> None:
                    help="write no CLUSTERS file (the agents then send no catalogs: fewer bytes)")
     outputs.add_overwrite_option(p)
     p.add_argument("--tcp-port", type=int, help="router port: also record kernel TCP byte counters")
-    p.add_argument("--ready-timeout", type=float, default=30.0,
-                   help="seconds to wait for every agent process to appear (missing ones count as lost)")
-    p.add_argument("--job-timeout", type=float, default=600.0, help="seconds the whole job may take")
-    p.add_argument("--phase-timeout", type=float, default=120.0, help="seconds agent processes may take to get ready")
-    p.add_argument("--connect-timeout", type=float, default=5.0, help="seconds of retries to reach the router")
-    p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
-                                                "(default: half of them, at least 1)")
     p.add_argument("--host-cores", type=float, metavar="CORES",
                    help="--mode auto: the cores of each agent host, for the cost model that picks the mode "
                         "(default: this host's, its CPU quota included)")
@@ -49,6 +43,7 @@ def add_arguments(p) -> None:
                    help="--mode auto: the cores this host gives a gather (default: this host's, its CPU quota "
                         "included)")
     p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
+    add_limits(p, COORDINATOR)
     add_algorithm(p)
     add_tls(p)
 
@@ -71,15 +66,13 @@ def run(args) -> int:
     clusters = None if args.no_clusters else str(outputs.check_file(
         args.clusters or outputs.default_dir("coordinator") / f"{args.job}.npz", "--clusters", (".npz",),
         overwrite=args.overwrite, default=not args.clusters))
-    if args.max_lost is not None and args.max_lost < 0:
-        raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
+    limits = limits_from(args)
     for option, value in (("--host-cores", args.host_cores), ("--gather-cores", args.gather_cores)):
         if value is not None and not value > 0:
             raise InputError(f"{option} must be positive, got {value}")
     cfg = config_from(args, args.agents, args.seed).validated(runtime=True)
     try:
-        return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port,
-                                args.ready_timeout, args.job_timeout, args.connect_timeout, args.max_lost,
-                                args.progress_fd, args.phase_timeout, clusters, args.host_cores, args.gather_cores)
+        return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port, limits,
+                                args.progress_fd, clusters, args.host_cores, args.gather_cores)
     except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import outputs
 from ..distributed.config import DEFAULT_SEED
+from ..runtime.limits import RUN, add_limits, limits_from
 from ..validation import positive_int_arg
 from ..wording import count
 from .runtime_options import add_algorithm, config_from
@@ -48,17 +49,12 @@ def add_arguments(p) -> None:
                         "export / evaluate (default: ./dqm-out/run/clusters.npz)")
     p.add_argument("--report", help="also write the JSON report here (traffic per link and kind, timings, labels)")
     outputs.add_overwrite_option(p)
-    p.add_argument("--timeout", type=float, default=600.0, help="seconds the whole job may take")
-    p.add_argument("--ready-timeout", type=float, default=None,
-                   help="seconds the agent processes may take to start (default: 30, more when there are many "
-                        "agents per core)")
-    p.add_argument("--max-lost", type=int, help="agent processes the job may lose and replace "
-                                                "(default: half of them, at least 1)")
     p.add_argument("--check", action="store_true", help="also run the in-process simulator and compare")
     p.add_argument("--secure", action="store_true",
                    help="mutual TLS with throwaway certificates (one per process; needs openssl) and a router that "
                         "lets each process use only its own keys (dqm router --acl with the job's roster)")
     add_algorithm(p)
+    add_limits(p, RUN)
 
 
 #: links of the traffic table printed in full; beyond, the busiest links and the per-kind table
@@ -76,10 +72,7 @@ def run(args) -> int:
     if args.report:
         outputs.check_file(args.report, "--report", (".json",), overwrite=args.overwrite)
         outputs.check_distinct(("--out", out), ("--report", args.report))
-    if args.max_lost is not None and args.max_lost < 0:
-        raise InputError(f"--max-lost must be >= 0, got {args.max_lost}")
-    if args.ready_timeout is not None and not args.ready_timeout > 0:
-        raise InputError(f"--ready-timeout must be positive, got {args.ready_timeout}")
+    limits = limits_from(args)
     if args.features:
         fs = io.load_features(args.features)
     else:
@@ -90,7 +83,7 @@ def run(args) -> int:
     if len(X) == 0 or n_images < 2:
         raise InputError(f"a distributed job needs features of at least two images, got {n_images}")
     cfg = config_from(args, args.agents, args.seed).validated(len(X), runtime=True)
-    ready_timeout = check_scale(cfg.agents, n_images, args.ready_timeout)
+    limits = limits.but(ready_timeout_s=check_scale(cfg.agents, n_images, limits.ready_timeout_s))
     LOG.info("job %r: %s of %s (%s); starting a zenoh router, %s and a coordinator on this host, %s mode",
              cfg.job, count(len(X), "feature"), count(n_images, "image"),
              args.features or "a generated scene with ground truth",
@@ -98,8 +91,7 @@ def run(args) -> int:
     LOG.debug("algorithm: %s", cfg.params_text())
     t0 = time.perf_counter()
     try:
-        rep = run_job(X, ids, cfg, timeout_s=args.timeout, max_lost=args.max_lost, progress=True, features=fs,
-                      clusters=str(out), ready_timeout_s=ready_timeout, secure=args.secure)
+        rep = run_job(X, ids, cfg, limits, progress=True, features=fs, clusters=str(out), secure=args.secure)
     except JobFailure as exc:
         print(f"dqm run: {exc}", file=sys.stderr)
         return 4 if exc.failure.get("refused") else 3

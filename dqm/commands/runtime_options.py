@@ -120,3 +120,4 @@ def check_pem(path: str, option: str) -> None:
         raise InputError(f"{option} {path}: cannot read it ({exc.strerror or exc})") from None
     if b"-----BEGIN " not in head:
         raise InputError(f"{option} {path} is not a PEM file (no '-----BEGIN' line)")
+

@@ -38,6 +38,10 @@ from .costmodel import AUTO_MODES
 
 #: the distributed algorithms (the simulator runs these)
 MODES = ("balanced", "lean", "paper")
+#: how the coordinator recovers an agent process lost while the job runs: ``takeover`` (the next live
+#: process runs the lost agents again from their start, fed again by the others, who keep their work) or
+#: ``restart`` (every process starts the job again in the next epoch); docs/runtime.md
+RECOVERY = ("takeover", "restart")
 #: the modes a runtime job may be started with: the algorithms, ``gather`` (centralized at the coordinator)
 #: and ``auto`` (the coordinator picks gather, lean or balanced from measured links; docs/runtime.md)
 RUNTIME_MODES = MODES + ("gather", "auto")

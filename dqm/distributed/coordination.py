@@ -12,13 +12,19 @@ operator should read in its events. It has no clock and no bus: the zenoh coordi
 Its phases: ``tokens`` (before :meth:`~CoordinatorCore.begin`), ``start`` (the epoch's ``start``
 sent, waiting for every hosting process's ``ready``), ``probe`` (``--mode auto``: the shell
 times the links), ``running`` (``go`` sent, collecting results, catalogs, statistics or gathered
-features), then ``done`` (:meth:`~CoordinatorCore.result`) or ``failed``.
+features), ``takeover`` (a loss while running: waiting for every live process's ``taken``), then
+``done`` (:meth:`~CoordinatorCore.result`) or ``failed``.
 
 Losses (docs/runtime.md): a process that had delivered every result and statistic it owed is
 lost harmlessly. Otherwise every agent it hosted goes to the next live process by index (p+1,
-p+2, ... wrapping round), the epoch goes up by one and the job starts again: the labels are those
-of a run without the failure, because the cells, the seeds and every round depend only on the seed
-integer and the data. More than ``max_lost`` lost processes (default: half, at least one), or none
+p+2, ... wrapping round). Before ``go`` (or with ``recovery="restart"``) the epoch goes up by one
+and the job starts again. Once the job runs, a **takeover** follows instead: ``takeover`` tells every
+live process the new owners, each answers ``taken``, then ``resume``: the new host runs the moved
+agents from their start and every other process sends them again what it had sent them
+(:class:`dqm.distributed.hosting.ProcessHost`), keeping all its own work. Either way the labels are
+those of a run without the failure, because the cells, the seeds and every round depend only on
+the seed integer and the data, never on which process hosts an agent.
+More than ``max_lost`` lost processes (default: half, at least one), or none
 left, fails the job with :class:`JobFailed` (after ``abort`` to every live process).
 """
 from __future__ import annotations
@@ -29,7 +35,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import costmodel, protocol, sources
-from .config import DQMConfig
+from .config import RECOVERY, DQMConfig
 from .driver import start_fields
 from .gathering import GatheredParts, match_gathered
 
@@ -80,7 +86,12 @@ class CoordinatorCore:
     """The coordinator's state and decisions (see the module's text). ``catalog``: the agents send
     their catalogs (a CLUSTERS file is wanted)."""
 
-    def __init__(self, cfg: DQMConfig, max_lost: Optional[int] = None, catalog: bool = False):
+    def __init__(self, cfg: DQMConfig, max_lost: Optional[int] = None, catalog: bool = False,
+                 recovery: str = "takeover"):
+        if recovery not in RECOVERY:
+            raise ValueError(f"recovery must be one of {', '.join(RECOVERY)}, got {recovery!r}")
+        #: how a loss while the job runs is recovered (:data:`RECOVERY`)
+        self.recovery = recovery
         #: the mode the job was started with (``auto``: :meth:`decide` picks the one :attr:`cfg` runs)
         self.requested = cfg
         self.cfg = cfg
@@ -107,6 +118,9 @@ class CoordinatorCore:
         self.clusters: Optional[sources.AssembledClusters] = None
         self.outbox: List[Outgoing] = []
         self.events: List[str] = []
+        #: takeovers in this epoch; the processes that follow the current one
+        self.round = 0
+        self.taken: Dict[int, dict] = {}
 
     # ------------------------------------------------------------------ what the shell reads
     def take_outbox(self) -> List[Outgoing]:
@@ -145,8 +159,13 @@ class CoordinatorCore:
                 and (self.gathered is None or self.gathered.complete()))
 
     def unready(self) -> List[int]:
-        """The hosting processes whose ``ready`` is still missing in this epoch."""
+        """The processes whose ``ready`` (``taken`` during a takeover) is still missing."""
+        if self.phase == "takeover":
+            return [p for p in self._live() if p not in self.taken]
         return [p for p in self.hosts() if p not in self.ready]
+
+    def _live(self) -> List[int]:
+        return [p for p in range(self.m) if p not in self.dead]
 
     # ------------------------------------------------------------------ decisions
     def fail(self, failure: JobFailed) -> None:
@@ -174,6 +193,7 @@ class CoordinatorCore:
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
         self.gathered = None
+        self.round, self.taken = 0, {}
         self.phase = "start"
         fields = start_fields(cfg, self.owners, self.catalog)
         for p in self.hosts():
@@ -209,7 +229,13 @@ class CoordinatorCore:
             self.ready[src] = msg
             if not self.unready():
                 self._all_ready()
-        elif self.phase != "running":
+        elif kind == "taken" and self.phase == "takeover" and msg["round"] == self.round:
+            self.taken[src] = msg
+            if not self.unready():
+                self.phase = "running"
+                for p in self._live():
+                    self.outbox.append((p, "resume", {"round": self.round}))
+        elif self.phase not in ("running", "takeover"):
             return
         elif kind == "result":
             self.results[src] = msg
@@ -231,21 +257,33 @@ class CoordinatorCore:
             return
         if not gone:
             return
-        owing = [p for p in gone if self.phase != "running" or self.owes(p)]
+        running = self.phase in ("running", "takeover")
+        owing = [p for p in gone if not running or self.owes(p)]
         self.dead.update(gone)
         for p in gone:
             if p not in owing:
                 self.events.append(f"agent process {p} exited after delivering its results; nothing is lost")
-        if owing:
-            self._reassign()
+        if not owing:
+            return
+        takeover = running and self.recovery == "takeover"
+        self._reassign(restart=not takeover)
+        if not takeover:
             self._start()
+            return
+        self.round += 1
+        self.taken = {}
+        self.phase = "takeover"
+        for p in self._live():
+            self.outbox.append((p, "takeover", {"owners": self.owners.copy(), "round": self.round}))
 
-    def _reassign(self) -> None:
+    def _reassign(self, restart: bool = True) -> None:
         """Give every agent hosted by a dead process to the next live process by index; each such process
-        counts as lost (also one that had exited after delivering its results of an earlier epoch)."""
+        counts as lost (also one that had exited after delivering its results of an earlier epoch).
+        ``restart``: the next epoch starts (else a takeover follows in this one)."""
         orphaned = sorted({int(o) for o in self.owners} & self.dead)
         for p in orphaned:
-            self.lost.append({"process": p, "phase": self.phase_of(p), "epoch": self.epoch})
+            self.lost.append({"process": p, "phase": self.phase_of(p), "epoch": self.epoch,
+                              "recovery": "restart" if restart else "takeover"})
         p, phase = self.lost[-1]["process"], self.lost[-1]["phase"]
         if len(self.dead) == self.m:
             self.fail(JobFailed("every agent process was lost", p, phase,
@@ -263,10 +301,12 @@ class CoordinatorCore:
                 nxt = next(q for q in [(owner + k) % self.m for k in range(1, self.m + 1)] if q not in self.dead)
                 self.owners[a] = nxt
                 moved[a] = nxt
-        self.epoch += 1
+        if restart:
+            self.epoch += 1
         self.events.append(", ".join(f"agent process {q} was lost in phase {self.phase_of(q)}" for q in orphaned)
                            + "; " + ", ".join(f"agent {a} -> process {q}" for a, q in sorted(moved.items()))
-                           + f"; restarting at epoch {self.epoch}")
+                           + (f"; restarting at epoch {self.epoch}" if restart else
+                              "; the survivors keep their work, the moved agents run again at their new process"))
 
     def decide(self, rates: Dict[int, float], cores: float, gather_cores: float, probe_s: float,
                pairs: Optional[Dict[int, list]] = None) -> None:

@@ -12,6 +12,8 @@ bus (:mod:`dqm.runtime.bus`) with the wall clock, the simulator's memory network
   returned (a put blocked behind a full link is not yet waiting for its ack);
 * :meth:`Delivery.due` names the messages whose ack is overdue by the adaptive timeout
   (:class:`dqm.distributed.protocol.Retransmit`) and counts them resent;
+* :meth:`Delivery.replay` gives every message sent to an agent in this epoch again (a takeover:
+  the agent's new host runs it from its start);
 * :meth:`Delivery.receive` judges a decoded incoming message: of an earlier epoch, or of a
   later one that is not its ``start``: refused and counted; an ack: its message is done; an
   acknowledged kind: the ack to send back (every copy is acknowledged, the first ack may have
@@ -66,8 +68,12 @@ class Verdict(NamedTuple):
 class Delivery:
     """One process's delivery state (see the module's text). ``job``: the job id acks carry."""
 
-    def __init__(self, job: str, meter: Meter, retransmit: Optional[protocol.Retransmit] = None):
+    def __init__(self, job: str, meter: Meter, retransmit: Optional[protocol.Retransmit] = None,
+                 keep_log: bool = True):
         self.job = job
+        #: every numbered message sent to each agent in this epoch, in order (:meth:`replay`)
+        self.keep_log = keep_log
+        self._log: Dict[int, List[Resend]] = defaultdict(list)
         self.meter = meter
         self.retransmit = retransmit or protocol.Retransmit()
         self.epoch = 0
@@ -84,6 +90,7 @@ class Delivery:
             self._pending.clear()
             self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
             self._next.clear()
+            self._log.clear()
 
     def next_seq(self, src: int, dst: int, count: int = 1) -> int:
         """The first of ``count`` sequence numbers on the link ``src -> dst`` in this epoch."""
@@ -95,7 +102,10 @@ class Delivery:
     # ------------------------------------------------------------------ sending
     def sending(self, src: int, dst: int, kind: str, payload: bytes, seq: Optional[int], now: float) -> bool:
         """Before a put: keep the message until acknowledged if its kind is acknowledged (and it has its
-        ``seq``); returns whether it is kept."""
+        ``seq``); returns whether it is kept. Every numbered message to an agent is logged for :meth:`replay`."""
+        if self.keep_log and dst >= 0 and kind not in messages.UNNUMBERED:
+            with self._lock:
+                self._log[dst].append(Resend(src, dst, -1 if seq is None else seq, kind, payload))
         if seq is None or kind not in protocol.ACKED:
             return False
         with self._lock:  # before the put: the ack may come back at once
@@ -132,6 +142,19 @@ class Delivery:
                     out.append(Resend(src, dst, seq, p.kind, p.payload))
         for _ in out:
             self.meter.resend()
+        return out
+
+    def replay(self, agents, now: float) -> List[Resend]:
+        """Everything sent to these agents in this epoch, in the order it was sent, to put again: after a
+        takeover their new host runs them from the start and needs every message they had received. The
+        acknowledged ones are kept until acknowledged again (at once, when the new host has them)."""
+        out = []
+        with self._lock:
+            for a in sorted(int(x) for x in agents):
+                for r in self._log.get(a, []):
+                    if r.kind in protocol.ACKED and r.seq >= 0:
+                        self._pending[(r.src, r.dst, r.seq)] = Pending(now, 1, r.payload, r.kind)
+                    out.append(r)
         return out
 
     # ------------------------------------------------------------------ receiving

@@ -8,6 +8,14 @@ driver for each: an :class:`~dqm.distributed.driver.AgentDriver` (balanced, lean
 :class:`~dqm.distributed.gathering.GatherDriver` (gather); in an ``auto`` epoch none (the
 coordinator measures the links first). It then answers ``ready``. ``go`` begins every driver.
 
+When a process is lost while the job runs, the coordinator sends ``takeover`` (the agents' new
+processes): the process that now hosts a lost agent makes a fresh driver for it, every process
+addresses it there, and all answer ``taken``. On ``resume`` every process sends the moved agents
+again everything it had sent them in this epoch (the delivery layer's log), and the new host runs
+them from their start: what they send that others already have is dropped there as a duplicate
+(the same sequence numbers, since every driver is deterministic), the rest arrives. The other
+agents keep everything they computed.
+
 The zenoh agent process (:mod:`dqm.runtime.agent`) and the simulator (:mod:`dqm.distributed.simulator`)
 both run :class:`ProcessHost`; its transport is their bus, which also learns the epoch, the owners
 and the hosted agents from it.
@@ -15,7 +23,7 @@ and the hosted agents from it.
 from __future__ import annotations
 
 import logging
-from typing import Callable, Dict, Optional, Protocol
+from typing import Callable, Dict, List, Optional, Protocol
 
 import numpy as np
 
@@ -44,6 +52,8 @@ class HostTransport(Transport, Protocol):
     def set_owners(self, owners) -> None: ...
 
     def host(self, agents) -> None: ...
+
+    def replay(self, agents) -> None: ...
 
 
 class ProcessHost:
@@ -74,6 +84,11 @@ class ProcessHost:
         self.epoch = -1
         self.seed: Optional[int] = None
         self.done = False
+        self.catalog = False
+        self.owners: Optional[np.ndarray] = None  # agent -> process, as the coordinator last said
+        self.round = 0  # the last takeover followed in this epoch
+        self.waiting: List[int] = []  # agents taken over, to run from their start on ``resume``
+        self.moved: List[int] = []  # agents whose process changed since the last resume
 
     @property
     def phase(self) -> str:
@@ -109,11 +124,15 @@ class ProcessHost:
         elif kind == "go" and msg["epoch"] == self.epoch:
             for slot in self.slots.values():
                 slot.begin(self.seed)
+        elif kind == "takeover":
+            self._takeover(msg)
+        elif kind == "resume" and msg["round"] == self.round:
+            self._resume()
         elif kind == "abort":
             raise JobAborted(f"the coordinator aborted the job: {msg['reason']}")
         elif kind == "finish":
             self.done = True
-        elif kind != "go":
+        elif kind not in ("go", "resume"):
             return False
         return True
 
@@ -143,27 +162,65 @@ class ProcessHost:
         self.bus.host(hosted)
         self.epoch = msg["epoch"]
         self.seed = msg["seed"]
+        self.owners = np.asarray(msg["owners"], np.int64).copy()
+        self.round, self.waiting, self.moved = 0, [], []
         previous, self.job_cfg = self.job_cfg.mode, cfg
         if "auto" in (cfg.mode, previous):
             log.info("epoch %d: mode %s", self.epoch, cfg.mode)
-        catalog = bool(msg["catalog"])
+        self.catalog = bool(msg["catalog"])
         if cfg.mode == "auto":  # the coordinator measures the links, then starts the mode it picked
             self.slots = {}
-        elif cfg.mode == "gather":
-            self.slots = {a: GatherDriver(a, cfg, self.bus, f, self.epoch, self.home, catalog, self.phase_timeout_s)
-                          for a, f in feats.items()}
         else:
             first = not self.ran or self.on_state_always  # faults are injected into the first run only
-            self.slots = {a: AgentDriver(a, cfg, self.bus, f.ids, f.image_ids, f.descriptors,
-                                         phase_timeout_s=self.phase_timeout_s, epoch=self.epoch, home=self.home,
-                                         catalog=f.catalog if catalog else None, trace=self.trace,
-                                         on_state=self.on_state if first and a == self.home else None)
-                          for a, f in feats.items()}
-            self.ran = True
+            self.slots = {a: self._driver(a, f, first) for a, f in feats.items()}
+            self.ran = cfg.mode != "gather" or self.ran
         if self.epoch > 0 and previous != "auto":  # a restart (not the start of the mode auto picked)
             log.info("epoch %d: hosting agents %s", self.epoch, hosted)
         self.bus.send_single(self.home, COORDINATOR, "ready", **ready_fields(
             self.features[self.home].descriptors, hosted, sum(len(f) for f in feats.values())))
+
+    def _driver(self, a: int, f: AgentFeatures, faults: bool = False):
+        """A fresh driver of hosted agent ``a`` in this epoch (``faults``: with the test's ``on_state``)."""
+        cfg = self.job_cfg
+        if cfg.mode == "gather":
+            return GatherDriver(a, cfg, self.bus, f, self.epoch, self.home, self.catalog, self.phase_timeout_s)
+        return AgentDriver(a, cfg, self.bus, f.ids, f.image_ids, f.descriptors, phase_timeout_s=self.phase_timeout_s,
+                           epoch=self.epoch, home=self.home, catalog=f.catalog if self.catalog else None,
+                           trace=self.trace, on_state=self.on_state if faults and a == self.home else None)
+
+    def _takeover(self, msg: dict) -> None:
+        """A process was lost while the job ran: address every agent at its new process; make a driver (not
+        begun: :meth:`_resume`) for each agent this process now hosts that it did not; answer ``taken``."""
+        if msg["epoch"] != self.epoch or msg["round"] <= self.round:
+            return  # of another epoch, or a repeated one
+        owners = np.asarray(msg["owners"], np.int64)
+        self.moved = sorted(set(self.moved) | {int(a) for a in np.flatnonzero(owners != self.owners)})
+        self.owners = owners.copy()
+        self.bus.set_owners(owners)
+        hosted = [int(a) for a in np.flatnonzero(owners == self.home)]
+        try:
+            new = {a: self._features(a) for a in hosted if a not in self.slots}
+        except Refused as exc:
+            self._refuse(str(exc))
+        for a, f in new.items():
+            self.slots[a] = self._driver(a, f)
+            self.waiting.append(a)
+        self.bus.host(hosted)
+        self.round = int(msg["round"])
+        if new:
+            log.info("takeover %d: hosting agents %s", self.round, hosted)
+        self.bus.send_single(self.home, COORDINATOR, "taken", round=self.round, hosted=np.asarray(hosted, np.int64))
+
+    def _resume(self) -> None:
+        """Every process follows the takeover: send the moved agents again what this process had sent them,
+        and run the agents taken over from their start (their messages that others had are dropped there as
+        duplicates; the rest arrive)."""
+        moved, self.moved = self.moved, []
+        self.bus.replay(moved)
+        waiting, self.waiting = self.waiting, []
+        for a in waiting:
+            if a in self.slots:
+                self.slots[a].begin(self.seed)
 
     def deliver(self, dst: int, msg: dict) -> None:
         """A message of another agent for hosted agent ``dst``."""

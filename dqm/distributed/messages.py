@@ -86,8 +86,10 @@ def _unpack_array(obj: Any, name: str) -> np.ndarray:
 # the envelope of every data message of a round: per-link sequence number (acknowledged,
 # resent, duplicates dropped) and the part index among the message's parts
 ENVELOPE = {"part": "int", "parts": "int"}
-#: kinds that are not numbered on their link (never deduplicated): acknowledgements, progress reports
-UNNUMBERED = ("ack", "progress", "probe")
+#: kinds that are not numbered on their link (never deduplicated): acknowledgements, progress reports, probes,
+#: and what a process (not one of its agents) tells the coordinator: ``ready``, ``taken``, ``refuse``. So an
+#: agent's own messages to the coordinator are numbered alike wherever it runs (a takeover replays them)
+UNNUMBERED = ("ack", "progress", "probe", "ready", "taken", "refuse")
 
 # kind -> {field: type spec}; "array:<dtypes>:<ndim>", "int", "float", "str" or "dict"
 SCHEMAS: Dict[str, Dict[str, str]] = {
@@ -102,6 +104,15 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "refuse": {"reason": "str", "param": "str"},
     # coordinator -> agent processes: every process is ready, run the protocol of this epoch
     "go": {},
+    # coordinator -> every live agent process, after a process was lost while the job ran: the process now
+    # hosting each agent (the lost process's agents moved to the next live one), takeover number ``round``
+    # (1, 2, ... within the epoch); each process answers ``taken`` once it addresses them there
+    "takeover": {"owners": "array:<i8:1", "round": "int"},
+    # agent process -> coordinator: it follows takeover ``round`` (hosted: the agents it now hosts)
+    "taken": {"round": "int", "hosted": "array:<i8:1"},
+    # coordinator -> every live agent process: every process follows takeover ``round``: the new hosts run
+    # the moved agents again from their start, every other process sends them again what it had sent them
+    "resume": {"round": "int"},
     # agent -> coordinator: entered a phase (for the operator's progress display; not numbered)
     "progress": {"state": "str", "features": "int", "bytes": "int"},
     # agent -> leader: sample of own descriptors (seeds, cell weights, sketch basis; may be empty)
@@ -189,7 +200,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
 }
 
 #: the coordinator's kinds (sender -1); it also sends ``ack``
-CONTROL = ("start", "go", "abort", "finish")
+CONTROL = ("start", "go", "takeover", "resume", "abort", "finish")
 #: ``changes.op`` values
 CHANGE_OPS = ("add", "remove")
 #: fields a message of the kind may lack (sent by an older sender of the same schema version): their value
@@ -461,8 +472,11 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
         _check_stream(kind, out)
     if agents is None:
         return
-    if kind == "ready" and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= agents)).any():
-        raise MessageError("ready names an agent outside the job")
+    if kind in ("ready", "taken") and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= agents)).any():
+        raise MessageError(f"{kind} names an agent outside the job")
+    if kind == "takeover" and (len(out["owners"]) != agents or out["round"] < 1
+                               or ((out["owners"] < 0) | (out["owners"] >= agents)).any()):
+        raise MessageError(f"takeover names {len(out['owners'])} owners for {agents} agents, or a bad round")
     if kind in ("phase_end", "ack") and not 0 <= out["dst"] < agents:
         raise MessageError(f"bad destination agent {out['dst']}")
     for f in ("child_agent", "target"):

@@ -252,8 +252,8 @@ class MemoryBus:
             self.net.features_moved[msg["phase"]] += len(msg["ids"])
 
     def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
-        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=self.next_seq(src, dst),
-                                                  epoch=self.delivery.epoch, **fields))
+        seq = 0 if kind in messages.UNNUMBERED else self.next_seq(src, dst)
+        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=seq, epoch=self.delivery.epoch, **fields))
 
     def unacknowledged(self, src: Optional[int] = None) -> int:
         return self.delivery.unacknowledged(src)
@@ -262,6 +262,11 @@ class MemoryBus:
         for r in self.delivery.due(self.net.clock):
             self._put(r.src, r.dst, r.kind, r.payload)
             self.delivery.put_returned(r.src, r.dst, r.seq, self.net.clock)
+
+    def replay(self, agents) -> None:
+        """Send these agents again everything this process sent them in this epoch (:meth:`Delivery.replay`)."""
+        for r in self.delivery.replay(agents, self.net.clock):
+            self._put(r.src, r.dst, r.kind, r.payload)
 
     # ------------------------------------------------------------------ receiving
     def accept(self, dst: int, msg: dict) -> bool:

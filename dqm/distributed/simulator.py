@@ -106,10 +106,10 @@ class _Job:
     (:class:`~dqm.distributed.coordination.CoordinatorCore`) and the network between them."""
 
     def __init__(self, cfg: DQMConfig, held: List[AgentFeatures], net: MemoryNetwork, catalog: bool,
-                 max_lost: Optional[int]):
+                 max_lost: Optional[int], recovery: str = "takeover"):
         self.cfg, self.net, self.held = cfg, net, held
         self.clock = _Clock(cfg.agents)
-        self.core = CoordinatorCore(cfg, max_lost=max_lost, catalog=catalog)
+        self.core = CoordinatorCore(cfg, max_lost=max_lost, catalog=catalog, recovery=recovery)
         self.coord = net.endpoint(COORDINATOR)
         losses = net.plan.losses()
         self.hosts: Dict[int, ProcessHost] = {}
@@ -129,6 +129,7 @@ class _Job:
         """Send what the coordinator decided (entering its epoch first)."""
         if self.coord.epoch != self.core.epoch:
             self.coord.set_epoch(self.core.epoch)
+        if not np.array_equal(self.coord.owners, self.core.owners):
             self.coord.set_owners(self.core.owners)
         for p, kind, fields in self.core.take_outbox():
             self.coord.send_single(COORDINATOR, p, kind, **fields)
@@ -226,7 +227,7 @@ class _Job:
 
 def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: bool = False,
              features: Optional[io.FeatureSet] = None, faults: Optional[FaultPlan] = None,
-             max_lost: Optional[int] = None) -> DQMResult:
+             max_lost: Optional[int] = None, recovery: str = "takeover") -> DQMResult:
     """Run Distributed QuickMatch for ``config.agents`` agents in this process.
 
     Agent a starts with the features of its images (:func:`dqm.distributed.sources.image_owners`),
@@ -238,8 +239,9 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     from, whose keypoints, image names and ground truth then travel in the catalogs as they do at the
     runtime's agents. ``faults``: what the network does wrong (:class:`~dqm.distributed.network.FaultPlan`:
     dropped, duplicated or delayed messages, lost processes), ``max_lost``: how many processes the
-    coordinator may lose (default: half). With faults the labels are those of the fault-free run, and the
-    traffic includes what the faults cost (resends, acks, the restarted epochs).
+    coordinator may lose (default: half), ``recovery``: how a loss while the job runs is recovered
+    (:data:`dqm.distributed.coordination.RECOVERY`). With faults the labels are those of the fault-free
+    run, and the traffic includes what the faults cost (resends, acks, replays, restarted epochs).
     """
     t_all = time.perf_counter()
     X = check_descriptors(descriptors, keep_integer=True)
@@ -259,7 +261,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
     whole = io.FeatureSet(store, ids) if features is None else features
     held = [agent_features([part], a) for a, part in enumerate(split_features(whole, m))]
     net = MemoryNetwork(cfg.job, m, dim, faults)
-    job = _Job(cfg, held, net, catalog, max_lost)
+    job = _Job(cfg, held, net, catalog, max_lost, recovery)
     stats: Dict[str, float] = {"time_setup": job.run(progress)}
     drivers = job.drivers()
     results = [(job.core.results[a]["ids"], job.core.results[a]["labels"]) for a in range(m)]

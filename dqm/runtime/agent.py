@@ -24,6 +24,7 @@ from ..distributed.hosting import ProcessHost, Refused
 from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
 from .bus import Bus, check_job_free, open_client
+from .limits import RuntimeLimits
 from .measure import probe_answer
 
 log = logging.getLogger("dqm.runtime")
@@ -155,10 +156,9 @@ EXIT_OK, EXIT_FAILED, EXIT_REFUSED, EXIT_COORDINATOR_LOST = 0, 3, 4, 5  # 130 / 
 
 
 def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict] = None,
-               connect_timeout_s: float = 5.0, phase_timeout_s: float = 120.0,
-               max_message_bytes: int = messages.MAX_MESSAGE_BYTES,
-               peers: Optional[Dict[int, List[str]]] = None) -> int:
-    """Entry point of ``dqm agent``: returns the process exit code."""
+               limits: Optional[RuntimeLimits] = None, peers: Optional[Dict[int, List[str]]] = None) -> int:
+    """Entry point of ``dqm agent``: returns the process exit code (``limits``: the connect and phase timeouts,
+    the lease, the largest message; None: the defaults)."""
     from .lifeline import watch_parent
 
     signals.install_sigterm(force=True)
@@ -168,14 +168,15 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     files[me] = list(paths)
     tag_lines(f"agent {me}")
     own = sources.load_agent_features(paths, me)
-    session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    limits = limits or RuntimeLimits()
+    session = open_client(endpoint, tls, deadline_s=limits.connect_timeout_s, lease_ms=limits.lease_ms)
     check_job_free(session, keys.alive_agent(cfg.job, me), f"agent {me}", cfg.job, endpoint)
     host = None
     bus = None
     try:
-        bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=max_message_bytes)
+        bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=limits.max_message_bytes)
         bus.check_access(endpoint, tls, f"agent process {me} of job {cfg.job!r}")
-        host = AgentHost(me, cfg, bus, files, phase_timeout_s=phase_timeout_s, own=own,
+        host = AgentHost(me, cfg, bus, files, phase_timeout_s=limits.phase_timeout_s, own=own,
                          on_state=fault_pause_from_env())
         log.info("connected to the router at %s; waiting for the coordinator of job %r", endpoint, cfg.job)
         host.run()

@@ -30,6 +30,7 @@ from ..distributed import keys, messages
 from ..distributed.delivery import Delivery
 from ..distributed.ledger import Meter
 from ..wording import seconds
+from .limits import DEFAULT_LEASE_S
 
 LOG = logging.getLogger("dqm.runtime")
 ROUTER_RETRY_S = 5.0
@@ -39,12 +40,8 @@ class RouterUnreachable(RuntimeError):
     """No zenoh router answered at the given endpoint within the retry deadline."""
 
 
-#: liveliness lease (ms): a process cut off from the router is declared lost after about this long
-#: (a process that dies on a reachable host loses its token within milliseconds: its socket closes).
-#: 8 s, not 2: on a saturated 10 Mbit/s link the router, blocked forwarding bulk data to one host, stops
-#: reading another host's link for seconds, and with 2 s it took healthy processes for lost (a balanced
-#: job of 100k features on 8 such hosts lost 5 processes; with 8 s it finished in 40 s, docs/distributed.md)
-LEASE_MS = 8000
+#: the default liveliness lease (ms): :attr:`dqm.runtime.limits.RuntimeLimits.lease_s` (``--lease``)
+LEASE_MS = int(DEFAULT_LEASE_S * 1000)
 #: keep-alive messages per lease
 KEEP_ALIVE = 4
 #: how long (µs) a put under congestion control BLOCK may wait for room in a link's queue before zenoh
@@ -52,11 +49,11 @@ KEEP_ALIVE = 4
 BLOCK_BEFORE_CLOSE_US = 60_000_000
 
 
-def _base_config(extra: Optional[dict] = None) -> dict:
+def _base_config(extra: Optional[dict] = None, lease_ms: Optional[int] = None) -> dict:
     cfg = {
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"shared_memory": {"enabled": False},
-                      "link": {"tx": {"lease": LEASE_MS, "keep_alive": KEEP_ALIVE,
+                      "link": {"tx": {"lease": lease_ms or LEASE_MS, "keep_alive": KEEP_ALIVE,
                                       "queue": {"congestion_control": {
                                           "block": {"wait_before_close": BLOCK_BEFORE_CLOSE_US}}}}}},
     }
@@ -81,13 +78,15 @@ def _secure(cfg: dict, tls: Optional[dict]) -> dict:
     return cfg
 
 
-def client_config(endpoint: str, tls: Optional[dict] = None, open_timeout_s: Optional[float] = None) -> "object":
+def client_config(endpoint: str, tls: Optional[dict] = None, open_timeout_s: Optional[float] = None,
+                  lease_ms: Optional[int] = None) -> "object":
     """zenoh Config of a client connected to ``endpoint`` (tcp/HOST:PORT or tls/HOST:PORT). ``open_timeout_s``:
     how long one try may wait for the router's answer once the connection is made (zenoh's default, 10 s, held
-    ``--connect-timeout`` up against a listener that never answers)."""
+    ``--connect-timeout`` up against a listener that never answers); ``lease_ms``: its liveliness lease (None:
+    :data:`LEASE_MS`)."""
     import zenoh
 
-    cfg = _base_config({"mode": "client", "connect": {"endpoints": [endpoint]}})
+    cfg = _base_config({"mode": "client", "connect": {"endpoints": [endpoint]}}, lease_ms)
     if open_timeout_s is not None:
         cfg["transport"]["unicast"] = {"open_timeout": max(100, int(open_timeout_s * 1000))}
     return zenoh.Config.from_json5(json.dumps(_secure(cfg, tls)))
@@ -147,7 +146,7 @@ def zenoh_message(exc: BaseException) -> str:
 
 
 def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = ROUTER_RETRY_S,
-                check_stop: Optional[Callable[[], None]] = None):
+                check_stop: Optional[Callable[[], None]] = None, lease_ms: Optional[int] = None):
     """Open a client session, retrying until ``deadline_s``; RouterUnreachable names the endpoint.
 
     ``check_stop``: called between tries (every 50 ms while waiting); it raises to stop the retries
@@ -165,7 +164,7 @@ def open_client(endpoint: str, tls: Optional[dict] = None, deadline_s: float = R
             check_stop()
         left = deadline_s - (time.monotonic() - t0)
         try:
-            return zenoh.open(client_config(endpoint, tls, open_timeout_s=min(10.0, max(0.2, left))))
+            return zenoh.open(client_config(endpoint, tls, open_timeout_s=min(10.0, max(0.2, left)), lease_ms=lease_ms))
         except Exception as exc:  # noqa: BLE001 - zenoh raises ZError (or others) when nothing listens
             if last is None:
                 LOG.info("no zenoh router answers at %s yet; retrying for up to %s", endpoint, seconds(deadline_s))
@@ -443,8 +442,8 @@ class Bus:
     def send_single(self, src: int, dst: int, kind: str, **fields) -> None:
         """Encode and send one message of this epoch, numbered on its link (``src -> dst``)."""
         epoch = self.delivery.epoch
-        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=self.next_seq(src, dst), epoch=epoch,
-                                                  **fields))
+        seq = 0 if kind in messages.UNNUMBERED else self.next_seq(src, dst)
+        self.send(src, dst, kind, messages.encode(kind, self.job, src, seq=seq, epoch=epoch, **fields))
 
     def unacknowledged(self, src: Optional[int] = None) -> int:
         return self.delivery.unacknowledged(src)
@@ -454,6 +453,13 @@ class Bus:
         for r in self.delivery.due(time.monotonic()):
             self._put(r.src, r.dst, r.kind, r.payload)
             self.delivery.put_returned(r.src, r.dst, r.seq, time.monotonic())
+
+    def replay(self, agents) -> None:
+        """Send these agents again everything this process sent them in this epoch (:meth:`Delivery.replay`)."""
+        for r in self.delivery.replay(agents, time.monotonic()):
+            self._put(r.src, r.dst, r.kind, r.payload)
+            if r.seq >= 0:
+                self.delivery.put_returned(r.src, r.dst, r.seq, time.monotonic())
 
     # ------------------------------------------------------------------ receiving
     def _receive_loop(self) -> None:

@@ -21,6 +21,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional
 
+import numpy as np
+
 from .. import io, signals
 from ..distributed import keys, messages, sources
 from ..distributed.config import DQMConfig
@@ -36,6 +38,7 @@ from ..logging_config import tag_lines
 from ..wording import count, seconds
 from . import measure
 from .bus import AccessDenied, Bus, check_job_free, open_client
+from .limits import DEFAULT_READY_TIMEOUT_S, RuntimeLimits
 
 log = logging.getLogger("dqm.runtime")
 
@@ -67,9 +70,9 @@ class Coordinator:
     def __init__(self, bus: Bus, cfg: DQMConfig, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
                  max_lost: Optional[int] = None, view=None, phase_timeout_s: float = 120.0,
                  catalog: bool = False, host_cores: Optional[float] = None, gather_cores: Optional[float] = None,
-                 announce: Optional[Callable[[str], None]] = None):
+                 announce: Optional[Callable[[str], None]] = None, recovery: str = "takeover"):
         self.bus = bus
-        self.core = CoordinatorCore(cfg, max_lost=max_lost, catalog=catalog)
+        self.core = CoordinatorCore(cfg, max_lost=max_lost, catalog=catalog, recovery=recovery)
         #: auto: the cores of each agent host, and those this host gives a gather, for the cost model (None:
         #: this host's, :func:`measure.host_cores`)
         self.host_cores, self.gather_cores = host_cores, gather_cores
@@ -86,6 +89,7 @@ class Coordinator:
         self.view = view
         self.t0 = time.monotonic()
         self._since = (self.core.phase, self.core.epoch, self.t0)  # when the core entered its phase
+        self._owners = self.core.owners.copy()  # the bus's (agent -> process)
 
     @property
     def cfg(self) -> DQMConfig:
@@ -102,7 +106,9 @@ class Coordinator:
         core = self.core
         if self.bus.epoch != core.epoch:
             self.bus.set_epoch(core.epoch)
-            self.bus.set_owners(core.owners)
+        if not np.array_equal(self._owners, core.owners):
+            self._owners = core.owners.copy()
+            self.bus.set_owners(self._owners)
         for p, kind, fields in core.take_outbox():
             try:
                 self.bus.send_single(COORDINATOR, p, kind, **fields)
@@ -171,10 +177,10 @@ class Coordinator:
                                 slow[0] if slow else None,
                                 core.phase_of(slow[0]) if slow else "",
                                 "Raise --timeout, or check the slow agent's log."))
-        if core.phase == "start" and now - self._since[2] > self.phase_timeout_s:
+        if core.phase in ("start", "takeover") and now - self._since[2] > self.phase_timeout_s:
             slow = core.unready()
             self.fail(JobFailed(f"agent process {slow[0]} did not get ready within {seconds(self.phase_timeout_s)}",
-                                slow[0], "start", "Check that agent's log."))
+                                slow[0], core.phase, "Check that agent's log."))
 
     def _step(self) -> None:
         self._poll()
@@ -344,14 +350,13 @@ def clusters_params(cfg: DQMConfig) -> dict:
 
 
 def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict] = None,
-                     tcp_port: Optional[int] = None, ready_timeout_s: float = 30.0, job_timeout_s: float = 600.0,
-                     connect_timeout_s: float = 5.0, max_lost: Optional[int] = None,
-                     progress_fd: Optional[int] = None, phase_timeout_s: float = 120.0,
-                     clusters: Optional[str] = None, host_cores: Optional[float] = None,
-                     gather_cores: Optional[float] = None) -> int:
+                     tcp_port: Optional[int] = None, limits: Optional[RuntimeLimits] = None,
+                     progress_fd: Optional[int] = None, clusters: Optional[str] = None,
+                     host_cores: Optional[float] = None, gather_cores: Optional[float] = None) -> int:
     """Entry point of ``dqm coordinator``: returns the process exit code. ``out``: the report JSON;
-    ``clusters``: the CLUSTERS file to write (the agents then send their catalogs); ``host_cores``,
-    ``gather_cores``: --mode auto's cores per agent host and at this host (None: this host's)."""
+    ``limits``: timeouts, lease, ``max_lost``, recovery (None: the defaults); ``clusters``: the CLUSTERS file
+    to write (the agents then send their catalogs); ``host_cores``, ``gather_cores``: --mode auto's cores per
+    agent host and at this host (None: this host's)."""
     from .console import JobView
     from .lifeline import watch_parent
 
@@ -359,19 +364,20 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     watch_parent()
     tag_lines("coordinator")
     keys.check_job(cfg.job)
-    session = open_client(endpoint, tls, deadline_s=connect_timeout_s)
+    limits = limits or RuntimeLimits()
+    session = open_client(endpoint, tls, deadline_s=limits.connect_timeout_s, lease_ms=limits.lease_ms)
     check_job_free(session, keys.alive_coordinator(cfg.job), "the coordinator", cfg.job, endpoint)
     view = JobView.for_fd(progress_fd, cfg.agents)
-    bus = Bus(session, cfg.job, -1, cfg.agents)
+    bus = Bus(session, cfg.job, -1, cfg.agents, max_bytes=limits.max_message_bytes)
     try:
         bus.check_access(endpoint, tls, f"the coordinator of job {cfg.job!r}")
     except AccessDenied:
         bus.close()
         raise
-    coord = Coordinator(bus, cfg, ready_timeout_s, job_timeout_s, max_lost=max_lost, view=view,
-                        phase_timeout_s=phase_timeout_s, catalog=clusters is not None, host_cores=host_cores,
-                        gather_cores=gather_cores,
-                        announce=lambda text: print(text, flush=True))
+    coord = Coordinator(bus, cfg, limits.ready_timeout_s or DEFAULT_READY_TIMEOUT_S, limits.job_timeout_s,
+                        max_lost=limits.max_lost, view=view, phase_timeout_s=limits.phase_timeout_s,
+                        catalog=clusters is not None, host_cores=host_cores, gather_cores=gather_cores,
+                        announce=lambda text: print(text, flush=True), recovery=limits.recovery)
     try:
         rep = coord.run(tcp_port=tcp_port)
         if clusters:  # before the report: a report names a CLUSTERS file that exists

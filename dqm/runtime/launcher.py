@@ -34,6 +34,7 @@ from ..wording import seconds
 from .bus import LEASE_MS
 from .coordinator import failure_paragraph, failure_path
 from .lifeline import PARENT_ENV, child_preexec, signals_deferred
+from .limits import DEFAULT_READY_TIMEOUT_S, RuntimeLimits, limits_arg
 from .roster import job_roster
 
 LOG = logging.getLogger("dqm.runtime")
@@ -276,20 +277,19 @@ def make_certs(out: Path, router_names: Sequence[str], clients: Sequence[str]) -
     return Path(out)
 
 
-def coordinator_args(cfg: DQMConfig, connect: str, report: Path, job_timeout_s: float,
-                     ready_timeout_s: Optional[float] = None, max_lost: Optional[int] = None,
+#: the limits :func:`start_job` gives its processes by default: tests and demos want failures in seconds
+START_LIMITS = RuntimeLimits(job_timeout_s=120.0, phase_timeout_s=60.0)
+
+
+def coordinator_args(cfg: DQMConfig, connect: str, report: Path, limits: RuntimeLimits,
                      clusters: Optional[str] = None, host_cores: Optional[float] = None,
                      gather_cores: Optional[float] = None) -> List[str]:
-    """Command-line options of the coordinator of ``cfg``'s job (``clusters``: its CLUSTERS file, or none;
-    ``host_cores``, ``gather_cores``: --mode auto's cores per agent host and at the coordinator's host, or
-    the coordinator's default: its own host's)."""
+    """Command-line options of the coordinator of ``cfg``'s job (``limits`` as one encoded value;
+    ``clusters``: its CLUSTERS file, or none; ``host_cores``, ``gather_cores``: --mode auto's cores per agent
+    host and at the coordinator's host, or the coordinator's default: its own host's)."""
     args = ["coordinator", "--agents", str(cfg.agents), "--seed", str(cfg.seed), "--connect", connect,
-            "--out", str(report), "--job-timeout", str(job_timeout_s), *config_args(cfg)]
+            "--out", str(report), limits_arg(limits), *config_args(cfg)]
     args += ["--clusters", str(clusters)] if clusters else ["--no-clusters"]
-    if ready_timeout_s is not None:
-        args += ["--ready-timeout", str(ready_timeout_s)]
-    if max_lost is not None:
-        args += ["--max-lost", str(max_lost)]
     if host_cores is not None:
         args += ["--host-cores", repr(float(host_cores))]
     if gather_cores is not None:
@@ -336,10 +336,9 @@ class Job:
 
 def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
               connect: Callable[[int], str], prefix: Callable[[int], Optional[List[str]]] = lambda a: None,
-              client_args: Callable[[int], List[str]] = lambda a: [], env=None, job_timeout_s: float = 120.0,
-              phase_timeout_s: Optional[float] = 60.0, tag: str = "", clusters: Optional[Path] = None,
-              threads_per_agent: Optional[int] = 1, ready_timeout_s: Optional[float] = None,
-              max_lost: Optional[int] = None, pass_fds: Sequence[int] = (), host_cores: Optional[float] = None,
+              client_args: Callable[[int], List[str]] = lambda a: [], env=None,
+              limits: Optional[RuntimeLimits] = None, tag: str = "", clusters: Optional[Path] = None,
+              threads_per_agent: Optional[int] = 1, pass_fds: Sequence[int] = (), host_cores: Optional[float] = None,
               gather_cores: Optional[float] = None) -> Job:
     """Start the agents and the coordinator of one job (the router is already running): the one start
     path of ``dqm run`` (:func:`run_job`), the multi-host demo and the tests.
@@ -347,23 +346,25 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     ``connect(a)``, ``prefix(a)`` and ``client_args(a)`` give the endpoint, the command prefix (e.g.
     ``ip netns exec NS``) and extra options (TLS, test hooks) of agent ``a``; ``a = -1`` is the
     coordinator. ``clusters``: the CLUSTERS file the coordinator writes (none by default).
-    ``phase_timeout_s``: the agents' phase timeout (None: their default). ``threads_per_agent``:
+    ``limits``: every process's runtime limits, handed to each as one value (default: :data:`START_LIMITS`,
+    short timeouts for tests and demos). ``threads_per_agent``:
     worker threads of each agent unless ``env`` says otherwise (None: all cores); the coordinator
     keeps ``env``'s (it computes only in a gather job, once the agents have sent everything).
     ``host_cores``, ``gather_cores``: the coordinator's --host-cores and --gather-cores (--mode auto).
     """
+    limits = START_LIMITS if limits is None else limits
     coordinator_env = dict(os.environ if env is None else env)
     env = dict(coordinator_env)
     if threads_per_agent is not None:
         for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             env.setdefault(var, str(threads_per_agent))
-    timeout = [] if phase_timeout_s is None else ["--phase-timeout", str(phase_timeout_s)]
-    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a), *timeout,
+    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
+                           limits_arg(limits),
                            *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])],
                           workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
-    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, job_timeout_s, ready_timeout_s, max_lost,
+    coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, limits,
                                            None if clusters is None else str(clusters), host_cores, gather_cores),
                          *client_args(-1)],
                         workdir / f"{tag}coordinator.log", coordinator_env, prefix=prefix(-1), pass_fds=pass_fds)
@@ -403,11 +404,10 @@ def _local_host_cores(agents: int) -> float:
     return host_cores() / max(1, agents)
 
 
-def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = None, timeout_s: float = 600.0,
-            env=None, keep_logs: bool = False, on_started=None, agent_args: Optional[List[str]] = None,
-            ready_timeout_s: float = 30.0, max_lost: Optional[int] = None, progress: bool = False,
-            features: Optional[io.FeatureSet] = None, clusters: Optional[str] = None,
-            secure: bool = False) -> dict:
+def run_job(descriptors, image_ids, cfg: DQMConfig, limits: Optional[RuntimeLimits] = None,
+            workdir: Optional[str] = None, env=None, keep_logs: bool = False, on_started=None,
+            agent_args: Optional[List[str]] = None, progress: bool = False,
+            features: Optional[io.FeatureSet] = None, clusters: Optional[str] = None, secure: bool = False) -> dict:
     """Run a job as separate processes on this host; returns the coordinator's report.
 
     The agents start with ``features`` (a FEATURES set: its keypoints and image names reach the
@@ -417,7 +417,11 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
     on this process's standard error if it is a terminal. ``secure``: mutual TLS with throwaway
     certificates (one per process, made in the work folder) and a router that enforces the job's
     roster (:func:`dqm.runtime.roster.job_roster`): every process may use only its own keys.
+    ``limits``: the runtime limits of every process (None: the defaults, a 30-s ready timeout).
     """
+    limits = (limits or RuntimeLimits()).validated()
+    if limits.ready_timeout_s is None:
+        limits = limits.but(ready_timeout_s=DEFAULT_READY_TIMEOUT_S)
     cfg = cfg.validated(len(features) if features is not None else len(descriptors), runtime=True)
     remove_stale_workdirs()
     tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
@@ -445,15 +449,14 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, workdir: Optional[str] = Non
         coordinator_extra = ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
         job = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
                         client_args=lambda a: identity(a) + (coordinator_extra if a < 0 else list(agent_args or [])),
-                        env=env,
-                        job_timeout_s=timeout_s, phase_timeout_s=None, threads_per_agent=share,
+                        env=env, limits=limits, threads_per_agent=share,
                         clusters=None if clusters is None else Path(clusters).resolve(),
-                        ready_timeout_s=ready_timeout_s, max_lost=max_lost, pass_fds=[tty] if tty is not None else [],
+                        pass_fds=[tty] if tty is not None else [],
                         host_cores=_local_host_cores(cfg.agents) if cfg.mode == "auto" else None)
         if on_started is not None:
             on_started({"router": router, "agents": job.agents, "coordinator": job.coordinator, "workdir": wd,
                         "port": port})
-        report = finish_job(job, timeout_s + 15)
+        report = finish_job(job, limits.job_timeout_s + 15)
         del report["wall_s"]
         return report
     finally:

@@ -29,6 +29,7 @@ from typing import Dict, List, Optional, Sequence
 
 from ..distributed.config import DQMConfig
 from .launcher import (  # noqa: F401
+    START_LIMITS,
     Processes,
     finish_job,
     make_certs,
@@ -348,7 +349,7 @@ def run_across_namespaces(descriptors, image_ids, cfg: DQMConfig, workdir: Path,
                             prefix=lambda a: nss.prefix(nss.host_ns(host_of(a))),
                             client_args=lambda a: (tls_options(tls_certs, "coordinator" if a < 0 else f"agent{a}")
                                                    if tls_certs else []),
-                            job_timeout_s=timeout_s)
+                            limits=START_LIMITS.but(job_timeout_s=timeout_s))
             for a in range(cfg.agents):
                 log(f"agent {a} in {nss.host_ns(host_of(a))} ({nss.host_addr(host_of(a))})")
             log(f"coordinator in {nss.host_ns(host_of(-1))}")
@@ -403,7 +404,8 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
     try:
         if mode in ("lean", "balanced", "auto"):
             job = start_job(procs, cfg.but(mode=mode), files, workdir,
-                            connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)), job_timeout_s=timeout_s,
+                            connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)),
+                            limits=START_LIMITS.but(job_timeout_s=timeout_s),
                             tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores, gather_cores=nss.cpu_cores)
             rep = finish_job(job, timeout_s + 15)
             detail: Dict[str, object] = {"job_s": rep["time_run_s"]}

@@ -140,10 +140,11 @@ def test_dqm_run_mode_auto_picks_records_and_matches_centralized(data, tmp_path)
 
 def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
     from dqm.runtime.launcher import run_job
+    from dqm.runtime.limits import RuntimeLimits
 
     X, ids = data
     cfg = DQMConfig(agents=2, seed=3, mode="auto", auto_modes="balanced", job="auto-balanced")
-    rep = run_job(X, ids, cfg, timeout_s=120)
+    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
     assert rep["mode"] == rep["auto"]["picked"] == "balanced"
     sim = simulate(X, ids, cfg.but(mode="balanced"))
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
@@ -157,11 +158,13 @@ def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
 @pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
 def test_gather_inside_dqm_run_equals_centralized(data, tmp_path, kernel):
     from dqm.runtime.launcher import run_job
+    from dqm.runtime.limits import RuntimeLimits
 
     X, ids = data
     cfg = DQMConfig(agents=3, seed=2, mode="gather", kernel=kernel, job=f"gather-{kernel}")
     out = tmp_path / "c.npz"
-    rep = run_job(X, ids, cfg, timeout_s=120, clusters=str(out) if kernel == "quadratic" else None)
+    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120),
+                  clusters=str(out) if kernel == "quadratic" else None)
     assert rep["mode"] == "gather" and "auto" not in rep and rep["agent_exit_codes"] == [0, 0, 0]
     labels = np.asarray(rep["labels"])
     np.testing.assert_array_equal(labels, dqm.quickmatch(X, ids, params=cfg.params).labels)

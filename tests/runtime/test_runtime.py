@@ -12,6 +12,7 @@ from runtime_helpers import job_data
 
 from dqm.distributed import DQMConfig, keys, messages, simulate
 from dqm.runtime.launcher import run_job
+from dqm.runtime.limits import RuntimeLimits
 
 pytest.importorskip("zenoh")
 
@@ -25,7 +26,7 @@ def data():
 def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition):
     X, ids = data
     cfg = DQMConfig(agents=3, seed=2, partition=partition, mode=mode, job=f"eq-{mode}-{partition}")
-    rep = run_job(X, ids, cfg, timeout_s=120)
+    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
     sim = simulate(X, ids, cfg)
     np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
@@ -54,7 +55,7 @@ def test_runtime_agrees_sigma_of_single_feature_images(data):
     X = np.vstack([X, X[:1] // 2, X[5:6]])
     ids = np.concatenate([ids, [100, 101]])
     cfg = DQMConfig(agents=3, seed=4, job="fill")
-    rep = run_job(X, ids, cfg, timeout_s=120)
+    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
     sim = simulate(X, ids, cfg)
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
     np.testing.assert_array_equal(sim.labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
@@ -125,7 +126,7 @@ def test_hostile_messages_are_rejected_and_counted(data):
         threading.Thread(target=_inject, args=(f"tcp/127.0.0.1:{info['port']}", cfg.job, 2, X.shape[1], ready),
                          daemon=True).start()
 
-    rep = run_job(X, ids, cfg, timeout_s=120, env=env, on_started=on_started,
+    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120), env=env, on_started=on_started,
                   agent_args=["--max-message-bytes", str(1 << 21)])
     assert ready.is_set()
     np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)

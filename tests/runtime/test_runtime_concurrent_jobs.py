@@ -5,7 +5,7 @@ import numpy as np
 
 from dqm import synthetic
 from dqm.distributed import DQMConfig, simulate
-from dqm.runtime.launcher import Processes, free_port, write_agent_files
+from dqm.runtime.launcher import START_LIMITS, Processes, free_port, write_agent_files
 from dqm.runtime.multihost import finish_job, start_job, start_router
 
 M = 3
@@ -27,7 +27,8 @@ def test_two_concurrent_jobs_on_one_router_do_not_interfere(tmp_path):
             wd = tmp_path / name
             wd.mkdir()
             files = write_agent_files(ds.descriptors, ds.image_ids, M, wd)
-            running[name] = start_job(procs, cfg, files, wd, connect=lambda a: endpoint, job_timeout_s=60)
+            running[name] = start_job(procs, cfg, files, wd, connect=lambda a: endpoint,
+                                      limits=START_LIMITS.but(job_timeout_s=60))
         reports = {name: finish_job(job, 90) for name, job in running.items()}
     finally:
         procs.stop_all()

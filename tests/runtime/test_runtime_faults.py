@@ -15,6 +15,7 @@ from runtime_helpers import alive, job_data, start_held_job
 from dqm.distributed import DQMConfig, simulate
 from dqm.runtime.launcher import WORKDIR_PREFIX, JobFailure, run_job
 from dqm.runtime.lifeline import launched_by
+from dqm.runtime.limits import RuntimeLimits
 
 pytest.importorskip("zenoh")
 
@@ -53,7 +54,8 @@ def run_with_kill(X, ids, cfg, tmp_path, state, victims=(1,), settle_s=0.0, **kw
 #: by the simulator's fault plan (tests/distributed/test_fault_plan.py), through the same coordinator core
 #: and process host; here a few states check the zenoh shell around them.
 @pytest.mark.parametrize("mode,state", [
-    ("balanced", "wait_seeds"), ("balanced", "wait_ghost"), ("balanced", "wait_finish"), ("lean", "wait_handdown"),
+    ("balanced", "wait_start"), ("balanced", "wait_seeds"), ("balanced", "wait_ghost"), ("balanced", "wait_finish"),
+    ("lean", "wait_handdown"),
 ])
 def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mode, state):
     X, ids = data
@@ -67,8 +69,12 @@ def test_agent_killed_in_each_phase_job_completes_identically(data, tmp_path, mo
     np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
     if state == "wait_finish":
         assert rep["lost"] == [] and rep["epochs"] == 1  # it had delivered everything: nothing to redo
+    elif state == "wait_start":  # lost before go: nothing was computed, the next epoch starts the job
+        assert [(x["process"], x["recovery"]) for x in rep["lost"]] == [(1, "restart")] and rep["epochs"] == 2
+        assert rep["owners"] == [0, 2, 2]
     else:
-        assert [x["process"] for x in rep["lost"]] == [1] and rep["epochs"] == 2
+        # a takeover: process 2 runs agent 1 again from its start, the others keep their work (no new epoch)
+        assert [(x["process"], x["recovery"]) for x in rep["lost"]] == [(1, "takeover")] and rep["epochs"] == 1
         assert rep["owners"] == [0, 2, 2]  # the next live process by index takes agent 1
         # messages of the abandoned epoch that arrived late were refused, not used
         assert all("later epoch" not in k for k in rep["rejected"])
@@ -103,7 +109,7 @@ def test_differing_parameter_is_refused_and_named(data):
     cfg = DQMConfig(agents=2, seed=1, job="mismatch")
     t0 = time.monotonic()
     with pytest.raises(JobFailure) as info:
-        run_job(X, ids, cfg, timeout_s=60, agent_args=["--rho", "0.5"])
+        run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=60), agent_args=["--rho", "0.5"])
     text = str(info.value)
     assert "refused the job: parameter rho differs" in text
     assert "rho=0.5" in text and f"rho={cfg.rho!r}" in text

@@ -11,7 +11,7 @@ import pytest
 
 from dqm import synthetic
 from dqm.distributed import DQMConfig, simulate
-from dqm.runtime.launcher import Processes, free_port, write_agent_files
+from dqm.runtime.launcher import START_LIMITS, Processes, free_port, write_agent_files
 from dqm.runtime.multihost import finish_job, make_certs, start_job, start_router
 from dqm.runtime.multihost import tls_options as tls_args
 
@@ -94,7 +94,7 @@ def test_mutual_tls_job_matches_simulator(certs, tls_router, data):
     try:
         job = start_job(procs, cfg, files, wd, connect=lambda a: tls_router["endpoint"],
                         client_args=lambda a: tls_args(ours, "coordinator" if a < 0 else f"agent{a}"),
-                        job_timeout_s=60)
+                        limits=START_LIMITS.but(job_timeout_s=60))
         rep = finish_job(job, 60)
     finally:
         procs.stop_all()
