@@ -1,16 +1,18 @@
 """Recovery from a lost agent process: a takeover against a whole-job restart, in the same run.
 
 `dqm run` (one process per agent on this host, balanced mode) on generated features: first a
-fault-free run, whose agent 1 timeline (its seconds in each state) says which state agent 1 enters at
-25%, 50% and 90% of the job. Then, for each of those moments, the job again with agent 1's process
-SIGKILLed when it enters that state, once with the takeover (the default: process 2 runs agent 1
-again, the others keep their work) and once with ``--recovery restart`` (every process starts the job
-again at the next epoch). Each row: the job's time to result (from every process ready to the labels,
-the report's ``time_run_s``; the processes' start-up is the same in every row and left out), the
-metered bytes over the fault-free run's, and whether the labels are the fault-free run's.
+fault-free run, which says how long the processes take to start and the job to run. Then, for 25%,
+50% and 90% of that run time, the job again with agent 1's process SIGKILLed at that moment after
+the processes started, once with the takeover (the default: process 2 runs agent 1 again, the others
+keep their work) and once with ``--recovery restart`` (every process starts the job again at the
+next epoch); the report says the phase agent 1 was in. Each row: the job's time to result (from
+every process ready to the labels, the report's ``time_run_s``; the processes' start-up is the same
+in every row and left out), the metered bytes over the fault-free run's, and whether the labels are
+the fault-free run's. ``--states`` kills agent 1's process when it enters the states named instead
+(the agents' test hook: exact, for small jobs whose few seconds leave no room for timing).
 
     python scripts/bench_recovery.py                      # 100k features, M = 8 (the issue's setting)
-    python scripts/bench_recovery.py --features 4000 --agents 3 --at 50 --out /tmp/rec
+    python scripts/bench_recovery.py --features 3000 --agents 3 --states wait_ghost --out /tmp/rec
 
 Writes recovery.json and recovery.md to --out (default: the current folder; existing files are kept
 unless --force).
@@ -33,59 +35,58 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dqm import synthetic
 from dqm.distributed import DQMConfig
-from dqm.distributed.driver import states_for
 from dqm.runtime.launcher import JobFailure, run_job
 from dqm.runtime.limits import RuntimeLimits
 
 VICTIM = 1
 
 
-def timeline(report: dict, agent: int, mode: str):
-    """(state, seconds from the job's start when the agent entered it) from its per-state times."""
-    st = report["per_agent"][str(agent)]
-    t, out = 0.0, []
-    for state in states_for(mode):
-        out.append((state, t))
-        t += float(st.get(f"time_{state}", 0.0))
-    return out, t
+def run_once(X, ids, cfg, recovery=None, kill_after_s=None, kill_state=None, timeout_s=900.0):
+    """One job, SIGKILLing agent VICTIM's process ``kill_after_s`` after the processes were started, or when its
+    agent enters ``kill_state`` (the agents' test hook): (report or None, seconds from the processes' start to
+    the report, error)."""
+    started, done = {}, threading.Event()
+    env = dict(os.environ)
+    marker = Path(tempfile.mkdtemp(prefix="dqm-recovery-")) / "paused"
+    if kill_state:
+        env.update(DQM_FAULT_PAUSE=f"{VICTIM}:{kill_state}", DQM_FAULT_MARKER=str(marker))
 
-
-def pick_states(report: dict, mode: str, fractions):
-    """The state agent ``VICTIM`` enters closest to each fraction of its time in the job (never
-    ``wait_start``, ``wait_finish``: before go and after its results nothing is redone)."""
-    line, total = timeline(report, VICTIM, mode)
-    line = [(s, t) for s, t in line if s not in ("wait_start", "wait_finish")]
-    return {f: min(line, key=lambda st: abs(st[1] - f * total)) for f in fractions}, total
-
-
-def run_once(X, ids, cfg, recovery=None, kill_state=None, timeout_s=900.0):
-    """One job (killing agent VICTIM's process at ``kill_state``): (report or None, wall seconds, error)."""
-    with tempfile.TemporaryDirectory(prefix="dqm-recovery-") as tmp:
-        marker = Path(tmp) / "paused"
-        env = dict(os.environ)
+    def killer():
+        while "agents" not in started and not done.is_set():
+            time.sleep(0.005)
         if kill_state:
-            env.update(DQM_FAULT_PAUSE=f"{VICTIM}:{kill_state}", DQM_FAULT_MARKER=str(marker))
-        started = {}
-
-        def killer():
-            while not started.get("done"):
-                if marker.exists() and "agents" in started:
-                    os.kill(started["agents"][VICTIM].pid, signal.SIGKILL)
+            while not marker.exists():
+                if done.wait(0.005):
                     return
-                time.sleep(0.01)
+        elif done.wait(max(0.0, kill_after_s - (time.monotonic() - started["t"]))):
+            return
+        os.kill(started["agents"][VICTIM].pid, signal.SIGKILL)
 
-        th = threading.Thread(target=killer, daemon=True)
-        if kill_state:
-            th.start()
-        t0 = time.monotonic()
-        try:
-            limits = RuntimeLimits(job_timeout_s=timeout_s, max_lost=1, recovery=recovery or "takeover")
-            rep = run_job(X, ids, cfg, limits, env=env, on_started=started.update)
-            err = None
-        except JobFailure as exc:
-            rep, err = None, str(exc)
-        started["done"] = True
-        return rep, time.monotonic() - t0, err
+    def on_started(procs):
+        started.update(procs, t=time.monotonic())
+
+    if kill_after_s is not None or kill_state:
+        threading.Thread(target=killer, daemon=True).start()
+    try:
+        limits = RuntimeLimits(job_timeout_s=timeout_s, max_lost=1, recovery=recovery or "takeover")
+        rep, err = run_job(X, ids, cfg, limits, env=env, on_started=on_started), None
+    except JobFailure as exc:
+        rep, err = None, str(exc)
+    done.set()
+    marker.unlink(missing_ok=True)
+    marker.parent.rmdir()
+    return rep, time.monotonic() - started.get("t", time.monotonic()), err
+
+
+def _row(rep, err, base, labels, **what) -> dict:
+    row = dict(what)
+    if rep is None:
+        return {**row, "error": err, "identical": False}
+    return {**row, "run_s": rep["time_run_s"], "bytes": rep["total_bytes"],
+            "time_ratio": rep["time_run_s"] / base["time_run_s"],
+            "bytes_ratio": rep["total_bytes"] / base["total_bytes"],
+            "identical": bool(np.array_equal(np.asarray(rep["labels"]), labels)), "epochs": rep["epochs"],
+            "lost": rep["lost"], "state": rep["lost"][0]["phase"] if rep["lost"] else "(nothing lost)"}
 
 
 def main(argv=None) -> int:
@@ -93,7 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("--features", type=int, default=100_000)
     ap.add_argument("--agents", type=int, default=8)
     ap.add_argument("--mode", default="balanced", choices=("balanced", "lean"))
-    ap.add_argument("--at", default="25,50,90", help="percentages of the job at which agent 1 is lost")
+    ap.add_argument("--at", default="25,50,90", help="percentages of the job's run time at which agent 1 is lost")
+    ap.add_argument("--states", default="", help="or: agent 1's states at which it is lost (comma-separated)")
     ap.add_argument("--out", default=".")
     ap.add_argument("--force", action="store_true", help="overwrite existing recovery.json / recovery.md")
     args = ap.parse_args(argv)
@@ -102,7 +104,6 @@ def main(argv=None) -> int:
     if not args.force and any(p.exists() for p in targets):
         print(f"error: {', '.join(str(p) for p in targets if p.exists())} exists (pass --force)", file=sys.stderr)
         return 2
-    fractions = [int(x) / 100 for x in args.at.split(",")]
     ds = synthetic.sized(args.features)
     X, ids = ds.descriptors, ds.image_ids
     cfg = DQMConfig(agents=args.agents, seed=0, mode=args.mode, job="recovery")
@@ -111,46 +112,42 @@ def main(argv=None) -> int:
         print(f"error: the fault-free run failed: {err}", file=sys.stderr)
         return 3
     labels = np.asarray(base["labels"])
-    picks, agent_s = pick_states(base, args.mode, fractions)
     base_run = base["time_run_s"]
-    print(f"fault-free: {base_run:.1f} s to result ({base_s:.1f} s with start-up), {base['total_bytes']} bytes; "
-          f"agent {VICTIM} in the job {agent_s:.1f} s", flush=True)
-    rows = [{"case": "fault-free", "at": None, "state": None, "recovery": None, "wall_s": base_s, "run_s": base_run,
-             "bytes": base["total_bytes"], "time_ratio": 1.0, "bytes_ratio": 1.0, "identical": True, "epochs": 1}]
-    for f in fractions:
-        state, t_enter = picks[f]
+    print(f"fault-free: {base_run:.1f} s to result ({base_s:.1f} s with the processes' start), "
+          f"{base['total_bytes']} bytes", flush=True)
+    rows = [{**_row(base, None, base, labels, at="never", recovery="", wall_s=base_s), "state": ""}]
+    # the job runs at the end of the processes' time: it starts about (their time - its run time) after them
+    cases = ([(f"state {s}", None, s) for s in args.states.split(",") if s] if args.states else
+             [(f"{int(p)}% ({int(p) / 100 * base_run:.1f} s)", (base_s - base_run) + int(p) / 100 * base_run, None)
+              for p in args.at.split(",")])
+    for at, kill_s, state in cases:
         for recovery in ("takeover", "restart"):
-            rep, wall, err = run_once(X, ids, cfg, recovery, state)
-            row = {"case": f"lost at {round(f * 100)}%", "at": f, "state": state, "entered_s": t_enter,
-                   "recovery": recovery, "wall_s": wall}
-            if rep is None:
-                row.update(error=err, identical=False)
-            else:
-                row.update(run_s=rep["time_run_s"], bytes=rep["total_bytes"], time_ratio=rep["time_run_s"] / base_run,
-                           bytes_ratio=rep["total_bytes"] /
-                           base["total_bytes"], identical=bool(np.array_equal(np.asarray(rep["labels"]), labels)),
-                           epochs=rep["epochs"], lost=rep["lost"])
+            rep, wall, err = run_once(X, ids, cfg, recovery, kill_s, state)
+            row = _row(rep, err, base, labels, at=at, recovery=recovery, wall_s=wall)
             rows.append(row)
-            print(f"lost at {f:.0%} ({state}), {recovery}: {row.get('run_s', float('nan')):.1f} s = "
-                  f"{row.get('time_ratio', float('nan')):.2f}x, "
-                  f"bytes {row.get('bytes_ratio', float('nan')):.2f}x, labels identical: {row['identical']}",
-                  flush=True)
+            print(f"lost at {at} ({row.get('state')}), {recovery}: {row.get('run_s', float('nan')):.1f} s = "
+                  f"{row.get('time_ratio', float('nan')):.2f}x, bytes {row.get('bytes_ratio', float('nan')):.2f}x, "
+                  f"labels identical: {row['identical']}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     summary = {"features": args.features, "agents": args.agents, "mode": args.mode, "cpus": os.cpu_count(),
                "rows": rows}
     targets[0].write_text(json.dumps(summary, indent=1))
-    lines = [f"`python scripts/bench_recovery.py --features {args.features} --agents {args.agents}` "
-             f"({args.mode}, generated data, {os.cpu_count()} cores, one process per agent on this host; agent "
-             f"{VICTIM}'s process SIGKILLed when it enters the state; times are to the result, bytes metered):", "",
-             "| lost | state (entered at) | recovery | time to result | x fault-free | bytes x fault-free | "
+    shown = [f"--features {args.features}", f"--agents {args.agents}"] + (
+        [f"--mode {args.mode}"] if args.mode != "balanced" else []) + (
+        [f"--states {args.states}"] if args.states else [f"--at {args.at}"] if args.at != "25,50,90" else [])
+    command = " ".join(["python scripts/bench_recovery.py", *shown])
+    lines = [f"`{command}` ({args.mode}, {args.features} generated features, M = {args.agents}, {os.cpu_count()} "
+             f"cores, one process per agent on this host; agent {VICTIM}'s process SIGKILLed that far into the "
+             "fault-free run's time, or when its agent enters the state; times are the job's run to the result, "
+             "bytes metered):", "",
+             "| lost at | agent 1's phase | recovery | time to result | x fault-free | bytes x fault-free | "
              "labels = fault-free |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        at = "never" if r["at"] is None else f"{r['at']:.0%}"
-        where = "" if r["state"] is None else f"{r['state']} ({r['entered_s']:.1f} s)"
+        at, where = r["at"], r.get("state", "")
         if "error" in r:
             lines.append(f"| {at} | {where} | {r['recovery']} | failed: {r['error'][:80]} | | | no |")
             continue
-        lines.append(f"| {at} | {where} | {r['recovery'] or ''} | {r['run_s']:.1f} s | {r['time_ratio']:.2f} | "
+        lines.append(f"| {at} | {where} | {r['recovery']} | {r['run_s']:.1f} s | {r['time_ratio']:.2f} | "
                      f"{r['bytes_ratio']:.2f} | {'yes' if r['identical'] else '**no**'} |")
     targets[1].write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
