@@ -11,11 +11,11 @@ in every row and left out), the metered bytes over the fault-free run's, and whe
 the fault-free run's. ``--states`` kills agent 1's process when it enters the states named instead
 (the agents' test hook: exact, for small jobs whose few seconds leave no room for timing).
 
-    python scripts/bench_recovery.py                      # 100k features, M = 8 (the issue's setting)
+    python scripts/bench_recovery.py --docs               # 100k features, M = 8 (the issue's setting)
     python scripts/bench_recovery.py --features 3000 --agents 3 --states wait_ghost --out /tmp/rec
 
 Writes recovery.json and recovery.md to --out (default: the current folder; existing files are kept
-unless --force).
+unless --force); --docs also writes the table into its block of docs/runtime.md.
 """
 from __future__ import annotations
 
@@ -89,6 +89,36 @@ def _row(rep, err, base, labels, **what) -> dict:
             "lost": rep["lost"], "state": rep["lost"][0]["phase"] if rep["lost"] else "(nothing lost)"}
 
 
+def render(summary: dict) -> str:
+    """The markdown table of a run (what recovery.md and the block in docs/runtime.md hold)."""
+    lines = [f"`{summary['command']}` ({summary['mode']}, {summary['features']} generated features, M = "
+             f"{summary['agents']}, {summary['cpus']} cores, one process per agent on this host; agent {VICTIM}'s "
+             "process SIGKILLed that far into the fault-free run's time, or when its agent enters the state; times "
+             "are the job's run to the result, bytes metered):", "",
+             "| lost at | agent 1's phase | recovery | time to result | x fault-free | bytes x fault-free | "
+             "labels = fault-free |", "|---|---|---|---|---|---|---|"]
+    for r in summary["rows"]:
+        at, where = r["at"], r.get("state", "")
+        if "error" in r:
+            lines.append(f"| {at} | {where} | {r['recovery']} | failed: {r['error'][:80]} | | | no |")
+            continue
+        lines.append(f"| {at} | {where} | {r['recovery']} | {r['run_s']:.1f} s | {r['time_ratio']:.2f} | "
+                     f"{r['bytes_ratio']:.2f} | {'yes' if r['identical'] else '**no**'} |")
+    return "\n".join(lines) + "\n"
+
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "runtime.md"
+BLOCK = ("<!-- recovery: written by scripts/bench_recovery.py --docs -->", "<!-- /recovery -->")
+
+
+def write_docs(text: str) -> None:
+    """Put ``text`` between the markers of docs/runtime.md."""
+    s = DOC.read_text()
+    if BLOCK[0] not in s or BLOCK[1] not in s:
+        raise SystemExit(f"error: {DOC} has no block {BLOCK[0]} ... {BLOCK[1]}")
+    DOC.write_text(s[:s.index(BLOCK[0]) + len(BLOCK[0])] + "\n" + text + s[s.index(BLOCK[1]):])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--features", type=int, default=100_000)
@@ -98,6 +128,7 @@ def main(argv=None) -> int:
     ap.add_argument("--states", default="", help="or: agent 1's states at which it is lost (comma-separated)")
     ap.add_argument("--out", default=".")
     ap.add_argument("--force", action="store_true", help="overwrite existing recovery.json / recovery.md")
+    ap.add_argument("--docs", action="store_true", help="also write the table into docs/runtime.md")
     args = ap.parse_args(argv)
     out = Path(args.out)
     targets = [out / "recovery.json", out / "recovery.md"]
@@ -129,29 +160,19 @@ def main(argv=None) -> int:
                   f"{row.get('time_ratio', float('nan')):.2f}x, bytes {row.get('bytes_ratio', float('nan')):.2f}x, "
                   f"labels identical: {row['identical']}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    summary = {"features": args.features, "agents": args.agents, "mode": args.mode, "cpus": os.cpu_count(),
-               "rows": rows}
-    targets[0].write_text(json.dumps(summary, indent=1))
-    shown = [f"--features {args.features}", f"--agents {args.agents}"] + (
+    shown = (["--docs"] if args.docs else []) + [f"--features {args.features}", f"--agents {args.agents}"] + (
         [f"--mode {args.mode}"] if args.mode != "balanced" else []) + (
         [f"--states {args.states}"] if args.states else [f"--at {args.at}"] if args.at != "25,50,90" else [])
-    command = " ".join(["python scripts/bench_recovery.py", *shown])
-    lines = [f"`{command}` ({args.mode}, {args.features} generated features, M = {args.agents}, {os.cpu_count()} "
-             f"cores, one process per agent on this host; agent {VICTIM}'s process SIGKILLed that far into the "
-             "fault-free run's time, or when its agent enters the state; times are the job's run to the result, "
-             "bytes metered):", "",
-             "| lost at | agent 1's phase | recovery | time to result | x fault-free | bytes x fault-free | "
-             "labels = fault-free |", "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        at, where = r["at"], r.get("state", "")
-        if "error" in r:
-            lines.append(f"| {at} | {where} | {r['recovery']} | failed: {r['error'][:80]} | | | no |")
-            continue
-        lines.append(f"| {at} | {where} | {r['recovery']} | {r['run_s']:.1f} s | {r['time_ratio']:.2f} | "
-                     f"{r['bytes_ratio']:.2f} | {'yes' if r['identical'] else '**no**'} |")
-    targets[1].write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    summary = {"features": args.features, "agents": args.agents, "mode": args.mode, "cpus": os.cpu_count(),
+               "command": " ".join(["python scripts/bench_recovery.py", *shown]), "rows": rows}
+    targets[0].write_text(json.dumps(summary, indent=1))
+    text = render(summary)
+    targets[1].write_text(text)
+    print(text, end="")
     print(f"wrote {targets[0]} and {targets[1]}")
+    if args.docs:
+        write_docs(text)
+        print(f"and its block in {DOC}")
     return 0 if all(r["identical"] for r in rows) else 1
 
 

@@ -37,7 +37,9 @@ import numpy as np
 from ..core.events import EVENT_KINDS, ClusterEvent
 from . import wire
 
-VERSION = 5
+#: the schema version (6: takeover / taken / resume, and ready / taken / refuse not numbered; 5: compact
+#: encodings). Processes of different versions refuse each other's messages, naming the version
+VERSION = 6
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 #: most entries of a map: an agent's ``stats`` hold two per (destination, kind) it sent to, so 1,024
