@@ -121,6 +121,8 @@ class CoordinatorCore:
         #: takeovers in this epoch; the processes that follow the current one
         self.round = 0
         self.taken: Dict[int, dict] = {}
+        #: agents moved by a takeover in this epoch (they run again from their start)
+        self.replaying: set = set()
 
     # ------------------------------------------------------------------ what the shell reads
     def take_outbox(self) -> List[Outgoing]:
@@ -193,7 +195,7 @@ class CoordinatorCore:
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
         self.gathered = None
-        self.round, self.taken = 0, {}
+        self.round, self.taken, self.replaying = 0, {}, set()
         self.phase = "start"
         fields = start_fields(cfg, self.owners, self.catalog)
         for p in self.hosts():
@@ -258,14 +260,21 @@ class CoordinatorCore:
         if not gone:
             return
         running = self.phase in ("running", "takeover")
-        owing = [p for p in gone if not running or self.owes(p)]
+        # while an agent taken over runs again, it may still need what a finished agent had sent it: that one's
+        # process, gone, can no longer send it again, so the finished agent runs again too
+        replaying = any(a not in self.stats for a in self.replaying)
+        owing = [p for p in gone if not running or replaying or self.owes(p)]
         self.dead.update(gone)
         for p in gone:
             if p not in owing:
                 self.events.append(f"agent process {p} exited after delivering its results; nothing is lost")
+                finished = np.flatnonzero(self.owners == p).astype(np.int64)
+                for q in self._live():  # nobody waits for their acks (a later takeover may run them again)
+                    self.outbox.append((q, "gone", {"agents": finished}))
         if not owing:
             return
         takeover = running and self.recovery == "takeover"
+        before = self.owners.copy()
         self._reassign(restart=not takeover)
         if not takeover:
             self._start()
@@ -273,6 +282,7 @@ class CoordinatorCore:
         self.round += 1
         self.taken = {}
         self.phase = "takeover"
+        self.replaying |= {a for a in range(self.m) if int(self.owners[a]) != int(before[a])}
         for p in self._live():
             self.outbox.append((p, "takeover", {"owners": self.owners.copy(), "round": self.round}))
 

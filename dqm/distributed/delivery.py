@@ -13,7 +13,8 @@ bus (:mod:`dqm.runtime.bus`) with the wall clock, the simulator's memory network
 * :meth:`Delivery.due` names the messages whose ack is overdue by the adaptive timeout
   (:class:`dqm.distributed.protocol.Retransmit`) and counts them resent;
 * :meth:`Delivery.replay` gives every message sent to an agent in this epoch again (a takeover:
-  the agent's new host runs it from its start);
+  the agent's new host runs it from its start); :meth:`Delivery.forget` stops waiting for the acks of
+  agents that finished before their process was lost;
 * :meth:`Delivery.receive` judges a decoded incoming message: of an earlier epoch, or of a
   later one that is not its ``start``: refused and counted; an ack: its message is done; an
   acknowledged kind: the ack to send back (every copy is acknowledged, the first ack may have
@@ -74,6 +75,8 @@ class Delivery:
         #: every numbered message sent to each agent in this epoch, in order (:meth:`replay`)
         self.keep_log = keep_log
         self._log: Dict[int, List[Resend]] = defaultdict(list)
+        #: agents that finished and whose process is gone: nothing sent to them waits for an ack
+        self._gone: set = set()
         self.meter = meter
         self.retransmit = retransmit or protocol.Retransmit()
         self.epoch = 0
@@ -91,6 +94,7 @@ class Delivery:
             self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
             self._next.clear()
             self._log.clear()
+            self._gone.clear()
 
     def next_seq(self, src: int, dst: int, count: int = 1) -> int:
         """The first of ``count`` sequence numbers on the link ``src -> dst`` in this epoch."""
@@ -106,7 +110,7 @@ class Delivery:
         if self.keep_log and dst >= 0 and kind not in messages.UNNUMBERED:
             with self._lock:
                 self._log[dst].append(Resend(src, dst, -1 if seq is None else seq, kind, payload))
-        if seq is None or kind not in protocol.ACKED:
+        if seq is None or kind not in protocol.ACKED or dst in self._gone:
             return False
         with self._lock:  # before the put: the ack may come back at once
             self._pending[(src, dst, seq)] = Pending(now, 1, payload, kind)
@@ -144,12 +148,22 @@ class Delivery:
             self.meter.resend()
         return out
 
+    def forget(self, agents) -> None:
+        """These agents finished and their process is gone: nothing sent to them waits for an ack any more (a
+        takeover's replay may send them again what they already had). The log of what they were sent stays: a
+        later takeover may run them again (:meth:`replay` then counts on their acks again)."""
+        with self._lock:
+            self._gone |= {int(a) for a in agents}
+            for k in [k for k in self._pending if k[1] in self._gone]:
+                del self._pending[k]
+
     def replay(self, agents, now: float) -> List[Resend]:
         """Everything sent to these agents in this epoch, in the order it was sent, to put again: after a
         takeover their new host runs them from the start and needs every message they had received. The
         acknowledged ones are kept until acknowledged again (at once, when the new host has them)."""
         out = []
         with self._lock:
+            self._gone -= {int(a) for a in agents}
             for a in sorted(int(x) for x in agents):
                 for r in self._log.get(a, []):
                     if r.kind in protocol.ACKED and r.seq >= 0:

@@ -55,6 +55,8 @@ class HostTransport(Transport, Protocol):
 
     def replay(self, agents) -> None: ...
 
+    def forget(self, agents) -> None: ...
+
 
 class ProcessHost:
     """One process's agents (see the module's text). ``features``: the home agent's features;
@@ -128,11 +130,13 @@ class ProcessHost:
             self._takeover(msg)
         elif kind == "resume" and msg["round"] == self.round:
             self._resume()
+        elif kind == "gone" and msg["epoch"] == self.epoch:
+            self.bus.forget(msg["agents"])
         elif kind == "abort":
             raise JobAborted(f"the coordinator aborted the job: {msg['reason']}")
         elif kind == "finish":
             self.done = True
-        elif kind not in ("go", "resume"):
+        elif kind not in ("go", "resume", "gone"):
             return False
         return True
 

@@ -110,6 +110,9 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     # hosting each agent (the lost process's agents moved to the next live one), takeover number ``round``
     # (1, 2, ... within the epoch); each process answers ``taken`` once it addresses them there
     "takeover": {"owners": "array:<i8:1", "round": "int"},
+    # coordinator -> every live agent process: these agents' process exited after they had delivered everything:
+    # stop waiting for their acknowledgements (nothing needs them any more)
+    "gone": {"agents": "array:<i8:1"},
     # agent process -> coordinator: it follows takeover ``round`` (hosted: the agents it now hosts)
     "taken": {"round": "int", "hosted": "array:<i8:1"},
     # coordinator -> every live agent process: every process follows takeover ``round``: the new hosts run
@@ -202,7 +205,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
 }
 
 #: the coordinator's kinds (sender -1); it also sends ``ack``
-CONTROL = ("start", "go", "takeover", "resume", "abort", "finish")
+CONTROL = ("start", "go", "takeover", "resume", "gone", "abort", "finish")
 #: ``changes.op`` values
 CHANGE_OPS = ("add", "remove")
 #: fields a message of the kind may lack (sent by an older sender of the same schema version): their value
@@ -476,6 +479,8 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
         return
     if kind in ("ready", "taken") and len(out["hosted"]) and ((out["hosted"] < 0) | (out["hosted"] >= agents)).any():
         raise MessageError(f"{kind} names an agent outside the job")
+    if kind == "gone" and len(out["agents"]) and ((out["agents"] < 0) | (out["agents"] >= agents)).any():
+        raise MessageError("gone names an agent outside the job")
     if kind == "takeover" and (len(out["owners"]) != agents or out["round"] < 1
                                or ((out["owners"] < 0) | (out["owners"] >= agents)).any()):
         raise MessageError(f"takeover names {len(out['owners'])} owners for {agents} agents, or a bad round")

@@ -263,6 +263,10 @@ class MemoryBus:
             self._put(r.src, r.dst, r.kind, r.payload)
             self.delivery.put_returned(r.src, r.dst, r.seq, self.net.clock)
 
+    def forget(self, agents) -> None:
+        """Stop waiting for the acks of these finished agents (:meth:`Delivery.forget`)."""
+        self.delivery.forget(agents)
+
     def replay(self, agents) -> None:
         """Send these agents again everything this process sent them in this epoch (:meth:`Delivery.replay`)."""
         for r in self.delivery.replay(agents, self.net.clock):

@@ -144,9 +144,17 @@ class _Job:
             self.gone[lost.process] = self.hosts.pop(lost.process)
 
     def drivers(self) -> List:
-        """The final epoch's driver of every agent."""
+        """The final epoch's driver of every agent (that finished)."""
         every = {**self.gone, **self.hosts}
-        return [every[int(self.core.owners[a])].slots[a] for a in range(self.cfg.agents)]
+        out = []
+        for a in range(self.cfg.agents):
+            current = every[int(self.core.owners[a])].slots[a]
+            if current.state != "wait_finish":  # a finished agent running again when the job ended: its first run
+                done = [h.slots[a] for h in self.gone.values()
+                        if a in h.slots and h.slots[a].state == "wait_finish" and h.epoch == self.core.epoch]
+                current = done[-1] if done else current
+            out.append(current)
+        return out
 
     def run(self, progress: Optional[Callable[[int, int], None]]) -> float:
         """Deliver messages and let every process advance until the coordinator has everything; returns the

@@ -120,3 +120,15 @@ def test_more_losses_than_allowed_fail_the_job(data):
 
     with pytest.raises(JobFailed, match="more than the limit of 0"):
         _run(data, "balanced", [LoseProcess(1, "wait_ghost")], max_lost=0)
+
+
+@pytest.mark.parametrize("first,then", [("wait_acks", "wait_finish"), ("wait_component", "wait_finish"),
+                                        ("wait_finish", "wait_ghost")])
+def test_a_finished_process_lost_around_a_takeover(data, clean, first, then):
+    """Process 2 is lost, then process 1 (or the other way round), one of them after delivering everything.
+    A finished agent's process that goes while another agent runs again takes its messages with it: the
+    finished agent runs again too. One that goes with no takeover under way is harmless: nobody waits for
+    its acks any more (``gone``), and a later takeover runs it again if needed."""
+    r, plan = _run(data, "balanced", [LoseProcess(2, first), LoseProcess(1, then)], max_lost=2)
+    np.testing.assert_array_equal(r.labels, clean["balanced"].labels)
+    assert r.epochs == 1 and {x["recovery"] for x in r.lost} <= {"takeover"}
