@@ -12,7 +12,7 @@ from dqm.validation import InputError
 
 @pytest.fixture(scope="module")
 def data():
-    ds = synthetic.sized(3000, seed=4)
+    ds = synthetic.sized(2000, seed=4)
     return ds.descriptors, ds.image_ids
 
 
