@@ -39,14 +39,23 @@ from .ledger import Meter
 Link = Tuple[int, int, int]
 
 
+#: the slowest link rate (bytes/s) a first resend timeout assumes: a message waits for its ack at least as
+#: long as everything this process had put and not yet seen acknowledged, itself included, takes at this rate
+#: (1 Mbit/s). On a thin, saturated link an ack comes only after the megabytes queued before the message: a
+#: timeout from the round trips of small messages alone resent parts that were still queued (docs/runtime.md)
+FLOOR_BYTES_S = 125_000.0
+
+
 @dataclass
 class Pending:
-    """A message kept until acknowledged: when its last send's put returned, how often it was sent."""
+    """A message kept until acknowledged: when its last send's put returned, how often it was sent, and
+    the least it waits for its ack (the bytes ahead of it at :data:`FLOOR_BYTES_S`)."""
 
     sent_at: float
     tries: int
     payload: bytes
     kind: str
+    floor_s: float = 0.0
 
 
 class Resend(NamedTuple):
@@ -113,7 +122,8 @@ class Delivery:
         if seq is None or kind not in protocol.ACKED or dst in self._gone:
             return False
         with self._lock:  # before the put: the ack may come back at once
-            self._pending[(src, dst, seq)] = Pending(now, 1, payload, kind)
+            ahead = sum(len(p.payload) for p in self._pending.values()) + len(payload)
+            self._pending[(src, dst, seq)] = Pending(now, 1, payload, kind, ahead / FLOOR_BYTES_S)
         return True
 
     def put_returned(self, src: int, dst: int, seq: int, now: float) -> None:
@@ -128,10 +138,14 @@ class Delivery:
         with self._lock:
             return sum(1 for k in self._pending if src is None or k[0] == src)
 
+    def _timeout(self, dst: int, p: Pending) -> float:
+        """How long a pending message waits for its ack: the adaptive timeout, at least its floor."""
+        return max(self.retransmit.timeout(dst, p.tries), min(self.retransmit.max_s, p.floor_s))
+
     def next_due(self) -> Optional[float]:
         """When the earliest pending message is due again (None: nothing pending)."""
         with self._lock:
-            times = [p.sent_at + self.retransmit.timeout(k[1], p.tries) for k, p in self._pending.items()]
+            times = [p.sent_at + self._timeout(k[1], p) for k, p in self._pending.items()]
         return min(times) if times else None
 
     def due(self, now: float) -> List[Resend]:
@@ -141,7 +155,7 @@ class Delivery:
         out = []
         with self._lock:
             for (src, dst, seq), p in self._pending.items():
-                if now - p.sent_at >= self.retransmit.timeout(dst, p.tries):
+                if now - p.sent_at >= self._timeout(dst, p):
                     p.sent_at, p.tries = now, p.tries + 1
                     out.append(Resend(src, dst, seq, p.kind, p.payload))
         for _ in out:

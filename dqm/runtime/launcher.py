@@ -364,6 +364,9 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
                           workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
+    # the work folder is the launcher's: a report of an earlier job there (the same mode at another link rate of
+    # scripts/bench_hosts.py) is not this job's, and the coordinator refuses to overwrite it
+    report_path.unlink(missing_ok=True)
     coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, limits,
                                            None if clusters is None else str(clusters), host_cores, gather_cores),
                          *client_args(-1)],

@@ -132,3 +132,19 @@ def test_a_finished_process_lost_around_a_takeover(data, clean, first, then):
     r, plan = _run(data, "balanced", [LoseProcess(2, first), LoseProcess(1, then)], max_lost=2)
     np.testing.assert_array_equal(r.labels, clean["balanced"].labels)
     assert r.epochs == 1 and {x["recovery"] for x in r.lost} <= {"takeover"}
+
+
+def test_the_first_resend_waits_for_the_bytes_ahead_at_the_floor_rate():
+    """A part queued behind megabytes on a thin link is not resent after the plain 2-s timeout: it waits at
+    least as long as the bytes put before it (itself included) take at 1 Mbit/s."""
+    from dqm.distributed.delivery import FLOOR_BYTES_S, Delivery
+    from dqm.distributed.ledger import Meter
+
+    d = Delivery("j", Meter())
+    part = b"x" * 1_000_000
+    assert d.sending(0, 1, "ghost", part, 0, now=0.0) and d.sending(0, 2, "ghost", part, 0, now=0.0)
+    assert d.due(2.5) == []  # the adaptive timeout alone (2 s) would have resent both
+    first, second = len(part) / FLOOR_BYTES_S, 2 * len(part) / FLOOR_BYTES_S
+    assert [r.dst for r in d.due(first + 0.01)] == [1]
+    assert sorted(r.dst for r in d.due(second + 0.02)) == [1, 2]
+    assert d.meter.counters()[2] == 3  # each resend counted
