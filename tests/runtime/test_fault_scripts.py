@@ -38,7 +38,7 @@ def test_fuzz_small(tmp_path):
 def test_recovery_bench_small(tmp_path):
     """scripts/bench_recovery.py at a small size: a takeover and a restart after agent 1's process is
     killed in the ghost round, both with the fault-free labels, and the takeover sends fewer bytes."""
-    rc = load("bench_recovery").main(["--features", "3000", "--agents", "3", "--states", "wait_ghost",
+    rc = load("bench_recovery").main(["--features", "2000", "--agents", "2", "--states", "wait_ghost",
                                       "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "recovery.json").read_text())["rows"]
     assert rc == 0 and [r["recovery"] for r in rows] == ["", "takeover", "restart"]
@@ -50,4 +50,4 @@ def test_recovery_bench_small(tmp_path):
     md = (tmp_path / "recovery.md").read_text()
     assert "| state wait_ghost |" in md and "| takeover |" in md and "| restart |" in md
     # it keeps what exists unless told
-    assert load("bench_recovery").main(["--features", "3000", "--agents", "3", "--out", str(tmp_path)]) == 2
+    assert load("bench_recovery").main(["--features", "2000", "--agents", "2", "--out", str(tmp_path)]) == 2
