@@ -125,6 +125,14 @@ class CoordinatorCore:
         self.replaying: set = set()
 
     # ------------------------------------------------------------------ what the shell reads
+    def address(self, transport) -> None:
+        """Put ``transport`` (the coordinator's bus) in this core's epoch and agent -> process map, before it
+        sends the outbox: a restart changes both, a takeover the map."""
+        if transport.epoch != self.epoch:
+            transport.set_epoch(self.epoch)
+        if not np.array_equal(transport.owners, self.owners):
+            transport.set_owners(self.owners)
+
     def take_outbox(self) -> List[Outgoing]:
         out, self.outbox = self.outbox, []
         return out

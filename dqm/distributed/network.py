@@ -201,7 +201,7 @@ class MemoryBus:
         self.delivery = Delivery(net.job, net.meter)
         self.owners = np.arange(net.m, dtype=np.int64)
         self.hosted = frozenset([home]) if home >= 0 else frozenset()
-        self._key_bytes: Dict[Tuple[int, int], int] = {}
+        self._keys: Dict[Tuple[int, int], str] = {}  # (process, agent) -> message key
 
     @property
     def meter(self) -> Meter:
@@ -217,7 +217,7 @@ class MemoryBus:
 
     def set_owners(self, owners) -> None:
         self.owners = np.asarray(owners, dtype=np.int64).copy()
-        self._key_bytes.clear()
+        self._keys.clear()
 
     def host(self, agents) -> None:
         self.hosted = frozenset(int(a) for a in agents) | ({self.home} if self.home >= 0 else set())
@@ -231,13 +231,14 @@ class MemoryBus:
 
     def _put(self, src: int, dst: int, kind: str, payload: bytes) -> dict:
         process = self._process(dst)
+        key = self._keys.get((process, dst))
+        if key is None:
+            key = self._keys[(process, dst)] = keys.message_key(self.job, self.home, process, dst)
         if kind not in self.net.unmetered:
-            if (process, dst) not in self._key_bytes:
-                self._key_bytes[(process, dst)] = len(keys.message_key(self.job, self.home, process, dst))
-            self.meter.add(src, dst, kind, len(payload) + self._key_bytes[(process, dst)])
+            self.meter.add(src, dst, kind, len(payload) + len(key))
         msg = messages.decode(payload, job=self.job, agents=self.net.m, dim=self.dim, sender=src)
         msg["_bytes"] = len(payload)
-        msg["_key"] = keys.message_key(self.job, self.home, process, dst)
+        msg["_key"] = key
         self.net.put(process, dst, msg)
         return msg
 

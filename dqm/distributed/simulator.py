@@ -127,10 +127,7 @@ class _Job:
 
     def flush(self) -> None:
         """Send what the coordinator decided (entering its epoch first)."""
-        if self.coord.epoch != self.core.epoch:
-            self.coord.set_epoch(self.core.epoch)
-        if not np.array_equal(self.coord.owners, self.core.owners):
-            self.coord.set_owners(self.core.owners)
+        self.core.address(self.coord)
         for p, kind, fields in self.core.take_outbox():
             self.coord.send_single(COORDINATOR, p, kind, **fields)
         self.core.take_events()

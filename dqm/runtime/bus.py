@@ -342,6 +342,12 @@ class Bus:
         with self._lock:
             self._hosted = frozenset(int(a) for a in agents) | ({self.home} if self.home >= 0 else set())
 
+    @property
+    def owners(self):
+        """The process hosting each agent, as this process addresses them now."""
+        with self._lock:
+            return self._owners
+
     def set_owners(self, owners) -> None:
         """The process hosting each agent in this epoch (the ``start`` message's ``owners``)."""
         import numpy as np

@@ -21,8 +21,6 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional
 
-import numpy as np
-
 from .. import io, signals
 from ..distributed import keys, messages, sources
 from ..distributed.config import DQMConfig
@@ -89,7 +87,6 @@ class Coordinator:
         self.view = view
         self.t0 = time.monotonic()
         self._since = (self.core.phase, self.core.epoch, self.t0)  # when the core entered its phase
-        self._owners = self.core.owners.copy()  # the bus's (agent -> process)
 
     @property
     def cfg(self) -> DQMConfig:
@@ -104,11 +101,7 @@ class Coordinator:
     def _flush(self) -> None:
         """Send what the core decided (entering its epoch first), show its events."""
         core = self.core
-        if self.bus.epoch != core.epoch:
-            self.bus.set_epoch(core.epoch)
-        if not np.array_equal(self._owners, core.owners):
-            self._owners = core.owners.copy()
-            self.bus.set_owners(self._owners)
+        core.address(self.bus)
         for p, kind, fields in core.take_outbox():
             try:
                 self.bus.send_single(COORDINATOR, p, kind, **fields)
