@@ -372,6 +372,7 @@ def kernel_pass(
     progress: ProgressFn = None,
     use_native: bool = True,
     rows_limit: Optional[int] = None,
+    cols_from: Optional[int] = None,
     max_edges: Optional[int] = None,
     on_edges: Optional[Callable[[np.ndarray, np.ndarray], None]] = None,
 ) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
@@ -388,6 +389,9 @@ def kernel_pass(
     copies of other cells' features, whose pairs among themselves are another
     agent's work). The candidate edges are then exactly those pairs; the
     approximate densities are not restricted and should not be used. With
+    ``cols_from = C`` as well, only pairs between the first L and the features
+    from C on are visited (an agent meeting one batch of copies at a time: its
+    own features first, the batch after them, with L = C). With
     ``max_edges``, collection stops once more edges than that are found; the
     densities are still complete and ``child`` and ``cand`` come back as None
     (the streaming :func:`parent_pass` then finds the parents). With
@@ -411,7 +415,8 @@ def kernel_pass(
     err = np.zeros(n, dtype=np.float64)
     starts = list(range(0, n, BLOCK))
     limit = n if rows_limit is None else int(rows_limit)
-    tasks = [(a, b) for ia, a in enumerate(starts) if a < limit for b in starts[ia:]]
+    cross = 0 if cols_from is None else int(cols_from)
+    tasks = [(a, b) for ia, a in enumerate(starts) if a < limit for b in starts[ia:] if b + BLOCK > cross]
 
     def work(task: Tuple[int, int]):
         a, b = task
@@ -437,6 +442,9 @@ def kernel_pass(
         return a, b, dr, er, dc, ec, r, c
 
     def within_limit(ch: np.ndarray, ca: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        if cross:
+            keep = ((ch < limit) & (ca >= cross)) | ((ca < limit) & (ch >= cross))
+            return ch[keep], ca[keep]
         if limit >= n:
             return ch, ca
         keep = (ch < limit) | (ca < limit)  # blocks straddling the limit also met pairs beyond it

@@ -10,11 +10,17 @@ Every agent owns the features of its cell (after routing) and, round by round:
 ``request``    asks for the rest of a sketch only where it can pay: the candidates the
                pilot does not already prove plausible bound what the rest can save;
 ``sketch_rest`` sends the rest where asked (an empty message otherwise);
-``ghost``      ships copies of the features another cell may need (one way per cell pair);
-``sums``       finds, in one blocked pass over its own features and the copies it holds
-               (pairs among copies are another agent's work), every pair within
-               reach, and returns each copy's exact partial density (integer sums,
-               dqm.core.density) to the copy's owner;
+``offer``      says how many copies of its features another cell may need (one way per
+               cell pair);
+``ghost``      pulls the copies offered to it, a window at a time (``grant``: sender,
+               offset, count; the sender answers with those copies in a ``ghost``
+               message), at most two windows out, each window met with the own
+               features as it arrives and then let go: the agent holds its own
+               features and at most half as many copies (:attr:`BalancedCore.window`);
+               the pairs among its own features are met while the first windows travel,
+               pairs among copies are another agent's work;
+``sums``       with every pair within reach met, returns each copy's exact partial
+               density (integer sums, dqm.core.density) to the copy's owner;
 ``density``    completes its own features' densities (bit-identical to the centralized
                engine's) and tells the holders of its copies;
 ``proposal``   proposes, for every copy it holds, the nearest higher-ranked own
@@ -50,8 +56,8 @@ from .shard import Shard
 Payload = Dict[str, np.ndarray]
 
 #: the balanced rounds after routing, in order; each is one message kind
-ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density", "proposal", "notify", "fragments",
-          "assign", "component")
+ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "offer", "ghost", "sums", "density", "proposal", "notify",
+          "fragments", "assign", "component")
 
 
 class BalancedCore:
@@ -161,7 +167,7 @@ class BalancedCore:
         rest of the sketch can pay for itself."""
         self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
         out = {}
-        for b in self.recipients("ghost"):
+        for b in self.recipients("offer"):
             idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
                                                   self.rule))
             pilot = inputs.get(b) if self.space is not None else None
@@ -191,12 +197,12 @@ class BalancedCore:
         self.stats["sketches_sent"] += float(sum(int(v["codes"].shape[0]) for v in out.values()))
         return out
 
-    def _round_ghost(self, inputs) -> Dict[int, Payload]:
+    def _round_offer(self, inputs) -> Dict[int, Payload]:
         self.shipped: Dict[int, np.ndarray] = {}
         self.shipped_to = np.zeros((self.n_own, self.m), bool)
         out = {}
         geometric = 0
-        for b in self.recipients("ghost"):
+        for b in self.recipients("offer"):
             cand, hit, want = self.plan[b]
             geometric += len(cand)
             if want and self._sketch_ok(inputs.get(b)):
@@ -208,13 +214,24 @@ class BalancedCore:
             idx = cand[hit]
             self.shipped[b] = idx
             self.shipped_to[idx, b] = True
-            o = self.own
-            out[b] = {"ids": o.ids[idx], "image_ids": o.image_ids[idx], "descriptors": o.descriptors[idx],
-                      "sigma": o.sigma[idx]}
+            out[b] = {"count": len(idx)}
         self.stats.update(ghosts_geometric=float(geometric),
                           ghosts_sent=float(sum(len(v) for v in self.shipped.values())),
                           sketch_rests_asked=float(sum(p[2] for p in self.plan.values())))
         return out
+
+    def copies(self, b: int, offset: int, count: int) -> Payload:
+        """The copies for cell b from ``offset`` on, ``count`` of them at most (b's grant); an
+        empty payload for a grant beyond them or from a cell this one does not ship to."""
+        idx = self.shipped.get(b, np.zeros(0, np.int64))
+        if offset < 0 or count < 0 or offset > len(idx) or b not in self.shipped:
+            self.failures += 1
+            idx = idx[:0]
+        else:
+            idx = idx[offset:offset + count]
+        o = self.own
+        return {"offset": int(offset), "ids": o.ids[idx], "image_ids": o.image_ids[idx],
+                "descriptors": o.descriptors[idx], "sigma": o.sigma[idx]}
 
     def _arrival_check(self, a: int, p: Payload) -> int:
         """Ghosts from a that a's rule would not have sent here, recomputed on arrival.
@@ -242,88 +259,157 @@ class BalancedCore:
             ok[sample] &= hit
         return int((bad | ~ok).sum())
 
-    def _round_sums(self, inputs) -> Dict[int, Payload]:
+    def _round_ghost(self, inputs) -> Dict[int, Payload]:
+        """Every sender's offer (how many copies it has for this cell): plan the windows in which
+        they are pulled (:meth:`next_grant`, :meth:`absorb`); nothing is sent in this round."""
         me = self.me
-        senders = self.recipients("sums")
-        parts = [self.own]
-        src = [np.full(self.n_own, me, np.int64)]
         self.ghost_slices: Dict[int, slice] = {}
         start = self.n_own
-        for a in senders:
+        src = [np.full(self.n_own, me, np.int64)]
+        for a in self.senders("offer"):
             p = inputs.get(a)
-            if p is None or (len(p["ids"]) and p["descriptors"].shape[1] != self.X.shape[1]):
-                self.failures += p is not None
-                p = {"ids": np.zeros(0, np.int64), "image_ids": np.zeros(0, np.int64),
-                     "descriptors": self.own.descriptors[:0], "sigma": np.zeros(0)}
-            self.failures += self._arrival_check(a, p)
-            k = len(p["ids"])
-            parts.append(Shard(np.asarray(p["ids"], np.int64), np.asarray(p["image_ids"], np.int64),
-                               np.asarray(p["descriptors"]).astype(self.own.descriptors.dtype, copy=False),
-                               np.asarray(p["sigma"], np.float64), np.full(k, a, np.int64)))
-            src.append(np.full(k, a, np.int64))
+            k = int(p["count"]) if p is not None else 0
             self.ghost_slices[a] = slice(start, start + k)
+            src.append(np.full(k, a, np.int64))
             start += k
-        held = Shard(*(np.concatenate([getattr(s, f) for s in parts]) for f in
-                       ("ids", "image_ids", "descriptors", "sigma", "cells")))
-        self.failures += len(held.ids) - len(np.unique(held.ids))  # a copy of an own feature, or twice the same
-        self.held_ids = held.ids
+        n_held = start
         self.held_src = np.concatenate(src)
-        n_held = len(held)
+        self.held_ids = np.concatenate([self.own.ids, np.full(n_held - self.n_own, -1, np.int64)])
+        self.sums = exact.ExactSums(n_held)
+        self.kept: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.kept_edges = 0
+        self.windows = [(a, off, min(self.window, sl.stop - sl.start - off))
+                        for a, sl in self.ghost_slices.items() for off in range(0, sl.stop - sl.start, self.window)]
+        self.windows.reverse()  # popped from the end: in order
+        self.pulled_rows = 0
+        self.own_met = False
         n_ghost = n_held - self.n_own
-        self.stats.update(ghosts_held=float(n_ghost), max_held=float(n_held),
-                          pairs=float(self.n_own * (self.n_own - 1) // 2 + self.n_own * n_ghost))
+        self.stats.update(ghosts_held=float(n_ghost), max_held=float(self.n_own),
+                          pairs=float(self.n_own * (self.n_own - 1) // 2 + self.n_own * n_ghost),
+                          ghost_windows=float(len(self.windows)))
+        return {}
+
+    @property
+    def window(self) -> int:
+        """Copies pulled per grant: a quarter of the cell (at least 256), so that with two grants
+        out the agent holds its own features and at most half as many copies."""
+        return max(256, -(-self.n_own // 4))
+
+    def next_grant(self) -> Optional[Tuple[int, int, int]]:
+        """The next window of copies to ask for: ``(sender, offset, count)``, or None when all were asked."""
+        return self.windows.pop() if self.windows else None
+
+    def pulled(self) -> bool:
+        """Every copy offered to this cell has arrived and met the own features."""
+        return not self.windows and self.pulled_rows == len(self.held_ids) - self.n_own
+
+    def meet_own(self) -> bool:
+        """The pairs among the own features (once, while the first copies travel); True if it ran now."""
+        if self.own_met:
+            return False
+        t = time.process_time()
+        self.own_met = True
+        self._meet(self.own, np.arange(self.n_own), None)
+        self.cpu += time.process_time() - t
+        return True
+
+    def absorb(self, a: int, payload: Optional[Payload], expected: int) -> int:
+        """One window of copies from sender a (``expected`` of them asked for; None: refused on
+        arrival): checked, met with every own feature, and let go (their sums, parent candidates
+        and ids stay). Returns the copies absorbed."""
+        self.meet_own()
+        t = time.process_time()
+        sl = self.ghost_slices.get(a)
+        k = 0 if payload is None else len(payload["ids"])
+        off = -1 if payload is None else int(payload["offset"])
+        if payload is None or sl is None or k != expected or off < 0 or sl.start + off + k > sl.stop or \
+                (k and payload["descriptors"].shape[1] != self.X.shape[1]):
+            self.failures += 1
+            self.pulled_rows += expected
+            return 0
+        self.failures += self._arrival_check(a, payload)
+        rows = np.arange(sl.start + off, sl.start + off + k)
+        if (self.held_ids[rows] >= 0).any():  # the same window twice
+            self.failures += 1
+            self.pulled_rows += expected
+            return 0
+        self.held_ids[rows] = payload["ids"]
+        batch = Shard(np.asarray(payload["ids"], np.int64), np.asarray(payload["image_ids"], np.int64),
+                      np.asarray(payload["descriptors"]).astype(self.own.descriptors.dtype, copy=False),
+                      np.asarray(payload["sigma"], np.float64), np.full(k, a, np.int64))
+        self.stats["max_held"] = max(self.stats["max_held"], float(self.n_own + k))
+        held = Shard(*(np.concatenate([getattr(self.own, f), getattr(batch, f)]) for f in
+                       ("ids", "image_ids", "descriptors", "sigma", "cells")))  # own first: the index space
+        self._meet(held, np.concatenate([np.arange(self.n_own), rows]), self.n_own)
+        self.pulled_rows += k
+        self.cpu += time.process_time() - t
+        return k
+
+    def _meet(self, held: Shard, where: np.ndarray, cross: Optional[int]) -> None:
+        """Every pair within reach among ``held`` (with ``cross = L``: only pairs of one of its first
+        L rows, the own features, and one of the rest): exact kernel terms into the sums and parent
+        candidates kept, both in the cell's index space (``where[k]``: the index of held row k)."""
+        n = len(held)
+        if n == 0:
+            return
         sig = held.sigma
-        R = ghosts.reach(sig, self.cfg.rho)
-        sums = exact.ExactSums(n_held)
-        self.cand = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-        if n_held:
-            aug = pairs.Augmented(held.descriptors)
-            zero = np.zeros(n_held)
-            active = sig > 0
-            w = np.where(active, 1.0 / np.where(active, sig, 1.0) ** 2, 0.0)
-            radius = self.cfg.rho * sig
-            kept: List[Tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-            budget = memory.resolve_budget(None)
-            cap = max(0, budget - memory.base_bytes(n_held, aug.dim, pairs.default_threads())) // memory.BYTES_PER_EDGE
-            held_edges = [0]
+        active = sig > 0
+        w = np.where(active, 1.0 / np.where(active, sig, 1.0) ** 2, 0.0)
+        radius = self.cfg.rho * sig
+        aug = pairs.Augmented(held.descriptors)
+        zero = np.zeros(n)
+        budget = memory.resolve_budget(None)
+        cap = max(0, budget - memory.base_bytes(n, aug.dim, pairs.default_threads())) // memory.BYTES_PER_EDGE
 
-            def tile_edges(cr: np.ndarray, cc: np.ndarray) -> None:
-                # one tile's pairs within reach: their exact kernel terms now, and only the
-                # parent candidates kept, so memory does not grow with the kernel's reach
-                lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
-                key = np.unique(lo * n_held + hi)
-                i, j = key // n_held, key % n_held
-                if self.rule == "two-way":  # a pair both of whose features travelled is counted at the lower agent
-                    i, j = self._dedupe_two_way(i, j)
-                d2 = pairs.exact_sq_distances(aug.exact, i, j)
-                t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
-                t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
-                sums.add_terms(np.concatenate([j, i]), np.concatenate([t_ij, t_ji]))
-                d = np.sqrt(d2)
-                c1 = d < radius[i]  # i child, j candidate parent
-                c2 = d < radius[j]
-                kept.append((np.concatenate([i[c1], j[c2]]), np.concatenate([j[c1], i[c2]]),
-                             np.concatenate([d[c1], d[c2]])))
-                held_edges[0] += len(kept[-1][0])
-                if held_edges[0] > cap:
-                    raise memory.MemoryBudgetError(
-                        f"agent {self.me}: the parent candidates within rho * sigma (rho {self.cfg.rho:g}) of its "
-                        f"{n_held:,} features would pass its memory budget of {memory.format_bytes(budget)}; "
-                        "use a smaller rho or more agents")
+        def tile_edges(cr: np.ndarray, cc: np.ndarray) -> None:
+            # one tile's pairs within reach: their exact kernel terms now, and only the
+            # parent candidates kept, so memory does not grow with the kernel's reach
+            lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
+            key = np.unique(lo * n + hi)
+            i, j = key // n, key % n
+            d2 = pairs.exact_sq_distances(aug.exact, i, j)
+            t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
+            t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
+            gi, gj = where[i], where[j]
+            if self.rule == "two-way":  # a pair both of whose features travelled is counted at the lower agent
+                keep = self._single_count(gi, gj)
+                gi, gj, d2, t_ij, t_ji = gi[keep], gj[keep], d2[keep], t_ij[keep], t_ji[keep]
+                i, j = i[keep], j[keep]
+            self.sums.add_terms(np.concatenate([gj, gi]), np.concatenate([t_ij, t_ji]))
+            d = np.sqrt(d2)
+            c1 = d < radius[i]  # i child, j candidate parent
+            c2 = d < radius[j]
+            self.kept.append((np.concatenate([gi[c1], gj[c2]]), np.concatenate([gj[c1], gi[c2]]),
+                              np.concatenate([d[c1], d[c2]])))
+            self.kept_edges += len(self.kept[-1][0])
+            if self.kept_edges > cap:
+                raise memory.MemoryBudgetError(
+                    f"agent {self.me}: the parent candidates within rho * sigma (rho {self.cfg.rho:g}) of its "
+                    f"{len(self.held_ids):,} features and copies would pass its memory budget of "
+                    f"{memory.format_bytes(budget)}; use a smaller rho or more agents")
 
-            pairs.kernel_pass(aug, zero, zero, "quadratic", R, rows_limit=self.n_own, on_edges=tile_edges)
-            if kept:
-                self.cand = tuple(np.concatenate(part) for part in zip(*kept))
-        self.sums = sums
+        pairs.kernel_pass(aug, zero, zero, "quadratic", ghosts.reach(sig, self.cfg.rho), rows_limit=cross,
+                          cols_from=cross, on_edges=tile_edges)
+
+    def _round_sums(self, inputs) -> Dict[int, Payload]:
+        self.meet_own()  # no copies offered at all
+        if not self.pulled():
+            self.failures += 1  # the driver stepped before every window was absorbed (a bug or a refusal)
+        arrived = self.held_ids[self.held_ids >= 0]
+        self.failures += len(arrived) - len(np.unique(arrived))  # a copy of an own feature, or twice the same
+        self.cand = tuple(np.concatenate(part) for part in zip(*self.kept)) if self.kept else \
+            (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        del self.kept
         out = {}
-        for a in senders:
+        for a in self.recipients("sums"):
             sl = self.ghost_slices[a]
-            units, high = exact.pack_parts(*sums.parts(np.arange(sl.start, sl.stop)))
+            units, high = exact.pack_parts(*self.sums.parts(np.arange(sl.start, sl.stop)))
             out[a] = {"units": units, "high": high}
         return out
 
-    def _dedupe_two_way(self, i: np.ndarray, j: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Two-way rule: drop own-ghost pairs that the ghost's owner also meets and counts."""
+    def _single_count(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Two-way rule: which pairs (cell indices) to count here: not own-copy pairs that the copy's
+        owner also meets and counts."""
         gi = i >= self.n_own
         gj = j >= self.n_own
         own_idx = np.where(gi, j, i)
@@ -331,7 +417,7 @@ class BalancedCore:
         mixed = gi ^ gj
         a = self.held_src[ghost_idx]
         also_there = mixed & self.shipped_to[np.minimum(own_idx, max(0, self.n_own - 1)), a] & (a < self.me)
-        return i[~also_there], j[~also_there]
+        return ~also_there
 
     def _round_density(self, inputs) -> Dict[int, Payload]:
         for b in self.recipients("density"):
@@ -389,7 +475,7 @@ class BalancedCore:
         parent, pdist, owner = self.local_best
         tgt, cand, dist, who = [np.arange(self.n_own)[parent >= 0]], [parent[parent >= 0]], \
             [pdist[parent >= 0]], [owner[parent >= 0]]
-        for b in self.recipients("ghost"):
+        for b in self.recipients("offer"):
             p = inputs.get(b)
             idx = self.shipped.get(b, np.zeros(0, np.int64))
             if p is None:
@@ -512,8 +598,10 @@ def recipients_of(a: int, name: str, ships: np.ndarray, sketches: bool) -> List[
         return [b for b in others if ships[b, a]] if sketches else []
     if name == "request":
         return [b for b in others if ships[a, b]] if sketches else []
-    if name in ("ghost", "density"):
+    if name in ("offer", "density"):
         return [b for b in others if ships[a, b]]
+    if name == "ghost":  # pulled window by window (grant, then copies), not sent as a round
+        return []
     if name in ("sums", "proposal"):
         return [b for b in others if ships[b, a]]
     if name == "fragments":

@@ -46,6 +46,9 @@ STATES = SETUP_STATES + BALANCED_STATES + CASCADE_STATES + END_STATES
 
 #: message kinds that arrive once per sender and step (kept in arrival order per sender)
 SINGLE_KINDS = ("sample", "seeds", "fill", "counts", "weights", "minima")
+#: windows of copies a balanced agent asks for before the first has arrived (two: one travels while
+#: the agent meets the other with its own features)
+PULL_WINDOWS = 2
 
 
 def states_for(mode: str) -> Tuple[str, ...]:
@@ -115,6 +118,7 @@ class AgentDriver:
         self.state = "wait_start"
         self.phase_timeout_s = phase_timeout_s
         self.phase_started = time.monotonic()
+        self.waiting_since = self.phase_started  # what the phase timeout measures: the last step forward
         self.on_state = on_state
         self.trace = trace
         self.seed: Optional[int] = None
@@ -126,6 +130,10 @@ class AgentDriver:
         self.parts: Dict[Tuple[str, int], Dict[int, dict]] = defaultdict(dict)
         self.chunks: Dict[Tuple[int, str], List[dict]] = defaultdict(list)
         self.ends: Dict[Tuple[int, str], dict] = {}
+        self.grants: Dict[int, Deque[dict]] = defaultdict(deque)  # balanced: windows other cells asked for
+        self.windows_in: Dict[Tuple[int, int], Dict[int, dict]] = defaultdict(dict)  # (sender, offset) -> parts
+        self.asked: Dict[Tuple[int, int], int] = {}  # windows asked for and not yet in: (sender, offset) -> count
+        self.held_peak = 0  # the most feature rows this agent held at once (measured, see held_rows)
         self.times: Dict[str, float] = {}
         self.cpu0 = time.process_time()
         self.stats: Dict[str, float] = {}
@@ -147,7 +155,11 @@ class AgentDriver:
 
     def handle(self, msg: dict) -> None:
         kind, src = msg["kind"], msg["src"]
-        if kind in SINGLE_KINDS and src >= 0:
+        if kind == "grant" and src >= 0:
+            self.grants[src].append(msg)
+        elif kind == "ghost" and src >= 0:
+            self.windows_in[(src, msg["offset"])][msg["part"]] = msg
+        elif kind in SINGLE_KINDS and src >= 0:
             self.singles[(kind, src)].append(msg)
         elif "parts" in msg and src >= 0:
             self.parts[(kind, src)][msg["part"]] = msg
@@ -155,6 +167,20 @@ class AgentDriver:
             self.chunks[(src, msg["phase"])].append(msg)
         elif kind == "phase_end" and src >= 0 and msg["dst"] == self.me:
             self.ends[(src, msg["phase"])] = msg
+        self._note_held()
+
+    def held_rows(self) -> int:
+        """Feature rows this agent holds now: its source's features until they are routed, its
+        cell's, and every routed, handed-down or copied feature received and not yet let go."""
+        if self.core is not None:
+            rows = self.core_features()
+        else:  # the cell's part of the source's own features counts once
+            rows = len(self.desc) or len(getattr(self, "own_part", ()))
+        rows += sum(len(c["ids"]) for chunks in self.chunks.values() for c in chunks)
+        return rows + sum(len(p["ids"]) for got in self.windows_in.values() for p in got.values())
+
+    def _note_held(self) -> None:
+        self.held_peak = max(self.held_peak, self.held_rows())
 
     def _have(self, kind: str, senders) -> bool:
         return all(self.singles[(kind, a)] for a in senders)
@@ -185,7 +211,7 @@ class AgentDriver:
         return end is not None and len(self.chunks[(src, phase)]) == end["messages"]
 
     def _shard_from(self, src: int, phase: str) -> Tuple[Shard, np.ndarray]:
-        ch = sorted(self.chunks[(src, phase)], key=lambda c: c["seq"])
+        ch = sorted(self.chunks.pop((src, phase), []), key=lambda c: c["seq"])
         if not ch:
             return Shard.empty(self.dim, self.desc.dtype), np.zeros(0, np.int64)
         ids = np.concatenate([c["ids"] for c in ch])
@@ -231,7 +257,7 @@ class AgentDriver:
         now = time.monotonic()
         self.times[f"time_{self.state}"] = self.times.get(f"time_{self.state}", 0.0) + now - self.phase_started
         self.state = state
-        self.phase_started = now
+        self.phase_started = self.waiting_since = now
         self.bus.send(self.me, COORDINATOR, "progress", messages.encode(
             "progress", self.cfg.job, self.me, epoch=self.epoch, state=state,
             features=int(len(self.ids) if self.core is None else self.core_features()),
@@ -277,6 +303,11 @@ class AgentDriver:
         for b in self._others():
             k = self._send_features(b, "route", parts[b], None)
             self._phase_end(b, "route", k, len(parts[b]))
+        # the source's features are on their way (the delivery layer keeps what it must resend):
+        # the driver lets them go (the process keeps its input arrays for a restart)
+        self._note_held()
+        self.source.descriptors = self.source.X = None
+        self.desc = self.desc[:0]
         self._enter("wait_routed")
 
     def _leader_round(self, collect: str, reply: str, own: dict, compute, apply, then, parts: bool = False) -> bool:
@@ -347,6 +378,60 @@ class AgentDriver:
             self._send_parts(name, dst, payload)
         self._enter(f"wait_{name}")
 
+    def _serve_grants(self) -> None:
+        """Send the windows of copies other cells asked for (balanced); grants that come before
+        this agent has decided its copies wait for it, and are answered in the order they came."""
+        core = self.core
+        if not isinstance(core, BalancedCore) or core.round <= ROUNDS.index("offer"):
+            return
+        for b, queue in self.grants.items():
+            while queue:
+                g = queue.popleft()
+                self._send_parts("ghost", b, core.copies(b, g["offset"], g["count"]))
+
+    def _pull(self) -> None:
+        """``wait_ghost``: ask for windows of copies (at most :data:`PULL_WINDOWS` out), meet the own
+        features with each other while they travel, meet each window as it comes and let it go."""
+        core = self.core
+        self._ask()
+        if core.meet_own():
+            self.waiting_since = time.monotonic()
+        while self._absorb_ready():
+            self._ask()
+        if core.pulled() and not self.asked:
+            self._balanced_step({})  # the sums round: the copies came window by window
+
+    def _absorb_ready(self) -> int:
+        """Absorb every window that was asked for and has all its parts; returns how many."""
+        done = 0
+        for key in sorted(self.windows_in):
+            got = self.windows_in[key]
+            # a window not asked for yet waits (after a takeover, senders replay what they had sent)
+            if key not in self.asked or len(got) != next(iter(got.values()))["parts"]:
+                continue
+            self._note_held()
+            del self.windows_in[key]
+            expected = self.asked.pop(key)
+            try:
+                payload = protocol.merge_parts("ghost", list(got.values()))
+            except messages.MessageError as exc:
+                self.bus.meter.reject(str(exc))
+                payload = None
+            self.core.absorb(key[0], payload, expected)
+            self.waiting_since = time.monotonic()  # a window met is a step forward (the timeout is for waits)
+            done += 1
+        return done
+
+    def _ask(self) -> None:
+        """Grant the next windows of copies until :data:`PULL_WINDOWS` are out."""
+        while len(self.asked) < PULL_WINDOWS:
+            g = self.core.next_grant()
+            if g is None:
+                return
+            a, offset, count = g
+            self.asked[(a, offset)] = count
+            self._send_parts("grant", a, {"offset": offset, "count": count})
+
     def _minima(self) -> None:
         for a, msg in self._take("minima", self._others()).items():
             self.minima_rows[a] = np.array(msg["values"], dtype=np.float64)
@@ -378,6 +463,8 @@ class AgentDriver:
             self._send_parts("catalog", COORDINATOR, self.catalog)
         self._send_single("result", COORDINATOR, ids=ids, labels=labels)
         self.core_stats = {k: float(v) for k, v in stats.items()}
+        self._note_held()
+        self.core_stats["held_peak"] = float(self.held_peak)
         self.stats.update(self.core_stats)
         self._enter("wait_acks")
 
@@ -395,9 +482,12 @@ class AgentDriver:
 
     def advance(self) -> None:
         s = self.state
+        self._serve_grants()
         if self._setup_step():
             return
-        if s == "wait_routed" and all(self._complete(b, "route") for b in self._others()):
+        if s == "wait_ghost" and self.cfg.mode == "balanced":
+            self._pull()
+        elif s == "wait_routed" and all(self._complete(b, "route") for b in self._others()):
             self._routed()
         elif s in BALANCED_STATES and self.cfg.mode == "balanced":
             name = s[5:]
@@ -427,6 +517,6 @@ class AgentDriver:
             self.advance()
 
     def check_timeout(self) -> None:
-        if self.state != "wait_finish" and time.monotonic() - self.phase_started > self.phase_timeout_s:
+        if self.state != "wait_finish" and time.monotonic() - self.waiting_since > self.phase_timeout_s:
             raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s in state "
                                f"{self.state!r}")

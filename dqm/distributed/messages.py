@@ -37,9 +37,10 @@ import numpy as np
 from ..core.events import EVENT_KINDS, ClusterEvent
 from . import wire
 
-#: the schema version (6: takeover / taken / resume, and ready / taken / refuse not numbered; 5: compact
-#: encodings). Processes of different versions refuse each other's messages, naming the version
-VERSION = 6
+#: the schema version (7: copies offered, then pulled by windows: offer / grant / ghost; 6: takeover /
+#: taken / resume, and ready / taken / refuse not numbered; 5: compact encodings). Processes of different
+#: versions refuse each other's messages, naming the version
+VERSION = 7
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 #: most entries of a map: an agent's ``stats`` hold two per (destination, kind) it sent to, so 1,024
@@ -150,8 +151,12 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "request": {**ENVELOPE, "want": "int"},
     "sketch_rest": {**ENVELOPE, "codes": "array:|i1:2", "residual": "array:|u1:1", "reach": "array:<f4:1",
                     "scale": "array:<f8:1", "bounds": "array:<f8:1", "pending": "int"},
-    "ghost": {**ENVELOPE, "ids": "array:<i8:1", "image_ids": "array:<i8:1", "descriptors": "array:|u1,<f4:2",
-              "sigma": "array:<f8:1"},
+    # balanced: a sender offers a cell ``count`` copies; the cell pulls them by windows (``grant``: ``count`` copies
+    # from ``offset`` on), each answered by one ``ghost`` message (possibly in parts) with those copies
+    "offer": {**ENVELOPE, "count": "int"},
+    "grant": {**ENVELOPE, "offset": "int", "count": "int"},
+    "ghost": {**ENVELOPE, "offset": "int", "ids": "array:<i8:1", "image_ids": "array:<i8:1",
+              "descriptors": "array:|u1,<f4:2", "sigma": "array:<f8:1"},
     "sums": {**ENVELOPE, "units": "array:<i8:1", "high": "array:<i8:1"},
     "density": {**ENVELOPE, "density": "array:<f8:1"},
     "proposal": {**ENVELOPE, "index": "array:<i8:1", "parent": "array:<i8:1", "distance": "array:<f8:1"},
@@ -441,6 +446,9 @@ def _check_content(kind: str, out: Dict[str, Any], agents: Optional[int], dim: O
         raise MessageError("non-finite density")
     if kind == "sigmas":
         _nonneg(out["values"], "sigmas.values")
+    for f in ("count", "offset"):
+        if kind in ("offer", "grant", "ghost") and f in out and out[f] < 0:
+            raise MessageError(f"negative {kind}.{f}")
     if kind in ("sketch", "sketch_rest"):
         if out["pending"] < 0:
             raise MessageError(f"negative {kind}.pending")

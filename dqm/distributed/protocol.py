@@ -26,8 +26,11 @@ Lean / paper (cascade): ``minima`` all-to-all, then ``features`` hand-downs with
 ``phase_end`` (and the (cell, target) moves) from agent m-1 down to 0.
 
 Balanced: the rounds of dqm.distributed.balanced.ROUNDS, one message kind each
-(``bounds``, ``sketch``, ``ghost``, ``sums``, ``density``, ``proposal``, ``notify``,
-``fragments``, ``assign``, ``component``), each a payload of arrays split into
+(``bounds``, ``sketch``, ``request``, ``sketch_rest``, ``offer``, ``sums``, ``density``,
+``proposal``, ``notify``, ``fragments``, ``assign``, ``component``), but the copies: a
+receiver pulls the copies offered to it by windows, ``grant`` (offset, count) answered by one
+``ghost`` message of those copies (flow control: it holds its own features and at most two
+windows). Each is a payload of arrays split into
 parts of at most :data:`PART_BYTES` (every part carries ``seq``, ``part`` and
 ``parts``; the receiver has a sender's round when it holds all parts).
 
@@ -110,8 +113,8 @@ def unpack_moved(flat: np.ndarray) -> np.ndarray:
 
 
 #: kinds that are acknowledged by the receiver and resent until they are (bulk payloads)
-ACKED = ("features", "sigmas", "bounds", "sketch", "request", "sketch_rest", "ghost", "sums", "density",
-         "proposal", "notify", "fragments", "assign", "component", "catalog", "gather")
+ACKED = ("features", "sigmas", "bounds", "sketch", "request", "sketch_rest", "offer", "grant", "ghost", "sums",
+         "density", "proposal", "notify", "fragments", "assign", "component", "catalog", "gather")
 
 
 def ack(job: str, src: int, dst: int, seq: int, epoch: int = 0) -> bytes:

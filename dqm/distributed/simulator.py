@@ -40,8 +40,10 @@ Traffic = TrafficLedger
 class DQMResult:
     """Outcome of a distributed job: global labels plus everything needed for tables and pictures.
 
-    ``stats`` holds, among others, ``max_features_share`` (the most features any
-    agent held at once, copies included, over n), ``max_pair_share`` (the
+    ``stats`` holds, among others, ``max_features_share`` (the most feature rows any
+    agent held at once, measured by its driver at every message: its source's features until
+    routed, its cell's, and every routed, copied or handed-down feature received and not yet let
+    go, over n), ``max_pair_share`` (the
     busiest agent's pair count over the centralized pass's n(n-1)/2),
     ``bytes_over_raw`` (metered bytes over n * dim * itemsize),
     ``ghosts_per_feature``, ``busiest_cpu_s`` and ``arrival_check_failures``.
@@ -288,7 +290,7 @@ def simulate(descriptors, image_ids, config: DQMConfig, progress=None, catalog: 
         time_total=time.perf_counter() - t_all,
         routed_moves=float(net.features_moved["route"]),
         transfers_per_feature=sum(net.features_moved.values()) / n,
-        max_features_share=max(p["max_held"] for p in per_agent) / n,
+        max_features_share=max(p["held_peak"] for p in per_agent) / n,
         max_pair_share=max(p["pairs"] for p in per_agent) / central_pairs,
         bytes_over_raw=net.meter.total() / raw,
         busiest_cpu_s=float(job.clock.cpu.max()),

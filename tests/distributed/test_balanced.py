@@ -9,6 +9,7 @@ import dqm
 from dqm import InputError
 from dqm.core import density
 from dqm.distributed import DQMConfig, boundary, forest, ghosts, messages, partition, protocol, simulate, sketch
+from dqm.distributed.sources import image_owners
 from dqm.synthetic import sift_like
 
 
@@ -99,6 +100,27 @@ def test_work_is_spread_and_cells_balanced():
     # the lean cascade gathers the work at agent 0 on the same data
     lean = simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=m, seed=1, mode="lean"))
     assert lean.stats["max_pair_share"] > 2 * s["max_pair_share"]
+
+
+def test_copies_are_pulled_by_windows_and_the_features_held_stay_bounded():
+    """Flow control: every agent asks for its copies a window at a time (two out at most) and lets
+    each go once met, so the most features it holds at once (measured by its driver at every
+    message) stays near its cell plus two windows, while it meets several times that many copies."""
+    ds = sift_like(n_images=16, n_points=500, clutter_per_image=150, noise=0.3, seed=4)
+    m = 8
+    r = simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=m, seed=1))
+    central = dqm.quickmatch(ds.descriptors, ds.image_ids, params=r.config.params)
+    np.testing.assert_array_equal(r.labels, central.labels)
+    n = len(ds.image_ids)
+    source = np.bincount(image_owners(ds.image_ids, m), minlength=m)  # each agent's own images' features
+    for a, p in enumerate(r.per_agent):
+        own = p["features_owned"]
+        window = max(256, math.ceil(own / 4))
+        assert p["ghost_windows"] >= p["ghosts_held"] / window  # pulled in windows
+        # the held features: the source's before routing, then the cell and at most two windows
+        assert p["held_peak"] <= max(source[a] + own, own + 2 * window)
+    assert max(p["ghosts_held"] for p in r.per_agent) > 3 * max(256, n / m / 4)  # more than the windows held
+    assert r.stats["max_features_share"] <= 2.0 / m
 
 
 def test_sketches_travel_only_where_they_pay(graf_sift):
@@ -305,10 +327,10 @@ def test_parts_that_do_not_fit_together_are_refused():
                                         parent=np.arange(2)))
     with pytest.raises(messages.MessageError, match="parts"):
         protocol.merge_parts("notify", [a, b])
-    c = messages.decode(messages.encode("ghost", "j", 1, seq=0, part=0, parts=2, ids=np.arange(1),
+    c = messages.decode(messages.encode("ghost", "j", 1, seq=0, part=0, parts=2, offset=0, ids=np.arange(1),
                                         image_ids=np.zeros(1, np.int64), descriptors=np.zeros((1, 4), np.uint8),
                                         sigma=np.ones(1)))
-    d = messages.decode(messages.encode("ghost", "j", 1, seq=1, part=1, parts=2, ids=np.arange(1),
+    d = messages.decode(messages.encode("ghost", "j", 1, seq=1, part=1, parts=2, offset=0, ids=np.arange(1),
                                         image_ids=np.zeros(1, np.int64), descriptors=np.zeros((1, 5), np.uint8),
                                         sigma=np.ones(1)))
     with pytest.raises(messages.MessageError, match="disagree on descriptors"):
@@ -333,10 +355,13 @@ def test_round_messages_split_into_parts_and_merge_back():
 
 
 @pytest.mark.parametrize("kind, fields, pattern", [
-    ("ghost", {"ids": np.array([-1]), "image_ids": np.zeros(1, np.int64), "descriptors": np.zeros((1, 4), np.uint8),
-               "sigma": np.ones(1)}, "negative feature id"),
-    ("ghost", {"ids": np.arange(2), "image_ids": np.zeros(1, np.int64), "descriptors": np.zeros((2, 4), np.uint8),
-               "sigma": np.ones(2)}, "rows"),
+    ("ghost", {"offset": 0, "ids": np.array([-1]), "image_ids": np.zeros(1, np.int64),
+               "descriptors": np.zeros((1, 4), np.uint8), "sigma": np.ones(1)}, "negative feature id"),
+    ("ghost", {"offset": 0, "ids": np.arange(2), "image_ids": np.zeros(1, np.int64),
+               "descriptors": np.zeros((2, 4), np.uint8), "sigma": np.ones(2)}, "rows"),
+    ("ghost", {"offset": -1, "ids": np.arange(1), "image_ids": np.zeros(1, np.int64),
+               "descriptors": np.zeros((1, 4), np.uint8), "sigma": np.ones(1)}, "negative ghost.offset"),
+    ("grant", {"offset": 0, "count": -2}, "negative grant.count"),
     ("density", {"density": np.array([np.nan])}, "non-finite density"),
     ("assign", {"key": np.arange(2), "target": np.array([0, 9])}, "outside"),
     ("bounds", {"minima": np.zeros(2), "slack": np.zeros(2)}, "for 3 agents"),
