@@ -216,10 +216,6 @@ def refusals(wd: Path, certs: Path, other: Path, endpoint: str) -> dict:
         "certificate of another CA": client_tls(other, "intruder"),
         "expired certificate": client_tls(certs, "expired"),
     }
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(len(rows)) as pool:  # each waits out its retry deadline: at once, not in turn
-        out = dict(zip(rows, pool.map(lambda tls: refused(endpoint, tls), rows.values())))
     users = wd / "users.txt"
     users.write_text("coordinator:right-password\n")
     roster = wd / "user-roster.txt"
@@ -230,8 +226,13 @@ def refusals(wd: Path, certs: Path, other: Path, endpoint: str) -> dict:
     try:
         start_router(procs, [ep], wd, ("127.0.0.1", port), tls_args=["--users", str(users), "--acl", str(roster)],
                      log_name="user-router.log")
-        out["username with a wrong password"] = refused(ep, {"usrpwd": {"user": "coordinator",
-                                                                        "password": "wrong"}})
+        tries = [(endpoint, tls) for tls in rows.values()] + [(ep, {"usrpwd": {"user": "coordinator",
+                                                                               "password": "wrong"}})]
+        names = list(rows) + ["username with a wrong password"]
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(len(tries)) as pool:  # each waits out its retry deadline: at once, not in turn
+            out = dict(zip(names, pool.map(lambda t: refused(*t), tries)))
         ok, took = refused(ep, {"usrpwd": {"user": "coordinator", "password": "right-password"}})
         out["(control) username with the right password"] = (ok, took)
     finally:
@@ -320,6 +321,10 @@ def main(argv=None) -> int:
             raise RuntimeError("the job never reached the attack window (see the logs in " + str(wd) + ")")
         attack = attack_window(attackers, job, m, args.seconds, rng)
         marker.unlink()
+        from concurrent.futures import ThreadPoolExecutor
+
+        side = ThreadPoolExecutor(1)  # the connection attempts beside the rest of the job: the router is up
+        refused_later = side.submit(refusals, wd, certs, other, endpoint)
         rep = finish_job(job_run, 120.0)
         time.sleep(0.5)
         legit = {keys.alive_agent(job, a) for a in range(m)} | {keys.alive_coordinator(job)}
@@ -333,7 +338,8 @@ def main(argv=None) -> int:
         res["rejected"] = rep["rejected"]
         res["rejected_total"] = int(sum(rep["rejected"].values()))
         res["accepted"] = attack["own_key_sent"] - res["rejected_total"]
-        res["refusals"] = refusals(wd, certs, other, endpoint)  # the job's router, still up
+        res["refusals"] = refused_later.result()
+        side.shutdown()
     finally:
         if attackers is not None:  # a session left open hangs the interpreter at exit
             for t in attackers.pop("_tokens", []):

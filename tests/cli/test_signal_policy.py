@@ -108,13 +108,16 @@ def test_every_connected_command_obeys_the_signal_while_it_works(tmp_path, sig, 
     procs = {}
     try:
         assert "listening" in router.stdout.readline()
-        for name in ("stream", "camera", "agent", "coordinator"):  # the stream first: the camera waits for it
-            argv, ready = WORKING[name]
-            log = tmp_path / f"{name}.log"
-            fh = open(log, "w")
-            procs[name] = (subprocess.Popen([sys.executable, "-m", "dqm", "-vv", *[a.format(**fill) for a in argv]],
-                                            stdout=fh, stderr=subprocess.STDOUT), log)
-            wait_for_text(log, ready, procs[name][0])
+        for batch in (("stream",), ("camera", "agent", "coordinator")):  # the stream first: the camera waits for it
+            for name in batch:  # started side by side, then each waited for
+                argv, _ = WORKING[name]
+                log = tmp_path / f"{name}.log"
+                fh = open(log, "w")
+                procs[name] = (subprocess.Popen([sys.executable, "-m", "dqm", "-vv",
+                                                 *[a.format(**fill) for a in argv]],
+                                                stdout=fh, stderr=subprocess.STDOUT), log)
+            for name in batch:
+                wait_for_text(procs[name][1], WORKING[name][1], procs[name][0])
     except BaseException:
         kill_all([router] + [p for p, _ in procs.values()])
         raise

@@ -100,48 +100,62 @@ def acl_router(tmp_path_factory):
         procs.stop_all()
 
 
-@pytest.mark.parametrize("role,cert,key", [
+def _run_at_once(commands):
+    """Run the commands side by side (each waits out its own refusal): ``(returncode, stderr, seconds)`` each."""
+    t0 = time.monotonic()
+    procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in commands]
+    out = []
+    for p in procs:
+        _, err = p.communicate(timeout=60)
+        out.append((p.returncode, err, time.monotonic() - t0))
+    return out
+
+
+IDENTITY_CASES = [
     ("agent", "outsider", "dqm/acl/alive/agent/0"),  # in no roster line
     ("agent", "agent1", "dqm/acl/alive/agent/0"),  # in the roster, as another agent
     ("coordinator", "agent0", "dqm/acl/alive/coordinator"),  # an agent's certificate as the coordinator
     ("stream", "agent0", "dqm/acl/alive/stream"),  # an agent's certificate as the stream (issue 36)
-])
-def test_an_identity_without_the_role_fails_in_seconds_naming_identity_and_key(acl_router, role, cert, key):
+]
+
+
+def test_an_identity_without_the_role_fails_in_seconds_naming_identity_and_key(acl_router):
+    """Every case at once (four processes side by side): each ends in seconds with one line."""
     ep, certs = acl_router["endpoint"], acl_router["certs"]
-    args = {"agent": ["agent", "--id", "0", "--agents", "2", str(acl_router["files"][0])],
-            "coordinator": ["coordinator", "--agents", "2"], "stream": ["stream"]}[role]
-    t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "dqm", *args, "--job", "acl", "--connect", ep,
-                        *tls_options(certs, cert)], capture_output=True, text=True, timeout=60)
-    took = time.monotonic() - t0
-    assert r.returncode == 2, r.stderr
-    assert took < 15, f"took {took:.1f} s"
-    err = r.stderr.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert f"does not let identity {cert!r}" in err and key in err
+    commands = []
+    for role, cert, _ in IDENTITY_CASES:
+        args = {"agent": ["agent", "--id", "0", "--agents", "2", str(acl_router["files"][0])],
+                "coordinator": ["coordinator", "--agents", "2"], "stream": ["stream"]}[role]
+        commands.append([sys.executable, "-m", "dqm", *args, "--job", "acl", "--connect", ep,
+                         *tls_options(certs, cert)])
+    for (role, cert, key), (rc, err, took) in zip(IDENTITY_CASES, _run_at_once(commands)):
+        assert rc == 2, (role, cert, err)
+        assert took < 20, f"{role} as {cert} took {took:.1f} s"
+        err = err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, (role, cert, err)
+        assert f"does not let identity {cert!r}" in err and key in err, (role, cert, err)
 
 
-@pytest.mark.parametrize("camera,admitted", [(0, True), (1, False)])
-def test_a_camera_node_checks_at_start_up_that_it_may_put_as_its_camera(acl_router, tmp_path, camera, admitted):
+def test_a_camera_node_checks_at_start_up_that_it_may_put_as_its_camera(acl_router, tmp_path):
     """Issue 36: a camera certificate started with another --camera id is refused in seconds, naming the
     roster line, instead of putting images the router drops; its own id passes the check (and then waits for
-    a stream that is not there)."""
+    a stream that is not there). Both side by side."""
     import cv2
 
     img = tmp_path / "frame.png"
     cv2.imwrite(str(img), np.random.default_rng(0).integers(0, 255, (96, 96), dtype=np.uint8))
-    t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "dqm", "camera", str(img), "--camera", str(camera), "--wait", "1",
-                        "--job", "acl", "--connect", acl_router["endpoint"], "--quiet",
-                        *tls_options(acl_router["certs"], "cam0")], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and time.monotonic() - t0 < 15, r.stderr
-    err = r.stderr.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
-    if admitted:
-        assert "no dqm stream of job 'acl'" in err and "does not let" not in err, err
-    else:
-        assert "does not let identity 'cam0' act as camera 1" in err, err
-        assert "dqm/acl/stream/images/from/1/probe" in err and "'camera cam0 1'" in err, err
+    commands = [[sys.executable, "-m", "dqm", "camera", str(img), "--camera", str(camera), "--wait", "1",
+                 "--job", "acl", "--connect", acl_router["endpoint"], "--quiet",
+                 *tls_options(acl_router["certs"], "cam0")] for camera in (0, 1)]
+    for admitted, (rc, err, took) in zip((True, False), _run_at_once(commands)):
+        assert rc == 2 and took < 15, err
+        err = err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+        if admitted:
+            assert "no dqm stream of job 'acl'" in err and "does not let" not in err, err
+        else:
+            assert "does not let identity 'cam0' act as camera 1" in err, err
+            assert "dqm/acl/stream/images/from/1/probe" in err and "'camera cam0 1'" in err, err
 
 
 def test_the_router_reports_identities_not_in_the_roster(acl_router):
