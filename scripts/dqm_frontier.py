@@ -7,7 +7,8 @@ QuickMatch (quadratic kernel, default rho) once, then the in-process simulator
 for every number of agents m and every mode, and records:
 
 * identical: labels equal to centralized; F1: co-membership F1 against it;
-* max_features_share: the most features any agent held at once (copies included) / n;
+* max_features_share: the most features any agent held at once (its source's before routing, its
+  cell's, the copies received and not yet let go; measured by its driver at every message) / n;
 * max_pair_share: the busiest agent's pair count / the centralized n(n-1)/2 (target <= 2.5/m);
 * bytes_over_raw: metered bytes / raw descriptor bytes (n * dim * itemsize);
 * ghosts (and sketches) per feature;
@@ -25,6 +26,7 @@ listed as not run.
     python scripts/dqm_frontier.py                          # -> ./dqm-out/frontier/
     python scripts/dqm_frontier.py --out docs               # regenerate docs/dqm_frontier.md + figure
     python scripts/dqm_frontier.py --data graf --agents 2,8 --modes balanced,two-way
+    python scripts/dqm_frontier.py --data features.npz --agents 4,8 --modes balanced   # your own photos
 
 Rows already in the output's JSON are reused (``--fresh`` recomputes the
 selected ones; rows of other modes or m are kept), so an interrupted run
@@ -72,11 +74,18 @@ def load(name: str, shared: Path):
         seq = datasets.load_homography_sequence(path)
         X, ids, _ = features.extract_many(seq.image_paths)
         return X, ids
+    if name.endswith(".npz"):  # a FEATURES file (dqm extract): real photos of one's own
+        from dqm import io
+
+        fs = io.load_features(name)
+        return fs.descriptors, fs.image_ids
     ds = synthetic.sized(int(name))
     return ds.descriptors, ds.image_ids
 
 
 def label(name: str, n: int) -> str:
+    if name.endswith(".npz"):
+        return f"{Path(name).stem} ({n})"
     return f"{name} ({n})" if name in ("graf", "wall") else f"generated {n}"
 
 
@@ -245,7 +254,8 @@ def write(results: dict, out: Path, argv) -> None:
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default="graf,wall,50000,100000", help="graf, wall and/or generated sizes")
+    ap.add_argument("--data", default="graf,wall,50000,100000",
+                    help="graf, wall, generated sizes and/or FEATURES files (.npz, from dqm extract)")
     ap.add_argument("--agents", default="2,4,8,16,25")
     ap.add_argument("--modes", default="balanced,one-way,two-way,lean,paper")
     ap.add_argument("--seed", type=int, default=1, help="the partition integer")
