@@ -77,6 +77,8 @@ def default_max_lost(m: int) -> int:
 
 def auto_summary(auto: dict) -> str:
     """The one line that says what ``--mode auto`` picked and why, from a report's ``auto`` block."""
+    if not auto["rates_bytes_s"]:
+        return f"--mode auto picked {auto['reason']} [no link probes]"
     rates = ", ".join(f"{p}: {costmodel.mbit_text(r)}" for p, r in auto["rates_bytes_s"].items())
     return (f"--mode auto picked {auto['reason']} [measured Mbit/s per process {rates}; "
             f"{auto['probe_s']:.2f} s of probes]")
@@ -219,11 +221,17 @@ class CoordinatorCore:
                                         f"{hosts[0]} of {name} {ref[field]}", p, "start",
                                         "Give every agent FEATURES of the same descriptor type.", refused=True))
         if self.requested.mode == "auto" and self.auto is None:
-            self.phase = "probe"  # the shell times the links, then calls decide()
+            self.phase = "probe"  # the shell calls decide_unmeasured(), and if that cannot, times the links
             return
+        self._go()
+
+    def _go(self) -> None:
+        """Every process is ready: run. In the epoch where ``--mode auto`` measured, ``go`` names the
+        mode it picked, and the processes make that mode's drivers (no second start)."""
         self.gathered = GatheredParts(range(self.m)) if self.cfg.mode == "gather" else None
-        for p in hosts:
-            self.outbox.append((p, "go", {}))
+        fields = {"mode": self.cfg.mode} if self.requested.mode == "auto" else {}
+        for p in self.hosts():
+            self.outbox.append((p, "go", fields))
         self.phase = "running"
 
     def handle(self, msg: dict) -> None:
@@ -326,34 +334,71 @@ class CoordinatorCore:
                            + (f"; restarting at epoch {self.epoch}" if restart else
                               "; the survivors keep their work, the moved agents run again at their new process"))
 
-    def decide(self, rates: Dict[int, float], cores: float, gather_cores: float, probe_s: float,
-               pairs: Optional[Dict[int, list]] = None) -> None:
-        """``--mode auto``: pick the mode from the measured rates (bytes/s to each hosting process) with the
-        cost model, and start it in the next epoch (every process starts it afresh)."""
-        from ..validation import InputError
-
+    def _job_shape(self) -> costmodel.JobShape:
         hosts = self.hosts()
         ref = self.ready[hosts[0]]
         n = int(sum(self.ready[p]["features"] for p in hosts))
+        return costmodel.JobShape(n=max(1, n), agents=self.m, dim=int(ref["dim"]),
+                                  itemsize=np.dtype(ref["dtype"]).itemsize)
+
+    def decide_unmeasured(self, cores: float, gather_cores: float) -> bool:
+        """``--mode auto`` from cheap facts: when the cost model picks the same mode at every link rate
+        of :data:`costmodel.CLEAR_RATES_BYTES_S` (features, agents and cores decide it whatever the
+        links), start that mode without timing the links; returns whether it did (else the shell
+        measures them and calls :meth:`decide`)."""
+        from ..validation import InputError
+
+        hosts = self.hosts()
         try:
-            job = costmodel.JobShape(n=max(1, n), agents=self.m, dim=int(ref["dim"]),
-                                     itemsize=np.dtype(ref["dtype"]).itemsize)
+            job = self._job_shape()
+            choices = [costmodel.choose(job, costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores),
+                                        started=True, modes=self.requested.auto_choices)
+                       for r in costmodel.CLEAR_RATES_BYTES_S]
+        except InputError:
+            return False  # the measuring path says what is wrong
+        if len({c.mode for c in choices}) != 1:
+            return False
+        low, high = choices[0], choices[-1]
+        lo_s, hi_s = (costmodel.mbit_text(r) for r in (costmodel.CLEAR_RATES_BYTES_S[0],
+                                                        costmodel.CLEAR_RATES_BYTES_S[-1]))
+        reason = (f"{low.mode} without timing the links: the fastest at every link rate from {lo_s} to "
+                  f"{hi_s} Mbit/s (predicted {high.predictions[low.mode].seconds:.1f} to "
+                  f"{low.predictions[low.mode].seconds:.1f} s; {job.n} features on {self.m} agents, cores per "
+                  f"host {cores:.3g})")
+        self._picked(low.mode, {}, low.predictions[low.mode].seconds, reason, 0.0, {}, cores, gather_cores, job.n)
+        return True
+
+    def decide(self, rates: Dict[int, float], cores: float, gather_cores: float, probe_s: float,
+               pairs: Optional[Dict[int, list]] = None) -> None:
+        """``--mode auto``: pick the mode from the measured rates (bytes/s to each hosting process) with the
+        cost model, and run it (``go`` names it: the processes make its drivers in this epoch)."""
+        from ..validation import InputError
+
+        hosts = self.hosts()
+        try:
+            job = self._job_shape()
             choice = costmodel.choose(job, costmodel.Hosts.of([rates[p] for p in hosts], cores,
                                                               gather_cores=gather_cores), started=True,
                                       modes=self.requested.auto_choices)
         except InputError as exc:
             self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
                                 "Give the job's mode explicitly (--mode balanced, lean or gather)."))
-        self.cfg = self.requested.but(mode=choice.mode)
+        self._picked(choice.mode, rates, choice.predicted_s, choice.reason, probe_s, pairs or {}, cores,
+                     gather_cores, job.n)
+
+    def _picked(self, mode: str, rates: Dict[int, float], predicted_s: float, reason: str, probe_s: float,
+                pairs: Dict[int, list], cores: float, gather_cores: float, n: int) -> None:
+        hosts = self.hosts()
+        self.cfg = self.requested.but(mode=mode)
         self.auto = {
-            "rates_bytes_s": {str(p): round(rates[p], 1) for p in hosts},
-            "picked": choice.mode, "predicted_s": choice.predicted_s, "reason": choice.reason,
+            "rates_bytes_s": {str(p): round(rates[p], 1) for p in hosts if p in rates},
+            "picked": mode, "predicted_s": predicted_s, "reason": reason,
             "probe_s": probe_s,
-            "probe_pairs": {str(p): [list(x) for x in (pairs or {}).get(p, [])] for p in hosts},
+            "probe_pairs": {str(p): [list(x) for x in pairs.get(p, [])] for p in hosts if p in pairs},
             "cores_per_host": cores, "gather_cores": gather_cores, "features": n,
         }
-        self.epoch += 1
-        self._start()
+        self.runs += 1
+        self._go()
 
     def result(self) -> Tuple[np.ndarray, np.ndarray]:
         """Once :attr:`done`: the job's ``(ids, labels)`` (gather: the centralized match of the gathered

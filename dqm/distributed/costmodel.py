@@ -54,6 +54,9 @@ from ..validation import InputError
 
 #: the modes :func:`choose` picks from, in the order that breaks an exact tie
 AUTO_MODES = ("gather", "balanced", "lean")
+#: link rates (bytes/s, 1 Mbit/s to 10 Gbit/s) over which ``--mode auto`` asks whether one mode is the fastest
+#: whatever the links: then it starts that mode without timing them
+CLEAR_RATES_BYTES_S = tuple(mbit * 1e6 / 8 for mbit in (1, 3, 10, 30, 100, 300, 1000, 3000, 10000))
 #: bytes per feature row besides its descriptor on the wire of a gather: the feature id and image id (int64)
 ROW_BYTES = 16
 

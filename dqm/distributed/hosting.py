@@ -6,7 +6,8 @@ checks the job's parameters against its own, takes the agents the ``owners`` fie
 own, and a lost agent's cell after a takeover, whose features ``load`` provides), and makes a
 driver for each: an :class:`~dqm.distributed.driver.AgentDriver` (balanced, lean, paper) or a
 :class:`~dqm.distributed.gathering.GatherDriver` (gather); in an ``auto`` epoch none (the
-coordinator measures the links first). It then answers ``ready``. ``go`` begins every driver.
+coordinator picks the mode first, and its ``go`` names it: the drivers are made then). It then answers
+``ready``. ``go`` begins every driver.
 
 When a process is lost while the job runs, the coordinator sends ``takeover`` (the agents' new
 processes): the process that now hosts a lost agent makes a fresh driver for it, every process
@@ -91,6 +92,7 @@ class ProcessHost:
         self.round = 0  # the last takeover followed in this epoch
         self.waiting: List[int] = []  # agents taken over, to run from their start on ``resume``
         self.moved: List[int] = []  # agents whose process changed since the last resume
+        self.hosted: List[int] = []  # the agents this process hosts in this epoch
 
     @property
     def phase(self) -> str:
@@ -124,6 +126,8 @@ class ProcessHost:
         if kind == "start":
             self._start(msg)
         elif kind == "go" and msg["epoch"] == self.epoch:
+            if self.job_cfg.mode == "auto":
+                self._pick(msg.get("mode", ""))
             for slot in self.slots.values():
                 slot.begin(self.seed)
         elif kind == "takeover":
@@ -172,16 +176,29 @@ class ProcessHost:
         if "auto" in (cfg.mode, previous):
             log.info("epoch %d: mode %s", self.epoch, cfg.mode)
         self.catalog = bool(msg["catalog"])
-        if cfg.mode == "auto":  # the coordinator measures the links, then starts the mode it picked
+        self.hosted = hosted
+        if cfg.mode == "auto":  # the coordinator measures the links, then its go names the mode it picked
             self.slots = {}
         else:
-            first = not self.ran or self.on_state_always  # faults are injected into the first run only
-            self.slots = {a: self._driver(a, f, first) for a, f in feats.items()}
-            self.ran = cfg.mode != "gather" or self.ran
+            self._make_drivers()
         if self.epoch > 0 and previous != "auto":  # a restart (not the start of the mode auto picked)
             log.info("epoch %d: hosting agents %s", self.epoch, hosted)
         self.bus.send_single(self.home, COORDINATOR, "ready", **ready_fields(
             self.features[self.home].descriptors, hosted, sum(len(f) for f in feats.values())))
+
+    def _make_drivers(self) -> None:
+        first = not self.ran or self.on_state_always  # faults are injected into the first run only
+        self.slots = {a: self._driver(a, self._features(a), first) for a in self.hosted}
+        self.ran = self.job_cfg.mode != "gather" or self.ran
+
+    def _pick(self, mode: str) -> None:
+        """``go`` of an auto epoch: the mode the coordinator picked; make its drivers (no second start)."""
+        if mode not in AUTO_MODES:
+            raise JobAborted(f"the coordinator's go names no mode of {', '.join(AUTO_MODES)} in a --mode auto job "
+                             f"(got {mode!r})")
+        self.job_cfg = self.job_cfg.but(mode=mode)
+        log.info("epoch %d: mode %s", self.epoch, mode)
+        self._make_drivers()
 
     def _driver(self, a: int, f: AgentFeatures, faults: bool = False):
         """A fresh driver of hosted agent ``a`` in this epoch (``faults``: with the test's ``on_state``)."""

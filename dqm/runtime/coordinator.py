@@ -229,8 +229,13 @@ class Coordinator:
         return self.probe_answers.pop(token)
 
     def _measure(self) -> None:
-        """--mode auto: time the link to each hosting process, then let the core pick the mode."""
+        """--mode auto: let the core pick the mode from the job's size where the links cannot change the
+        answer; else time the link to each hosting process, then let the core pick."""
         t0 = time.monotonic()
+        own = self.gather_cores or measure.host_cores()
+        if self._drive(self.core.decide_unmeasured, self.host_cores or own, own):
+            self.announce(auto_summary(self.core.auto))
+            return
         epoch = self.bus.epoch
         self.probe_answers.clear()
         self._probes = measure.ProbeEncoder(lambda token, data: messages.encode(
@@ -242,7 +247,6 @@ class Coordinator:
         for p in hosts:
             rates[p] = measure.measure_link(p, self._probe_pair, self._probe_answer, tokens, time.monotonic, start)
             start = measure.next_start_bytes(rates[p])
-        own = self.gather_cores or measure.host_cores()
         self._drive(self.core.decide, {p: rates[p].bytes_s for p in hosts}, self.host_cores or own, own,
                     time.monotonic() - t0, {p: rates[p].pairs for p in hosts})
         self.announce(auto_summary(self.core.auto))

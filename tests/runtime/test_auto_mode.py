@@ -146,13 +146,46 @@ def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
     cfg = DQMConfig(agents=2, seed=3, mode="auto", auto_modes="balanced", job="auto-balanced")
     rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
     assert rep["mode"] == rep["auto"]["picked"] == "balanced"
+    # one mode to pick from: the links cannot change the answer, so nothing was timed
+    assert rep["auto"]["rates_bytes_s"] == {} and rep["auto"]["probe_s"] == 0 and rep["auto"]["probe_bytes"] == 0
+    assert "without timing the links" in rep["auto"]["reason"]
     sim = simulate(X, ids, cfg.but(mode="balanced"))
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
-    # the same messages as the balanced job, but the start / ready of the measuring epoch
-    skip = ("stats", "progress", "start", "ready")
+    # the same messages as the balanced job, one start included (its parameters say mode auto, and go
+    # names the mode: a few bytes apart)
+    skip = ("stats", "progress", "go", "start")
     assert {k: (v["bytes"], v["messages"]) for k, v in rep["kinds"].items() if k not in skip} == \
         {k: v for k, v in sim.traffic.per_kind().items() if k not in skip}
-    assert rep["kinds"]["start"]["messages"] == 2 * sim.traffic.per_kind()["start"][1]
+    for kind in ("go", "start"):
+        assert rep["kinds"][kind]["messages"] == sim.traffic.per_kind()[kind][1]
+    assert rep["epochs"] == 1
+
+
+def test_auto_skips_the_probes_only_where_every_link_rate_gives_one_mode():
+    """The cost model's pick at every rate of CLEAR_RATES_BYTES_S: graf's size on 8 hosts of 0.25 cores is
+    balanced at all of them; on 2 hosts of a core it turns on the rate (gather on fast links), so the links
+    are timed."""
+    from dqm.distributed.coordination import CoordinatorCore
+
+    def core_ready(m: int, n: int) -> CoordinatorCore:
+        core = CoordinatorCore(DQMConfig(agents=m, mode="auto", job="j"))
+        core.begin()
+        for p in range(m):
+            core.handle({"kind": "ready", "src": p, "epoch": 0, "dim": 128, "dtype": "|u1",
+                         "hosted": np.array([p]), "features": n // m})
+        assert core.phase == "probe"
+        return core
+
+    clear = core_ready(8, 21691)
+    assert clear.decide_unmeasured(0.25, 0.25)
+    assert clear.phase == "running" and clear.cfg.mode == "balanced" and clear.auto["rates_bytes_s"] == {}
+    assert [fields for _, kind, fields in clear.take_outbox() if kind == "go"] == [{"mode": "balanced"}] * 8
+    unclear = core_ready(2, 21691)
+    assert not unclear.decide_unmeasured(1.0, 1.0) and unclear.phase == "probe" and unclear.auto is None
+    picks = {costmodel.choose(costmodel.JobShape(n=21691, agents=2, dim=128),
+                              costmodel.Hosts.of([r, r], 1.0, gather_cores=1.0)).mode
+             for r in costmodel.CLEAR_RATES_BYTES_S}
+    assert len(picks) > 1
 
 
 @pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
