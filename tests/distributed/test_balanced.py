@@ -95,23 +95,11 @@ def test_work_is_spread_and_cells_balanced():
     s = r.stats
     assert s["largest_cell_share"] <= 1.25
     assert s["max_pair_share"] <= 2.5 / m
-    assert s["max_features_share"] < 1.0 and 0 < s["ghosts_per_feature"] < m - 1
+    assert 0 < s["ghosts_per_feature"] < m - 1
     assert s["bytes_over_raw"] > 0 and s["arrival_check_failures"] == 0
-    # the lean cascade gathers the work at agent 0 on the same data
-    lean = simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=m, seed=1, mode="lean"))
-    assert lean.stats["max_pair_share"] > 2 * s["max_pair_share"]
-
-
-def test_copies_are_pulled_by_windows_and_the_features_held_stay_bounded():
-    """Flow control: every agent asks for its copies a window at a time (two out at most) and lets
-    each go once met, so the most features it holds at once (measured by its driver at every
-    message) stays near its cell plus two windows, while it meets several times that many copies."""
-    ds = sift_like(n_images=16, n_points=500, clutter_per_image=150, noise=0.3, seed=4)
-    m = 8
-    r = simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=m, seed=1))
-    central = dqm.quickmatch(ds.descriptors, ds.image_ids, params=r.config.params)
-    np.testing.assert_array_equal(r.labels, central.labels)
-    n = len(ds.image_ids)
+    # flow control: every agent asks for its copies a window at a time (two out at most) and lets each go
+    # once met, so the most features it holds at once (measured by its driver at every message) stays
+    # near its cell plus two windows, while it meets several times that many copies
     source = np.bincount(image_owners(ds.image_ids, m), minlength=m)  # each agent's own images' features
     for a, p in enumerate(r.per_agent):
         own = p["features_owned"]
@@ -119,8 +107,11 @@ def test_copies_are_pulled_by_windows_and_the_features_held_stay_bounded():
         assert p["ghost_windows"] >= p["ghosts_held"] / window  # pulled in windows
         # the held features: the source's before routing, then the cell and at most two windows
         assert p["held_peak"] <= max(source[a] + own, own + 2 * window)
-    assert max(p["ghosts_held"] for p in r.per_agent) > 3 * max(256, n / m / 4)  # more than the windows held
-    assert r.stats["max_features_share"] <= 2.0 / m
+        assert p["ghosts_held"] > 2 * window  # more copies met than held at once
+    assert s["max_features_share"] <= 2.0 / m
+    # the lean cascade gathers the work at agent 0 on the same data
+    lean = simulate(ds.descriptors, ds.image_ids, DQMConfig(agents=m, seed=1, mode="lean"))
+    assert lean.stats["max_pair_share"] > 2 * s["max_pair_share"]
 
 
 def test_sketches_travel_only_where_they_pay(graf_sift):

@@ -79,8 +79,9 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
-def _inject(endpoint, job, agents, dim, ready):
-    """A foreign client that sends hostile messages to every agent's inbox."""
+def _inject(endpoint, job, agents, dim, ready, marker=None):
+    """A foreign client that sends hostile messages to every agent's inbox (then deletes ``marker``: the
+    paused agent goes on)."""
     import zenoh
 
     from dqm.runtime.bus import open_client
@@ -114,17 +115,23 @@ def _inject(endpoint, job, agents, dim, ready):
     finally:
         watcher.undeclare()
         s.close()
+        if marker is not None:  # once the agent is paused (it writes the marker then)
+            t0 = time.monotonic()
+            while not marker.exists() and time.monotonic() - t0 < 30:
+                time.sleep(0.02)
+            marker.unlink(missing_ok=True)
 
 
-def test_hostile_messages_are_rejected_and_counted(data):
+def test_hostile_messages_are_rejected_and_counted(data, tmp_path):
     X, ids = data
     cfg = DQMConfig(agents=2, seed=3, job="hostile")
-    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_SECONDS="6")  # room for a loaded machine
+    marker = tmp_path / "paused"  # agent 0 waits in wait_start until the injector is done (60 s at most)
+    env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="60")
     ready = threading.Event()
 
     def on_started(info):
-        threading.Thread(target=_inject, args=(f"tcp/127.0.0.1:{info['port']}", cfg.job, 2, X.shape[1], ready),
-                         daemon=True).start()
+        threading.Thread(target=_inject, args=(f"tcp/127.0.0.1:{info['port']}", cfg.job, 2, X.shape[1], ready,
+                                               marker), daemon=True).start()
 
     rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120), env=env, on_started=on_started,
                   agent_args=["--max-message-bytes", str(1 << 21)])
