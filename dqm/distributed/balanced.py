@@ -60,6 +60,10 @@ ROUNDS = ("bounds", "sketch", "request", "sketch_rest", "offer", "ghost", "sums"
           "fragments", "assign", "component")
 
 
+#: the most copies one sender may offer a cell (more than any job holds: a larger offer is refused, not allocated)
+MAX_OFFER = 1 << 31
+
+
 class BalancedCore:
     """One agent's state in the balanced mode. Drive it with :meth:`step` round by round."""
 
@@ -269,6 +273,9 @@ class BalancedCore:
         for a in self.senders("offer"):
             p = inputs.get(a)
             k = int(p["count"]) if p is not None else 0
+            if k > MAX_OFFER:  # no cell holds that many: a hostile or broken sender, refused
+                self.failures += 1
+                k = 0
             self.ghost_slices[a] = slice(start, start + k)
             src.append(np.full(k, a, np.int64))
             start += k

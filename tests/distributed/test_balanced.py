@@ -370,6 +370,24 @@ def test_hostile_round_messages_are_refused(kind, fields, pattern):
         messages.decode(bad_part, job="j", agents=3)
 
 
+def test_an_offer_larger_than_any_job_is_refused_not_allocated():
+    """A sender's offer sizes the receiver's bookkeeping of the copies it will pull: an absurd count is a
+    failure and nothing is pulled from that sender, instead of an allocation that exhausts the machine."""
+    from dqm.distributed.balanced import MAX_OFFER, ROUNDS, BalancedCore
+    from dqm.distributed.shard import Shard
+
+    rng = np.random.default_rng(0)
+    X = rng.integers(0, 255, (40, 8)).astype(np.uint8)
+    core = BalancedCore(1, DQMConfig(agents=2, seed=1, sketch_dims=0))
+    core.set_shard([Shard(np.arange(40), np.arange(40) % 4, X, np.ones(40), np.ones(40, np.int64))],
+                   rng.normal(size=(2, 8)), None)
+    core.round = ROUNDS.index("ghost")
+    assert core.senders("offer") == [0]
+    assert core.step({0: {"count": MAX_OFFER + 1}}) == {}
+    assert core.failures == 1 and core.next_grant() is None and core.pulled()
+    assert len(core.held_ids) == 40  # its own features only
+
+
 def test_an_agent_over_its_memory_budget_refuses_in_one_line(sift, monkeypatch):
     """The agents' pass streams its edges tile by tile and keeps only parent candidates; when those
     would pass the budget, the agent says so instead of exhausting the machine."""
