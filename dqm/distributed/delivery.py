@@ -122,9 +122,14 @@ class Delivery:
         if seq is None or kind not in protocol.ACKED or dst in self._gone:
             return False
         with self._lock:  # before the put: the ack may come back at once
-            ahead = sum(len(p.payload) for p in self._pending.values()) + len(payload)
-            self._pending[(src, dst, seq)] = Pending(now, 1, payload, kind, ahead / FLOOR_BYTES_S)
+            self._keep(Resend(src, dst, seq, kind, payload), now)
         return True
+
+    def _keep(self, r: Resend, now: float) -> None:
+        """Keep ``r`` until acknowledged, its first resend no sooner than the bytes ahead of it, itself
+        included, take at :data:`FLOOR_BYTES_S` (caller holds the lock)."""
+        ahead = sum(len(p.payload) for p in self._pending.values()) + len(r.payload)
+        self._pending[(r.src, r.dst, r.seq)] = Pending(now, 1, r.payload, r.kind, ahead / FLOOR_BYTES_S)
 
     def put_returned(self, src: int, dst: int, seq: int, now: float) -> None:
         """The put of a kept message returned: its ack timer starts now."""
@@ -180,8 +185,8 @@ class Delivery:
             self._gone -= {int(a) for a in agents}
             for a in sorted(int(x) for x in agents):
                 for r in self._log.get(a, []):
-                    if r.kind in protocol.ACKED and r.seq >= 0:
-                        self._pending[(r.src, r.dst, r.seq)] = Pending(now, 1, r.payload, r.kind)
+                    if r.kind in protocol.ACKED and r.seq >= 0:  # a replay is put all at once: the same floor
+                        self._keep(r, now)
                     out.append(r)
         return out
 

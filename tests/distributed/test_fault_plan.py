@@ -149,3 +149,12 @@ def test_the_first_resend_waits_for_the_bytes_ahead_at_the_floor_rate():
     assert [r.dst for r in d.due(first + 0.01)] == [1]
     assert sorted(r.dst for r in d.due(second + 0.02)) == [1, 2]
     assert d.meter.counters()[2] == 3  # each resend counted
+    # a takeover's replay puts everything again at once: the same floor (agent 2's part behind agent 1's)
+    t = 100.0
+    d.receive({"kind": "ack", "src": 1, "dst": 0, "seq": 0, "epoch": 0}, 0, t)
+    d.receive({"kind": "ack", "src": 2, "dst": 0, "seq": 0, "epoch": 0}, 0, t)
+    assert d.unacknowledged() == 0
+    assert [r.dst for r in d.replay([1, 2], now=t)] == [1, 2]
+    assert d.due(t + 2.5) == []
+    assert [r.dst for r in d.due(t + first + 0.01)] == [1]
+    assert sorted(r.dst for r in d.due(t + second + 0.02)) == [1, 2]
