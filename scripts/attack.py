@@ -38,6 +38,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -229,8 +230,6 @@ def refusals(wd: Path, certs: Path, other: Path, endpoint: str) -> dict:
         tries = [(endpoint, tls) for tls in rows.values()] + [(ep, {"usrpwd": {"user": "coordinator",
                                                                                "password": "wrong"}})]
         names = list(rows) + ["username with a wrong password"]
-        from concurrent.futures import ThreadPoolExecutor
-
         with ThreadPoolExecutor(len(tries)) as pool:  # each waits out its retry deadline: at once, not in turn
             out = dict(zip(names, pool.map(lambda t: refused(*t), tries)))
         ok, took = refused(ep, {"usrpwd": {"user": "coordinator", "password": "right-password"}})
@@ -301,7 +300,7 @@ def main(argv=None) -> int:
     env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_bounds", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="60")
     procs = Processes()
     res: dict = {"job": job, "agents": m, "features": int(len(ds.descriptors)), "seconds": args.seconds}
-    attack = attackers = None
+    attack = attackers = side = None
     try:
         start_router(procs, [endpoint], wd, ("127.0.0.1", port),
                      tls_args=[*tls_options(certs, "router"), "--acl", str(roster)])
@@ -321,8 +320,6 @@ def main(argv=None) -> int:
             raise RuntimeError("the job never reached the attack window (see the logs in " + str(wd) + ")")
         attack = attack_window(attackers, job, m, args.seconds, rng)
         marker.unlink()
-        from concurrent.futures import ThreadPoolExecutor
-
         side = ThreadPoolExecutor(1)  # the connection attempts beside the rest of the job: the router is up
         refused_later = side.submit(refusals, wd, certs, other, endpoint)
         rep = finish_job(job_run, 120.0)
@@ -339,7 +336,6 @@ def main(argv=None) -> int:
         res["rejected_total"] = int(sum(rep["rejected"].values()))
         res["accepted"] = attack["own_key_sent"] - res["rejected_total"]
         res["refusals"] = refused_later.result()
-        side.shutdown()
     finally:
         if attackers is not None:  # a session left open hangs the interpreter at exit
             for t in attackers.pop("_tokens", []):
@@ -347,6 +343,8 @@ def main(argv=None) -> int:
             for ss in attackers.pop("_sessions", {}).values():
                 for s in ss:
                     s.close()
+        if side is not None:  # the connection attempts end within seconds, the router up or not
+            side.shutdown()
         procs.stop_all()
     res["attack"] = {k: v for k, v in attack.items() if not k.startswith("_")}
     ok = (all(r["bytes"] == 0 for r in res["attack"]["received"].values()) and res["accepted"] == 0

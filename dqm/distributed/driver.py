@@ -408,8 +408,7 @@ class AgentDriver:
             got = self.windows_in[key]
             # a window not asked for yet waits (after a takeover, senders replay what they had sent)
             if key not in self.asked or len(got) != next(iter(got.values()))["parts"]:
-                continue
-            self._note_held()
+                continue  # (what it holds was noted when the window's last part came: handle)
             del self.windows_in[key]
             expected = self.asked.pop(key)
             try:
