@@ -201,3 +201,24 @@ def test_sfm_refuses_a_folder_that_is_not_empty(tmp_path, capsys, inputs):
     (model / "notes.txt").write_bytes(KEEP)
     _one_line(capsys, ["sfm", inputs["scene"], "--out", str(model)], "is not empty")
     assert [p.name for p in model.iterdir()] == ["notes.txt"]
+
+
+def test_npz_outputs_store_what_does_not_deflate_and_are_the_same_bytes_each_time(tmp_path):
+    import zipfile
+
+    rng = np.random.default_rng(0)
+    arrays = {"descriptors": rng.integers(0, 256, (4000, 128), dtype=np.uint8),  # noise: deflating does not pay
+              "labels": np.repeat(np.arange(100, dtype=np.int64), 40),  # runs: it does
+              "columns": rng.integers(0, 256, (4000, 128), dtype=np.uint8)[:, ::3],  # not contiguous
+              "scalar": np.array(0.5), "none": np.zeros((0, 2))}
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    io._savez_fast(str(a), arrays)
+    io._savez_fast(str(b), arrays)
+    assert a.read_bytes() == b.read_bytes()
+    kinds = {i.filename: i.compress_type for i in zipfile.ZipFile(a).infolist()}
+    assert kinds["descriptors.npy"] == kinds["columns.npy"] == zipfile.ZIP_STORED
+    assert kinds["labels.npy"] == zipfile.ZIP_DEFLATED
+    with np.load(a) as z:
+        assert sorted(z.files) == sorted(arrays)
+        for k, v in arrays.items():
+            assert z[k].dtype == v.dtype and np.array_equal(z[k], v)
