@@ -66,15 +66,35 @@ def nearest_candidates(child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
     pdist = np.full(n, np.inf)
     row = np.full(n, -1, dtype=np.int64)
     if len(child):
-        order = np.lexsort((cand if tie is None else tie, dist, child))  # by child, distance, candidate
-        c = child[order]
-        first = np.ones(len(c), dtype=bool)
-        first[1:] = c[1:] != c[:-1]
-        sel = order[first]
+        sel = _first_nearest(np.asarray(child), np.asarray(dist), np.asarray(cand if tie is None else tie))
         parent[child[sel]] = cand[sel]
         pdist[child[sel]] = dist[sel]
         row[child[sel]] = sel
     return parent, pdist, row
+
+
+def _first_nearest(child: np.ndarray, dist: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Position of every child's first edge in (distance, key, position) order: what the first of each
+    child in ``np.lexsort((key, dist, child))`` is, without sorting by distance and key. The edges are
+    grouped by child with one stable sort (none when they already come child by child, as the fast
+    engine gives them), then each group's smallest distance, among those its smallest key, among those the
+    first position."""
+    starts = np.flatnonzero(np.concatenate(([True], child[1:] != child[:-1])))
+    if len(np.unique(child[starts])) == len(starts):  # already child by child (in any order of children)
+        order = np.arange(len(child))
+        c, d, k = child, dist, key
+    else:
+        order = np.argsort(child, kind="stable")
+        c, d, k = child[order], dist[order], key[order]
+        starts = np.flatnonzero(np.concatenate(([True], c[1:] != c[:-1])))
+    group = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(c))))
+    at_min = d == np.minimum.reduceat(d, starts)[group]
+    big = np.iinfo(np.int64).max if k.dtype.kind in "iu" else np.inf
+    kk = np.where(at_min, k, big).astype(np.result_type(k.dtype, np.int64) if k.dtype.kind in "iu" else k.dtype)
+    best = at_min & (kk == np.minimum.reduceat(kk, starts)[group])
+    # the first position of each group among its best (stable: positions rise within a group)
+    pos = np.where(best, np.arange(len(c)), len(c))
+    return order[np.minimum.reduceat(pos, starts)]
 
 
 def merge_clusters(

@@ -1,0 +1,35 @@
+"""The tree's nearest candidate per child against the definition: the first of each child in
+(distance, candidate or tie key, position) order."""
+import numpy as np
+
+from dqm.core import tree
+
+
+def _by_lexsort(child, cand, dist, n, tie=None):
+    parent, pdist, row = np.full(n, -1), np.full(n, np.inf), np.full(n, -1)
+    order = np.lexsort((cand if tie is None else tie, dist, child))
+    c = child[order]
+    first = np.ones(len(c), dtype=bool)
+    first[1:] = c[1:] != c[:-1]
+    sel = order[first]
+    parent[child[sel]], pdist[child[sel]], row[child[sel]] = cand[sel], dist[sel], sel
+    return parent, pdist, row
+
+
+def test_nearest_candidates_is_the_first_in_distance_then_key_order():
+    rng = np.random.default_rng(0)
+    for trial in range(400):
+        n, m = int(rng.integers(1, 60)), int(rng.integers(1, 300))
+        child, cand = rng.integers(0, n, m), rng.integers(0, n, m)
+        if trial % 4 == 1:  # sorted by child
+            child = np.sort(child)
+        elif trial % 4 == 2:  # child by child, children in any order (the fast engine's edges)
+            child = rng.permutation(n)[np.sort(child)]
+        dist = rng.integers(0, 4, m).astype(float)  # ties in distance, and repeated (child, cand) edges
+        if trial % 3 == 0:
+            dist[rng.random(m) < 0.2] = np.inf
+        tie = rng.integers(0, 3, m) if trial % 2 else None
+        got = tree.nearest_candidates(child, cand, dist, n, tie=tie)
+        for a, b in zip(got, _by_lexsort(child, cand, dist, n, tie=tie)):
+            np.testing.assert_array_equal(a, b)
+    assert tree.nearest_candidates(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 3)[0].tolist() == [-1, -1, -1]
