@@ -224,9 +224,14 @@ def figure(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def write(results: dict, out: Path, argv) -> None:
+def write_json(results: dict, out: Path) -> None:
+    """The rows so far (a run that stops keeps them: the next one reuses them)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "dqm_frontier.json").write_text(json.dumps(results, indent=1))
+
+
+def write(results: dict, out: Path, argv) -> None:
+    write_json(results, out)
     figure(results, out / "img" / "dqm_frontier.png")
     text = [
         "# Distributed QuickMatch: the frontier between bytes, balance and fidelity",
@@ -307,9 +312,11 @@ def main(argv=None):
                 print(json.dumps({"data": key, **{k: v for k, v in row.items() if k != "bytes_by_kind"}}),
                       file=sys.stderr, flush=True)
                 results[key] = {"n": len(X), "central_cpu_s": central_cpu, "rows": listed()}
-                write(dict(old, **results), out, argv)
+                write_json(dict(old, **results), out)  # the figure and the tables once per data set
         results[key] = {"n": len(X), "central_cpu_s": central_cpu, "rows": listed()}
-    write(dict(old, **results), out, argv)
+        write(dict(old, **results), out, argv)
+    if not results:  # no data set found: the tables of the rows made before
+        write(dict(old), out, argv)
     print((out / "dqm_frontier.md").read_text())
 
 
