@@ -89,8 +89,7 @@ def _first_nearest(child: np.ndarray, dist: np.ndarray, key: np.ndarray) -> np.n
         starts = np.flatnonzero(np.concatenate(([True], c[1:] != c[:-1])))
     group = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(c))))
     at_min = d == np.minimum.reduceat(d, starts)[group]
-    big = np.iinfo(np.int64).max if k.dtype.kind in "iu" else np.inf
-    kk = np.where(at_min, k, big).astype(np.result_type(k.dtype, np.int64) if k.dtype.kind in "iu" else k.dtype)
+    kk = np.where(at_min, k, k.max())  # off the minimum: a key no smaller than any (the keys' own dtype)
     best = at_min & (kk == np.minimum.reduceat(kk, starts)[group])
     # the first position of each group among its best (stable: positions rise within a group)
     pos = np.where(best, np.arange(len(c)), len(c))
