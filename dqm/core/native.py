@@ -675,13 +675,14 @@ def u8_operands(X: np.ndarray) -> Optional[U8Operands]:
 
 
 def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel, rad2, dens_r, err_r,
-                 dens_c=None, err_c=None):
+                 dens_c=None, err_c=None, diag: Optional[bool] = None):
     """One tile of the all-pairs pass on :class:`U8Operands`, distances and kernel fused: as
-    :func:`tile` (``a == b``, the self pairs skipped) or :func:`tile_sym` (disjoint rows and
-    columns). Returns the candidate pairs ``(r, c)`` (tile rows and columns)."""
+    :func:`tile` (``diag``, by default ``a == b``: the self pairs skipped) or :func:`tile_sym`
+    (rows and columns taken as different features). Returns the candidate pairs ``(r, c)`` (tile rows and
+    columns)."""
     m, k = a1 - a, b1 - b
     A, lda, na, B, nb = ops._args(a, b)
-    diag = a == b
+    diag = a == b if diag is None else bool(diag)
     cap = max(1024, 4 * (m + k))
     scratch = np.empty(64 * k, np.float32)
     ca, ce = np.empty(k, np.float32), np.empty(k, np.float32)

@@ -391,7 +391,8 @@ def kernel_pass(
     approximate densities are not restricted and should not be used. With
     ``cols_from = C`` as well, only pairs between the first L and the features
     from C on are visited (an agent meeting one batch of copies at a time: its
-    own features first, the batch after them, with L = C). With
+    own features first, the batch after them, with L = C); the tiles then cover that rectangle only, so a
+    batch costs its pairs with the own features and no more. With
     ``max_edges``, collection stops once more edges than that are found; the
     densities are still complete and ``child`` and ``cand`` come back as None
     (the streaming :func:`parent_pass` then finds the parents). With
@@ -413,26 +414,34 @@ def kernel_pass(
     collecting = [True]
     dens = np.zeros(n, dtype=np.float64)
     err = np.zeros(n, dtype=np.float64)
-    starts = list(range(0, n, BLOCK))
     limit = n if rows_limit is None else int(rows_limit)
     cross = 0 if cols_from is None else int(cols_from)
-    tasks = [(a, b) for ia, a in enumerate(starts) if a < limit for b in starts[ia:] if b + BLOCK > cross]
+    fused = aug.u8 is not None and use_native
+    if cols_from is None:  # unordered block pairs, each once; diagonal blocks (a == b) use one direction
+        starts = list(range(0, n, BLOCK))
+        tasks = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for ia, a in enumerate(starts) if a < limit
+                 for b in starts[ia:]]
+    else:  # rows end at the limit and columns start at cross (the integer kernel's tiles at a multiple of 32):
+        # only the own-by-batch rectangle, whatever the sizes (own rows in the columns' first 31: edges filtered)
+        c0 = cross - cross % 32 if fused else cross
+        tasks = [(a, min(limit, a + BLOCK), b, min(n, b + BLOCK)) for a in range(0, limit, BLOCK)
+                 for b in range(c0, n, BLOCK)]
 
-    def work(task: Tuple[int, int]):
-        a, b = task
-        a1, b1 = min(n, a + BLOCK), min(n, b + BLOCK)
+    def work(task: Tuple[int, int, int, int]):
+        a, a1, b, b1 = task
+        diag = a == b and cols_from is None
         rad2 = rad2_all if collecting[0] else no_edges
         dr = np.zeros(a1 - a)
         er = np.zeros(a1 - a)
-        if aug.u8 is not None and use_native:  # distances and kernel fused in one native call
-            if a == b:
+        if fused:  # distances and kernel fused in one native call
+            if diag:
                 r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er)
                 return a, b, dr, er, None, None, r, c
             dc, ec = np.zeros(b1 - b), np.zeros(b1 - b)
-            r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er, dc, ec)
+            r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er, dc, ec, diag=False)
             return a, b, dr, er, dc, ec, r, c
         G = aug.left[a:a1] @ aug.right[b:b1].T
-        if a == b:
+        if diag:
             r, c = native.tile(G, w[b:b1], s[b:b1], kernel, rad2[a:a1], 0, dr, er, use_native=use_native)
             return a, b, dr, er, None, None, r, c
         dc = np.zeros(b1 - b)

@@ -140,7 +140,52 @@ def test_edges_handed_over_tile_by_tile_are_the_collected_ones(monkeypatch):
         assert sorted(zip(r.tolist(), c.tolist())) == sorted(zip(cr.tolist(), cc.tolist()))
 
 
+def _cross_pass_meets_exactly_the_cross_pairs(aug, sig, cuts):
+    n, zero, radius = aug.n, np.zeros(aug.n), 0.9 * sig
+    X = aug.exact.astype(np.float64)
+    n2 = (X * X).sum(1)
+    d = np.sqrt(np.maximum(n2[:, None] + n2[None, :] - 2.0 * X @ X.T, 0.0))  # integers: exact in float64
+    for cut in cuts:
+        within = d < radius[:, None]  # child (row) -> candidate (column)
+        within[:cut, :cut] = within[cut:, cut:] = False
+        got = []
+        pairs.kernel_pass(aug, zero, zero, "quadratic", radius, rows_limit=cut, cols_from=cut,
+                          on_edges=lambda r, c, got=got: got.append((r, c)))
+        r = np.concatenate([g[0] for g in got])
+        c = np.concatenate([g[1] for g in got])
+        assert ((r < cut) != (c < cut)).all(), cut  # own by batch only
+        assert len(np.unique(r * n + c)) == len(r), cut  # every pair once
+        kept = d[r, c] < radius[r]  # the pass's edges are a superset; the ones that matter are all there
+        assert within.sum() > 0
+        np.testing.assert_array_equal(np.sort(r[kept] * n + c[kept]), np.flatnonzero(within))
+
+
+def test_own_by_batch_pass_meets_exactly_the_cross_pairs(monkeypatch):
+    """A balanced agent meets one window of copies at a time (rows: its own features, columns: the
+    window): the tiles cover the own-by-window rectangle only, at any boundary, and give exactly the cross
+    edges of a pass over both."""
+    monkeypatch.setattr(pairs, "BLOCK", 128)
+    ds = sift_like(n_images=5, n_points=200, clutter_per_image=100, seed=8)
+    aug = pairs.Augmented(ds.descriptors)
+    _, img = np.unique(ds.image_ids, return_inverse=True)
+    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
+    _cross_pass_meets_exactly_the_cross_pairs(aug, sig, (700, 768, 1100))
+
+
 needs_vnni = pytest.mark.skipif(native.simd_level() < 3, reason="the CPU has no AVX-512 VNNI (integer distance kernel)")
+
+
+@needs_vnni
+def test_own_by_batch_pass_with_the_integer_kernel(monkeypatch):
+    """As above with the fused integer tiles, whose columns start at multiples of 32 (a boundary inside
+    a group of 32 puts a few own features among the columns; their pairs are filtered)."""
+    monkeypatch.setattr(pairs, "BLOCK", 128)
+    ds = sift_like(n_images=5, n_points=200, clutter_per_image=100, seed=8)
+    aug = pairs.Augmented(ds.descriptors)
+    assert aug.u8 is not None
+    _, img = np.unique(ds.image_ids, return_inverse=True)
+    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
+    _cross_pass_meets_exactly_the_cross_pairs(aug, sig, (700, 768, 1100))
 
 
 @needs_vnni
