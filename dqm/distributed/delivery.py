@@ -90,6 +90,8 @@ class Delivery:
         self.retransmit = retransmit or protocol.Retransmit()
         self.epoch = 0
         self._pending: Dict[Link, Pending] = {}
+        self._pending_bytes = 0  # the payload bytes of what is pending (each send's first timeout counts them)
+        self._due: Optional[float] = None  # next_due's answer while nothing pending changed (None: recompute)
         self._seen: set = set()
         self._next: Dict[Tuple[int, int], int] = defaultdict(int)
         self._lock = threading.Lock()
@@ -100,6 +102,7 @@ class Delivery:
         with self._lock:
             self.epoch = int(epoch)
             self._pending.clear()
+            self._pending_bytes, self._due = 0, None
             self._seen = {k for k in self._seen if k[0] >= self.epoch}  # the start of this epoch stays seen
             self._next.clear()
             self._log.clear()
@@ -128,8 +131,19 @@ class Delivery:
     def _keep(self, r: Resend, now: float) -> None:
         """Keep ``r`` until acknowledged, its first resend no sooner than the bytes ahead of it, itself
         included, take at :data:`FLOOR_BYTES_S` (caller holds the lock)."""
-        ahead = sum(len(p.payload) for p in self._pending.values()) + len(r.payload)
+        ahead = self._pending_bytes + len(r.payload)
+        self._drop((r.src, r.dst, r.seq))  # a replay keeps again what may still be pending
         self._pending[(r.src, r.dst, r.seq)] = Pending(now, 1, r.payload, r.kind, ahead / FLOOR_BYTES_S)
+        self._pending_bytes += len(r.payload)
+        self._due = None
+
+    def _drop(self, link: Link) -> Optional[Pending]:
+        """Stop waiting for the ack of ``link`` (caller holds the lock); returns what was pending."""
+        entry = self._pending.pop(link, None)
+        if entry is not None:
+            self._pending_bytes -= len(entry.payload)
+            self._due = None
+        return entry
 
     def put_returned(self, src: int, dst: int, seq: int, now: float) -> None:
         """The put of a kept message returned: its ack timer starts now."""
@@ -137,6 +151,7 @@ class Delivery:
             entry = self._pending.get((src, dst, seq))
             if entry is not None:
                 entry.sent_at = now
+                self._due = None
 
     def unacknowledged(self, src: Optional[int] = None) -> int:
         """Messages (of agent ``src``, or of every agent here) still waiting for their ack."""
@@ -148,10 +163,12 @@ class Delivery:
         return max(self.retransmit.timeout(dst, p.tries), min(self.retransmit.max_s, p.floor_s))
 
     def next_due(self) -> Optional[float]:
-        """When the earliest pending message is due again (None: nothing pending)."""
+        """When the earliest pending message is due again (None: nothing pending). Computed again only after
+        something pending changed (the simulator asks every process after every message)."""
         with self._lock:
-            times = [p.sent_at + self._timeout(k[1], p) for k, p in self._pending.items()]
-        return min(times) if times else None
+            if self._due is None and self._pending:
+                self._due = min(p.sent_at + self._timeout(k[1], p) for k, p in self._pending.items())
+            return self._due
 
     def due(self, now: float) -> List[Resend]:
         """The messages whose ack is overdue at ``now``, counted as resent (put them again, then call
@@ -163,6 +180,7 @@ class Delivery:
                 if now - p.sent_at >= self._timeout(dst, p):
                     p.sent_at, p.tries = now, p.tries + 1
                     out.append(Resend(src, dst, seq, p.kind, p.payload))
+                    self._due = None
         for _ in out:
             self.meter.resend()
         return out
@@ -174,7 +192,7 @@ class Delivery:
         with self._lock:
             self._gone |= {int(a) for a in agents}
             for k in [k for k in self._pending if k[1] in self._gone]:
-                del self._pending[k]
+                self._drop(k)
 
     def replay(self, agents, now: float) -> List[Resend]:
         """Everything sent to these agents in this epoch, in the order it was sent, to put again: after a
@@ -207,9 +225,9 @@ class Delivery:
                 self.meter.reject("ack for another agent")
                 return Verdict(False)
             with self._lock:
-                entry = self._pending.pop((dst, src, seq), None)
-            if entry is not None:
-                self.retransmit.acknowledged(src, now - entry.sent_at, entry.tries)
+                entry = self._drop((dst, src, seq))
+                if entry is not None:  # the link's round trip changes every pending timeout to src
+                    self.retransmit.acknowledged(src, now - entry.sent_at, entry.tries)
             return Verdict(False)
         if kind in messages.UNNUMBERED:
             return Verdict(True)

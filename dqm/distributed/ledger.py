@@ -36,6 +36,7 @@ class TrafficLedger:
     def __init__(self):
         self.bytes: Dict[Entry, int] = defaultdict(int)
         self.count: Dict[Entry, int] = defaultdict(int)
+        self._by_src: Dict[int, int] = defaultdict(int)  # bytes per sender: every state change reports its own
         self.lock = threading.Lock()
 
     # ------------------------------------------------------------------ counting
@@ -43,6 +44,7 @@ class TrafficLedger:
         with self.lock:
             self.bytes[(src, dst, kind)] += int(nbytes)
             self.count[(src, dst, kind)] += int(messages)
+            self._by_src[src] += int(nbytes)
 
     def entries(self) -> Dict[Entry, Tuple[int, int]]:
         """``(src, dst, kind) -> (bytes, messages)``, copied under the lock."""
@@ -65,6 +67,8 @@ class TrafficLedger:
                 dst, kind, what = key[len(self._SENT):].rsplit(":", 2)
                 with self.lock:
                     (self.bytes if what == "bytes" else self.count)[(src, int(dst), kind)] += int(v)
+                    if what == "bytes":
+                        self._by_src[src] += int(v)
 
     @classmethod
     def strip_stats(cls, values: Mapping[str, float]) -> Dict[str, float]:
@@ -80,7 +84,8 @@ class TrafficLedger:
 
     def sent_by(self, src: int) -> int:
         """Bytes sent by ``src`` so far."""
-        return sum(b for (s, _, _), (b, _) in self.entries().items() if s == src)
+        with self.lock:
+            return self._by_src.get(src, 0)
 
     def per_link(self) -> Dict[Link, int]:
         out: Dict[Link, int] = defaultdict(int)
