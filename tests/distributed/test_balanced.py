@@ -288,6 +288,32 @@ def test_routing_of_a_row_does_not_depend_on_its_batch():
         np.testing.assert_array_equal(batch[:40], exact)
 
 
+def test_exact_routing_equals_rational_arithmetic():
+    """The near-tie decision in scaled integers equals the least power in fractions, at any scale,
+    with subnormal coordinates, exact ties (the lower index) and weights."""
+    from fractions import Fraction
+
+    def least_power(x, P, w):
+        xs = [Fraction(v) for v in x.tolist()]
+        powers = [sum(Fraction(c) * (Fraction(c) - 2 * v) for c, v in zip(P[a].tolist(), xs))
+                  - (0 if w is None else Fraction(float(w[a]))) for a in range(len(P))]
+        return min(range(len(P)), key=lambda a: (powers[a], a))
+
+    rng = np.random.default_rng(3)
+    for trial in range(120):
+        m, dim = int(rng.integers(2, 7)), int(rng.integers(1, 40))
+        scale = 10.0 ** int(rng.integers(-30, 30))
+        P = rng.normal(size=(m, dim)) * scale
+        if trial % 3 == 0:
+            P[1] = P[0]
+        w = None if trial % 2 else rng.normal(size=m) * scale ** 2 * rng.choice([0.0, 1e-3, 1.0])
+        i, j = rng.integers(0, m, 2)
+        x = (P[i] + P[j]) / 2 + rng.choice([0.0, 1e-13]) * rng.normal(size=dim) * scale
+        if trial % 7 == 0:
+            x[0] = 5e-324
+        assert partition._exact_route(x, P, w, np.arange(m)) == least_power(x, P, w), trial
+
+
 def test_many_agents_with_few_features_each_still_get_seeds():
     rng = np.random.default_rng(0)
     X = rng.integers(0, 50, (30, 8)).astype(np.uint8)
