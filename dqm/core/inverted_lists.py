@@ -70,7 +70,8 @@ def n_lists(n: int) -> int:
 
 def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_threads: Optional[int] = 1) -> np.ndarray:
     """Indices of the ``t`` nearest centroids of every row of ``left`` (augmented operand rows
-    ``[x, |x|^2, 1]``), nearest first; computed in blocks of rows, ``n_threads`` blocks at a time."""
+    ``[x, |x|^2, 1]``), nearest first (ties: the lower index); computed in blocks of rows, ``n_threads``
+    blocks at a time."""
     dim = centroids.shape[1]
     right = np.empty((len(centroids), dim + 2), dtype=np.float32)
     right[:, :dim] = -2.0 * centroids
@@ -83,10 +84,7 @@ def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_thread
         if t == 1:
             out[s:s + len(d), 0] = d.argmin(axis=1)
             return
-        idx = np.argpartition(d, t - 1, axis=1)[:, :t] if t < d.shape[1] else \
-            np.broadcast_to(np.arange(d.shape[1]), d.shape)
-        order = np.argsort(np.take_along_axis(d, idx, axis=1), axis=1, kind="stable")
-        out[s:s + len(d)] = np.take_along_axis(idx, order, axis=1)
+        out[s:s + len(d)] = native.smallest(d, t)
 
     with pairs.tile_pool(n_threads) as run:
         for _ in run(block, range(0, len(left), 4096)):

@@ -95,6 +95,8 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_merge_clusters.restype = ctypes.c_int64
         lib.dqm_sq_dist_u8.argtypes = [u8, ctypes.c_int64, i64, i64, ctypes.c_int64, f64]
         lib.dqm_sq_dist_u8.restype = None
+        lib.dqm_smallest.argtypes = [f32, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, i32]
+        lib.dqm_smallest.restype = None
         lib.dqm_sum_roundings.restype = ctypes.c_int32
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
@@ -351,6 +353,23 @@ def keep_nearest(er, ec, eg, rows, image, best_g, best_c, count, lim, use_native
         np.ascontiguousarray(er, dtype=np.int32), np.ascontiguousarray(ec, dtype=np.int32),
         np.ascontiguousarray(eg, dtype=np.float32), len(er), np.ascontiguousarray(rows, dtype=np.int64),
         None if img is None else img.ctypes.data, best_g.shape[1], best_g, best_c, count, lim)
+
+
+def smallest(D: np.ndarray, t: int, use_native: bool = True) -> np.ndarray:
+    """Column indices of the ``t`` smallest entries of every row of the float32 matrix ``D``, ordered by
+    (value, index), NaN as +inf: ``(m, t)`` int32 (``t <= D.shape[1]``)."""
+    D = np.ascontiguousarray(D, dtype=np.float32)
+    m, k = D.shape
+    t = int(t)
+    if not 1 <= t <= k:
+        raise ValueError(f"smallest: t = {t} of {k} columns")
+    if _LIB is None or not use_native:
+        order = np.argsort(np.where(np.isnan(D), np.float32(np.inf), D), axis=1, kind="stable")
+        return np.ascontiguousarray(order[:, :t], dtype=np.int32)
+    out = np.empty((m, t), dtype=np.int32)
+    if m:
+        _LIB.dqm_smallest(D, m, k, k, t, out)
+    return out
 
 
 def sq_distances_u8(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> Optional[np.ndarray]:

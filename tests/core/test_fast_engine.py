@@ -151,6 +151,27 @@ def test_candidate_keeper_holds_each_childs_nearest_whatever_the_order(use_nativ
     assert np.array_equal(np.bincount(cr, minlength=n), results[0].count)
 
 
+@pytest.mark.parametrize("use_native", [True, False])
+def test_each_features_nearest_lists_by_distance_then_index(use_native):
+    """The nearest lists of every feature (native and numpy): the t smallest of each row by (value, index),
+    with ties, NaN as +inf, t = 1 and t = every column."""
+    from dqm.core import native
+
+    if use_native and not native.native_available():
+        pytest.skip("the native kernel is not built")
+    rng = np.random.default_rng(2)
+    D = rng.integers(0, 40, (300, 97)).astype(np.float32)  # many ties
+    D[5, 3] = D[7, :] = np.nan
+    D[9, :] = np.inf
+    ref = np.lexsort((np.broadcast_to(np.arange(97), D.shape), np.where(np.isnan(D), np.inf, D)), axis=1)
+    for t in (1, 2, 32, 97):
+        got = native.smallest(D, t, use_native=use_native)
+        assert got.dtype == np.int32 and got.shape == (300, t)
+        np.testing.assert_array_equal(got, ref[:, :t])
+    with pytest.raises(ValueError, match="t = 0"):
+        native.smallest(D, 0, use_native=use_native)
+
+
 def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
     """parent='other-image': pairs within one image are dropped before each child's nearest are kept, so a
     tight cap still holds the nearest candidate from another image."""
