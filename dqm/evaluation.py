@@ -58,22 +58,10 @@ def _scores(n_pred: int, n_correct: int, n_truth: int, n_correct_for_recall: int
 
 def cluster_pairs(labels: np.ndarray, image_ids: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """All pairs (a, b), a < b, of features in one cluster and different images."""
-    labels = np.asarray(labels)
+    from .core.tree import member_pairs
+
     image_ids = np.asarray(image_ids)
-    order = np.argsort(labels, kind="stable")
-    lab = labels[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    ends = np.r_[starts[1:], len(lab)]
-    big = np.flatnonzero(ends - starts > 1)
-    A, B = [], []
-    for s, e in zip(starts[big], ends[big]):
-        m = np.sort(order[s:e])
-        a, b = np.triu_indices(len(m), 1)
-        A.append(m[a])
-        B.append(m[b])
-    if not A:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    a, b = np.concatenate(A), np.concatenate(B)
+    a, b = member_pairs(labels)
     keep = image_ids[a] != image_ids[b]
     return a[keep], b[keep]
 

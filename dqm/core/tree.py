@@ -163,3 +163,29 @@ def canonical_labels(labels: np.ndarray) -> np.ndarray:
     rank = np.empty(len(first), dtype=np.int64)
     rank[np.argsort(first, kind="stable")] = np.arange(len(first))
     return rank[inverse.ravel()]
+
+
+def member_pairs(labels: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Every two members ``(i, j)``, ``i < j``, of every cluster of ``labels``: cluster by cluster in label
+    order, each cluster's pairs in row order. Clusters of one size are expanded at once (a table of their
+    members), so the cost is in the pairs, not in a loop over clusters."""
+    labels = np.asarray(labels).ravel()
+    empty = np.zeros(0, np.int64)
+    if len(labels) < 2:
+        return empty, empty
+    order = np.argsort(labels, kind="stable")  # members of a cluster in row order
+    lab = labels[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    sizes = np.diff(np.r_[starts, len(lab)])
+    first, second, cluster = [], [], []
+    for size in np.unique(sizes[sizes >= 2]).tolist():
+        which = np.flatnonzero(sizes == size)
+        members = order[starts[which][:, None] + np.arange(size)]
+        i, j = np.triu_indices(size, 1)
+        first.append(members[:, i].ravel())
+        second.append(members[:, j].ravel())
+        cluster.append(np.repeat(which, len(i)))
+    if not first:
+        return empty, empty
+    o = np.argsort(np.concatenate(cluster), kind="stable")
+    return np.concatenate(first)[o].astype(np.int64), np.concatenate(second)[o].astype(np.int64)

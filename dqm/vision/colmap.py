@@ -66,20 +66,12 @@ def cluster_pairs(labels, image_ids) -> dict[tuple[int, int], np.ndarray]:
     Returns ``{(a, b): (m, 2) int64 array of feature indices}`` with image ``a < b`` and column 0
     in image ``a``. Within a cluster the images differ (constraint C2), so no pair is dropped.
     """
-    labels = np.asarray(labels, np.int64)
+    from ..core.tree import member_pairs
+
     ids = np.asarray(image_ids, np.int64)
-    order = np.argsort(labels, kind="stable")
-    starts = np.r_[0, np.flatnonzero(np.diff(labels[order])) + 1]
-    sizes = np.diff(np.r_[starts, len(order)])
-    first, second = [], []
-    for size in np.unique(sizes[sizes >= 2]):  # clusters of one size at once: a (clusters, size) table
-        members = order[starts[sizes == size][:, None] + np.arange(size)]
-        i, j = np.triu_indices(int(size), 1)
-        first.append(members[:, i].ravel())
-        second.append(members[:, j].ravel())
-    if not first:
+    f, g = member_pairs(np.asarray(labels, np.int64))
+    if not len(f):
         return {}
-    f, g = np.concatenate(first), np.concatenate(second)
     swap = ids[f] > ids[g]
     f, g = np.where(swap, g, f), np.where(swap, f, g)
     key = ids[f] * (int(ids.max()) + 1) + ids[g]

@@ -36,3 +36,18 @@ def test_nearest_candidates_is_the_first_in_distance_then_key_order():
         for a, b in zip(got, _by_lexsort(child, cand, dist, n, tie=tie)):
             np.testing.assert_array_equal(a, b)
     assert tree.nearest_candidates(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 3)[0].tolist() == [-1, -1, -1]
+
+
+def test_member_pairs_are_every_two_members_of_every_cluster_in_order():
+    """Clusters of many sizes (singletons, pairs, one large), labels in any order and of any sign: every two
+    members once, i < j, cluster by cluster in label order and row order within one."""
+    from dqm.core.tree import member_pairs
+
+    rng = np.random.default_rng(5)
+    labels = np.r_[rng.integers(-3, 40, 300), np.full(25, 99)][rng.permutation(325)]
+    want = [(i, j) for lab in np.unique(labels) for i in np.flatnonzero(labels == lab)
+            for j in np.flatnonzero(labels == lab) if i < j]
+    a, b = member_pairs(labels)
+    assert a.dtype == np.int64 and list(zip(a.tolist(), b.tolist())) == want
+    for few in ([], [7], [1, 2, 3]):
+        assert len(member_pairs(np.array(few, np.int64))[0]) == 0
