@@ -158,3 +158,42 @@ def test_the_first_resend_waits_for_the_bytes_ahead_at_the_floor_rate():
     assert d.due(t + 2.5) == []
     assert [r.dst for r in d.due(t + first + 0.01)] == [1]
     assert sorted(r.dst for r in d.due(t + second + 0.02)) == [1, 2]
+
+
+def test_next_resend_time_follows_every_change_of_what_is_pending():
+    """next_due (kept between changes, as the simulator asks after every message) equals the earliest due time
+    computed afresh after sends, returned puts, acks (which also change a link's round trip), resends, a
+    finished agent and a replay."""
+    from dqm.distributed.delivery import Delivery
+    from dqm.distributed.ledger import Meter
+
+    d = Delivery("j", Meter())
+
+    def fresh():
+        times = [p.sent_at + d._timeout(k[1], p) for k, p in d._pending.items()]
+        return min(times) if times else None
+
+    rng = np.random.default_rng(0)
+    now, seq, checked = 0.0, 0, 0
+    for step in range(400):
+        now += float(rng.exponential(0.3))
+        op = rng.integers(0, 6)
+        pending = list(d._pending)
+        if op <= 1:
+            dst = int(rng.integers(1, 4))
+            if d.sending(0, dst, "ghost", b"x" * int(rng.integers(1, 50_000)), seq, now):
+                assert d.next_due() == fresh()  # asked while the put is under way
+                d.put_returned(0, dst, seq, now + float(rng.random()))
+            seq += 1
+        elif op == 2 and pending:
+            src, dst, s = pending[int(rng.integers(len(pending)))]
+            d.receive({"kind": "ack", "src": dst, "dst": src, "seq": s, "epoch": 0}, src, now)
+        elif op == 3:
+            d.due(now)
+        elif op == 4 and step % 50 == 0:
+            d.forget([int(rng.integers(1, 4))])
+        elif op == 5 and step % 40 == 0:
+            d.replay([int(rng.integers(1, 4))], now)
+        assert d.next_due() == fresh(), step
+        checked += d.next_due() is not None
+    assert checked > 100 and d.meter.counters()[2] > 0  # resends happened
