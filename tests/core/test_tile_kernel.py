@@ -140,12 +140,29 @@ def test_edges_handed_over_tile_by_tile_are_the_collected_ones(monkeypatch):
         assert sorted(zip(r.tolist(), c.tolist())) == sorted(zip(cr.tolist(), cc.tolist()))
 
 
-def _cross_pass_meets_exactly_the_cross_pairs(aug, sig, cuts):
+needs_vnni = pytest.mark.skipif(native.simd_level() < 3, reason="the CPU has no AVX-512 VNNI (integer distance kernel)")
+
+
+@pytest.mark.parametrize("fused", [False, pytest.param(True, marks=needs_vnni)])
+def test_own_by_batch_pass_meets_exactly_the_cross_pairs(monkeypatch, fused):
+    """A balanced agent meets one window of copies at a time (rows: its own features, columns: the
+    window): the tiles cover the own-by-window rectangle only, at any boundary, and give exactly the cross
+    edges, with the float GEMM and with the fused integer tiles (whose columns start at multiples of 32: a
+    boundary inside a group of 32 puts a few own features among the columns; their pairs are filtered)."""
+    monkeypatch.setattr(pairs, "BLOCK", 128)
+    ds = sift_like(n_images=5, n_points=200, clutter_per_image=100, seed=8)
+    aug = pairs.Augmented(ds.descriptors)
+    if fused:
+        assert aug.u8 is not None
+    else:
+        monkeypatch.setattr(aug, "u8", None)
+    _, img = np.unique(ds.image_ids, return_inverse=True)
+    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
     n, zero, radius = aug.n, np.zeros(aug.n), 0.9 * sig
     X = aug.exact.astype(np.float64)
     n2 = (X * X).sum(1)
     d = np.sqrt(np.maximum(n2[:, None] + n2[None, :] - 2.0 * X @ X.T, 0.0))  # integers: exact in float64
-    for cut in cuts:
+    for cut in (700, 768, 1100):
         within = d < radius[:, None]  # child (row) -> candidate (column)
         within[:cut, :cut] = within[cut:, cut:] = False
         got = []
@@ -158,34 +175,6 @@ def _cross_pass_meets_exactly_the_cross_pairs(aug, sig, cuts):
         kept = d[r, c] < radius[r]  # the pass's edges are a superset; the ones that matter are all there
         assert within.sum() > 0
         np.testing.assert_array_equal(np.sort(r[kept] * n + c[kept]), np.flatnonzero(within))
-
-
-def test_own_by_batch_pass_meets_exactly_the_cross_pairs(monkeypatch):
-    """A balanced agent meets one window of copies at a time (rows: its own features, columns: the
-    window): the tiles cover the own-by-window rectangle only, at any boundary, and give exactly the cross
-    edges of a pass over both."""
-    monkeypatch.setattr(pairs, "BLOCK", 128)
-    ds = sift_like(n_images=5, n_points=200, clutter_per_image=100, seed=8)
-    aug = pairs.Augmented(ds.descriptors)
-    _, img = np.unique(ds.image_ids, return_inverse=True)
-    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
-    _cross_pass_meets_exactly_the_cross_pairs(aug, sig, (700, 768, 1100))
-
-
-needs_vnni = pytest.mark.skipif(native.simd_level() < 3, reason="the CPU has no AVX-512 VNNI (integer distance kernel)")
-
-
-@needs_vnni
-def test_own_by_batch_pass_with_the_integer_kernel(monkeypatch):
-    """As above with the fused integer tiles, whose columns start at multiples of 32 (a boundary inside
-    a group of 32 puts a few own features among the columns; their pairs are filtered)."""
-    monkeypatch.setattr(pairs, "BLOCK", 128)
-    ds = sift_like(n_images=5, n_points=200, clutter_per_image=100, seed=8)
-    aug = pairs.Augmented(ds.descriptors)
-    assert aug.u8 is not None
-    _, img = np.unique(ds.image_ids, return_inverse=True)
-    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
-    _cross_pass_meets_exactly_the_cross_pairs(aug, sig, (700, 768, 1100))
 
 
 @needs_vnni
