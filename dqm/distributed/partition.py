@@ -150,7 +150,8 @@ def _exact_route(x: np.ndarray, P: np.ndarray, weights: Optional[np.ndarray], ca
     """The least exact power among the candidate cells, ties to the lower index. Every float is a
     dyadic rational: scaled by the largest denominator D (a power of two) among the values involved,
     the descriptor and seed coordinates are integers and so is ``D^2`` times every power (and weight), so
-    Python's integers compare them exactly (as rational arithmetic would, about 30x faster)."""
+    Python's integers compare them exactly (as rational arithmetic would, about 20x faster: 22 -> 1 ms a row
+    of 128 dimensions against six seeds)."""
     cand = candidates.tolist()
     rows = [x.tolist()] + [P[a].tolist() for a in cand]
     wts = [0.0] * len(cand) if weights is None else [float(weights[a]) for a in cand]
