@@ -10,6 +10,7 @@ import time
 import pytest
 from runtime_helpers import alive
 
+from dqm import io, synthetic
 from dqm.cli import main
 from dqm.distributed.protocol import traffic_table
 from dqm.runtime.launcher import MAX_AGENTS_PER_CORE, JobFailure, check_scale, overload_note
@@ -19,12 +20,23 @@ from dqm.validation import InputError
 pytest.importorskip("zenoh")
 
 
+@pytest.fixture(scope="module")
+def larger_job(tmp_path_factory):
+    """40k generated features: the default scene's whole job (4k features) ends within 2.5 s on a fast
+    machine, and then the signal no longer lands before the result; this one takes about 7 s there."""
+    path = tmp_path_factory.mktemp("larger") / "f.npz"
+    ds = synthetic.sized(40_000)
+    io.save_features(path, io.FeatureSet(ds.descriptors, ds.image_ids))
+    return path
+
+
 @pytest.mark.parametrize("sig,delay,code", [(signal.SIGINT, 0.15, 130), (signal.SIGINT, 1.2, 130),
                                             (signal.SIGTERM, 2.5, 143)])
-def test_a_signal_during_start_up_ends_the_job_at_once(tmp_path, sig, delay, code):
+def test_a_signal_during_start_up_ends_the_job_at_once(tmp_path, larger_job, sig, delay, code):
     """12 agent processes take seconds to start on 2 cores: the signal lands while the command
     imports, while it forks the agents, or while they start; each time it must be obeyed."""
-    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "12", "--out", str(tmp_path / "c.npz")],
+    p = subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "12", "--features", str(larger_job),
+                          "--out", str(tmp_path / "c.npz")],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(delay)
     p.send_signal(sig)
