@@ -1007,6 +1007,67 @@ static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float 
 }
 #endif
 
+#ifdef DQM_HAVE_AVX2_PATH
+/* The scan row with AVX-512: 16 lanes, masks instead of a scalar tail; the terms are terms8's lane for
+   lane (exp_neg16 is exp_neg8's), only the order of the float32 sums differs. */
+AVX512_TARGET
+static inline __m512 scan_terms16(int kernel, __m512 gv, __m512 wv, __m512 sv)
+{
+    __m512 t = _mm512_mul_ps(_mm512_max_ps(gv, _mm512_setzero_ps()), wv);
+    if (kernel == KERNEL_GAUSSIAN)
+        return _mm512_mul_ps(exp_neg16(_mm512_min_ps(t, _mm512_set1_ps(87.0f))), sv);
+    return _mm512_mul_ps(_mm512_max_ps(_mm512_sub_ps(_mm512_set1_ps(1.0f), t), _mm512_setzero_ps()), sv);
+}
+
+AVX512_TARGET
+static int64_t scan_row_avx512(int kernel, const float *g, int64_t k, const float *wc, const float *sc,
+                               float wr, float sr, float limr, const float *rad2c, int own, int64_t self,
+                               int test, const uint64_t *col_bits, int64_t words, int32_t a, int32_t r,
+                               double *dens_r, float *cacc, int32_t *cand_r, int32_t *cand_c, float *cand_g,
+                               int64_t count, int64_t cap)
+{
+    __m512 acc = _mm512_setzero_ps();
+    __m512 vlim = _mm512_set1_ps(limr), wrv = _mm512_set1_ps(wr), srv = _mm512_set1_ps(sr);
+    for (int64_t c = 0; c < k; c += 16) {
+        const __mmask16 m = tail_mask(k - c);
+        __mmask16 keep = m;
+        if (own) {
+            if (self >= c && self < c + 16)
+                keep &= (__mmask16)~(1u << (unsigned)(self - c));
+        } else if (test) {
+            const int64_t lanes = k - c < 16 ? k - c : 16;
+            for (int64_t l = 0; l < lanes; ++l)
+                if (!scan_keep(col_bits, words, c + l, a))
+                    keep &= (__mmask16)~(1u << (unsigned)l);
+            if (!keep)
+                continue;
+        }
+        __m512 gv = _mm512_maskz_loadu_ps(m, g + c);
+        acc = _mm512_mask_add_ps(acc, keep, acc, scan_terms16(kernel, gv, _mm512_maskz_loadu_ps(m, wc + c),
+                                                              _mm512_maskz_loadu_ps(m, sc + c)));
+        unsigned fwd = _mm512_mask_cmp_ps_mask(keep, gv, vlim, _CMP_LT_OQ), rev = 0;
+        if (!own) {
+            __m512 ca = _mm512_maskz_loadu_ps(m, cacc + c);
+            _mm512_mask_storeu_ps(cacc + c, m, _mm512_mask_add_ps(ca, keep, ca, scan_terms16(kernel, gv, wrv, srv)));
+            rev = _mm512_mask_cmp_ps_mask(keep, gv, _mm512_maskz_loadu_ps(m, rad2c + c), _CMP_LT_OQ);
+        }
+        for (unsigned both = fwd | rev; both; both &= both - 1) {
+            const int l = __builtin_ctz(both);
+            if (fwd & (1u << l)) {
+                if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
+                ++count;
+            }
+            if (rev & (1u << l)) {
+                if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
+                ++count;
+            }
+        }
+    }
+    *dens_r += (double)_mm512_reduce_add_ps(acc);
+    return count;
+}
+#endif
+
 int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
                       const float *wc, const float *sc, const float *wr, const float *sr, int32_t kernel,
                       const float *rad2r, const float *rad2c, int64_t n_own, int64_t self_col,
@@ -1026,7 +1087,11 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
         int test = !own && a > list; /* both ways scanned: kept in the larger list's tile */
         const float *g = G + r * ldg;
 #ifdef DQM_HAVE_AVX2_PATH
-        if (simd_level >= 1)
+        if (simd_level >= 2)
+            count = scan_row_avx512(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
+                                    col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, cand_g, count,
+                                    cap);
+        else if (simd_level >= 1)
             count = scan_row_avx2(kernel, g, k, wc, sc, wr[r], sr[r], rad2r[r], rad2c, own, r + self_col, test,
                                   col_bits, words, a, (int32_t)r, dens_r + r, cacc, cand_r, cand_c, cand_g, count, cap);
         else

@@ -252,6 +252,9 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
     rr, rc, rg = native.scan_tile(*args, d_ref, c_ref, use_native=False)
     assert (rr < 0).any() and (rr >= 0).any()  # edges in both directions are exercised
     np.testing.assert_array_equal(rg, G[np.where(rr < 0, -1 - rr, rr), rc])  # each edge's squared distance
+    wide = np.zeros((len(a), 32 + G.shape[1]), np.float32)
+    wide[:, 32 - 7:-7] = G
+    strided = wide[:, 32 - 7:-7]  # a view with a longer row stride, as the integer kernel's scan passes
     for level in levels:
         assert native.set_simd_level(level) == level
         d, c = np.zeros(len(a)), np.zeros(len(b))
@@ -259,6 +262,10 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
         assert sorted(zip(r.tolist(), cc.tolist(), g.tolist())) == sorted(zip(rr.tolist(), rc.tolist(), rg.tolist()))
         np.testing.assert_allclose(d, d_ref, rtol=2e-5, atol=1e-12)
         np.testing.assert_allclose(c, c_ref, rtol=2e-5, atol=1e-12)
+        d2, c2 = np.zeros(len(a)), np.zeros(len(b))
+        out = native.scan_tile(strided, *args[1:], d2, c2)
+        for x, y in zip(out + (d2, c2), (r, cc, g, d, c)):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_native_break_merge_gives_the_python_loops_labels():
