@@ -3,8 +3,9 @@
 The exact pass computes every pair of features (n^2 / 2 distances and two
 kernel terms each). On photo SIFT nearly all of a feature's density and every
 candidate parent come from its near neighbourhood, so the fast engine computes
-only pairs of nearby features (a float32 GEMM and a native tile kernel per
-block, as the exact pass):
+only pairs of nearby features (a float32 GEMM, or on uint8 descriptors the
+integer VNNI kernel where the CPU has it, and a native tile kernel per block,
+as the exact pass):
 
 1. **Lists.** k-means on a seeded sample gives ``n_lists`` centroids (about
    ``2 sqrt(n)``, a power of two); every feature belongs to the list of its
@@ -38,6 +39,7 @@ and every sum is added in list order whatever the thread count.
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable, Optional, Tuple
 
@@ -120,6 +122,24 @@ class NearestCandidates:
         return child, self.cand[held].astype(np.int64)
 
 
+def _by_list(lists: np.ndarray, k: int) -> np.ndarray:
+    """Stable order of entries by their list (``k`` lists): numpy sorts 16-bit keys by radix, in linear time."""
+    return np.argsort(lists.astype(np.uint16) if k <= 1 << 16 else lists, kind="stable")
+
+
+def _scanned_lists(counts: np.ndarray, near: np.ndarray, quota: float) -> np.ndarray:
+    """How many of each feature's other nearest lists (``near[:, 1:]``, nearest first) it scans: those it
+    reaches having met fewer than ``quota`` features (its own list's ``counts`` included); a prefix, as the
+    features met only grow."""
+    met = counts[near[:, 0]].astype(np.int64)
+    count = np.zeros(len(near), dtype=np.int64)
+    for j in range(1, near.shape[1]):
+        going = met < quota
+        count += going
+        met += counts[near[:, j]]
+    return count
+
+
 def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     """Every feature's scanned lists as a bitset: (n, ceil(k / 64)) uint64, bit l of word l // 64 set when the
     feature scans list l (its own list included)."""
@@ -191,23 +211,26 @@ def scan(
     own = near[:, 0].astype(np.int64)
     # members of each list, in feature order; probing rows of each list: its members first (their own
     # list is their nearest), then the others, so that row i < len(members) is column i (the self pair)
-    by_list = np.argsort(own, kind="stable")
-    bounds = np.searchsorted(own[by_list], np.arange(k + 1))
+    by_list = _by_list(own, k)
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(own, minlength=k))])
     # a feature scans its nearest lists until it has met as many features as n_probe lists of the mean size
     # hold: where lists are uneven (generated data, repeated texture), dense regions do not cost more per
     # feature than sparse ones
-    sizes = np.diff(bounds)[near[:, 1:]]
-    before = np.cumsum(sizes, axis=1) - sizes + np.diff(bounds)[own][:, None]
-    scans = before < (t * n) / k
-    probe_list = near[:, 1:][scans].astype(np.int64)
-    probe_row = np.nonzero(scans)[0]
-    order = np.argsort(probe_list, kind="stable")
-    pbounds = np.searchsorted(probe_list[order], np.arange(k + 1))
+    counts = np.diff(bounds).astype(np.int32)
+    count = _scanned_lists(counts, near, (t * n) / k)
+    scans = np.arange(t - 1)[None, :] < count[:, None]  # the first count[i] of feature i's other nearest lists
+    probe_list = near[:, 1:][scans]
+    probe_row = np.repeat(np.arange(n), count)
+    order = _by_list(probe_list, k)
+    pbounds = np.concatenate([[0], np.cumsum(np.bincount(probe_list, minlength=k))])
     # everything in list order: a list's members are one slice of the operands (no gather per tile)
     perm = by_list
     where = np.empty(n, dtype=np.int64)
     where[perm] = np.arange(n)
-    Lp, Rp = left[perm], right[perm]
+    # the rows' distances to a list: the integer (VNNI) kernel on uint8 descriptors where the CPU has it
+    # (exact, as the float32 GEMM's on such data), else one float32 GEMM
+    u8 = None if aug.u8 is None else aug.u8.take(aug.exact, perm)
+    Lp, Rp = (None, None) if u8 is not None else (left[perm], right[perm])
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)
     rad2p = pairs.search_rad2(aug, radius)[perm]
@@ -226,18 +249,30 @@ def scan(
     held = NearestCandidates(n, max_candidates, None if image_index is None else image_index[perm])
     limit = held.limit  # read by the workers as the main thread tightens it: any value read is a valid radius
 
+    workspace = threading.local()  # each thread's buffers for the integer kernel's rows and distances
+
     def work(task):
         b, lo, hi, rows, r0 = task
         n_own = max(0, min(hi - lo - r0, len(rows)))
         dr = np.zeros(len(rows))
         dc = np.zeros(hi - lo)
-        L = Lp[rows]
+        if u8 is None:
+            L = Lp[rows]
+        else:
+            if not hasattr(workspace, "rows"):
+                workspace.rows = u8.row_buffers(ROWS)
+                workspace.d2 = np.empty(ROWS * (native.MAX_ROW + 32), np.float32)
+            L = u8.gather_rows(rows, workspace.rows)
         args = (wp[rows], sp[rows])
         edges = []
         for c0 in range(lo, hi, native.MAX_ROW):
             c1 = min(hi, c0 + native.MAX_ROW)
             part = dc[c0 - lo:c1 - lo]
-            r, c, g = native.scan_tile(L @ Rp[c0:c1].T, wp[c0:c1], sp[c0:c1], *args, kernel,
+            if u8 is None:
+                G = L @ Rp[c0:c1].T
+            else:  # the integer kernel's columns start at a multiple of 32
+                G = u8.d2_gathered(L, c0 - c0 % 32, c1, workspace.d2)[:, c0 % 32:]
+            r, c, g = native.scan_tile(G, wp[c0:c1], sp[c0:c1], *args, kernel,
                                        np.minimum(rad2p[rows], limit[rows]), np.minimum(rad2p[c0:c1], limit[c0:c1]),
                                        n_own, lo + r0 - c0, listp[rows], bits[c0:c1], b, dr, part)
             edges.append((r, c + c0, g))

@@ -639,41 +639,75 @@ def single_threaded_blas_in_this_thread() -> bool:
 
 
 #: rows of the VNNI kernel's register block (its operands hold this many rows of padding)
-_VNNI_ROWS = 12
+_VNNI_ROWS = 8
 
 
 class U8Operands:
     """uint8 descriptors packed for the VNNI distance kernel (``simd_level() == 3``).
 
     Rows: ``x - 128`` as int8 (row-major, padded to a multiple of 4 bytes and by
-    12 rows); columns: the raw bytes in groups of 16 features, 4 bytes of each
+    8 rows); columns: the raw bytes in groups of 16 features, 4 bytes of each
     at a time. With ``na = |x|^2`` and ``nb = |y|^2 - 256 sum(y)``, the kernel's
     int32 ``na + nb - 2 (x - 128) . y`` is the exact squared distance. 256 bytes
     a feature. Tiles start at multiples of 32 features.
     """
 
-    def __init__(self, X: np.ndarray):
+    def __init__(self, X: np.ndarray, norms: Optional[Tuple[np.ndarray, np.ndarray]] = None):
         n, dim = X.shape
         self.n, self.nq = n, -(-dim // 4)
         width = 4 * self.nq
         groups = -(-n // 32) * 2
         self.rows = np.zeros((n + _VNNI_ROWS, width), np.int8)
-        self.rows[:n, :dim] = (X.astype(np.int16) - 128).astype(np.int8)
+        self.rows[:n, :dim] = (X ^ np.uint8(0x80)).view(np.int8)  # x - 128 in two's complement
         cols = np.zeros((groups * 16, width), np.uint8)
         cols[:n, :dim] = X
         self.cols = np.ascontiguousarray(cols.reshape(groups, 16, self.nq, 4).transpose(0, 2, 1, 3))
-        Xi = X.astype(np.int32)
-        norm = np.einsum("ij,ij->i", Xi, Xi)
+        if norms is None:
+            norm = np.square(X, dtype=np.uint16).sum(axis=1, dtype=np.int32)  # 255^2 fits 16 bits
+            norms = (norm, norm - 256 * X.sum(axis=1, dtype=np.int32))
         self.na = np.zeros(n + _VNNI_ROWS, np.int32)
-        self.na[:n] = norm
+        self.na[:n] = norms[0]
         self.nb = np.zeros(groups * 16, np.int32)
-        self.nb[:n] = norm - 256 * Xi.sum(axis=1)
+        self.nb[:n] = norms[1]
+
+    def take(self, X: np.ndarray, idx: np.ndarray) -> "U8Operands":
+        """The operands of ``X[idx]`` (``X`` the descriptors these were made of), reusing their norms."""
+        return U8Operands(X[idx], (self.na[idx], self.nb[idx]))
 
     def _args(self, a: int, b: int):
         if b % 32:
             raise ValueError(f"VNNI tiles start at multiples of 32 features, not {b}")
         return (self.rows[a:].ctypes.data, self.rows.shape[1], self.na[a:].ctypes.data,
                 self.cols[b // 16:].ctypes.data, self.nb[b:].ctypes.data)
+
+    def row_buffers(self, m: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Buffers for up to ``m`` gathered rows (:meth:`gather_rows`)."""
+        return np.zeros((m + _VNNI_ROWS, self.rows.shape[1]), np.int8), np.zeros(m + _VNNI_ROWS, np.int32)
+
+    def gather_rows(self, idx: np.ndarray, out: Optional[Tuple[np.ndarray, np.ndarray]] = None
+                    ) -> Tuple[np.ndarray, np.ndarray]:
+        """The packed rows of the features ``idx`` and their norms, with the padding the kernel reads past
+        the last row: the row operand of :meth:`d2_gathered`. ``out``: buffers of at least
+        ``len(idx) + 8`` rows to fill (a thread's workspace) instead of new arrays."""
+        m = len(idx)
+        if out is None:
+            out = self.row_buffers(m)
+        A, na = out[0][:m + _VNNI_ROWS], out[1][:m + _VNNI_ROWS]
+        np.take(self.rows, idx, axis=0, out=A[:m])
+        np.take(self.na, idx, out=na[:m])
+        return A, na
+
+    def d2_gathered(self, rows: Tuple[np.ndarray, np.ndarray], b: int, b1: int,
+                    out: Optional[np.ndarray] = None) -> np.ndarray:
+        """Exact squared distances (float32) of gathered rows (:meth:`gather_rows`) to the columns
+        ``b..b1`` of these operands (``b`` a multiple of 32), in the head of the flat float32 buffer ``out``
+        when given (a thread's workspace)."""
+        A, na = rows
+        m, k = len(A) - _VNNI_ROWS, b1 - b
+        G = np.empty((m, k), np.float32) if out is None else out[:m * k].reshape(m, k)
+        _, _, _, B, nb = self._args(0, b)
+        _check_code(_LIB.dqm_gemm_d2_u8(A.ctypes.data, A.shape[1], na.ctypes.data, m, B, nb, k, self.nq, G, k), k)
+        return G
 
     def d2(self, a: int, a1: int, b: int, b1: int, cols: Optional["U8Operands"] = None) -> np.ndarray:
         """Exact squared distances of rows ``a..a1`` to columns ``b..b1`` (float32); the columns

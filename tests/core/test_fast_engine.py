@@ -52,6 +52,41 @@ def test_the_fast_engine_is_deterministic_and_the_seed_is_its_own(scene):
     assert not np.array_equal(c.density, a.density)  # another sample, other lists
 
 
+def test_the_integer_kernels_scan_gives_the_float_scans_result(scene):
+    """On uint8 descriptors the scan takes its distances from the integer (VNNI) kernel where the CPU has it,
+    else from a float32 GEMM: both exact integers, so the densities and clusters are the same bits."""
+    from dqm.core import native
+
+    if native.simd_level() < 3:
+        pytest.skip("no AVX-512 VNNI on this CPU: the scan's integer path does not run here")
+    X, ids, _ = scene
+    vnni = dqm.quickmatch(X, ids, engine="fast")
+    try:
+        native.set_simd_level(2)
+        gemm = dqm.quickmatch(X, ids, engine="fast")
+    finally:
+        native.set_simd_level(99)
+    np.testing.assert_array_equal(vnni.labels, gemm.labels)
+    np.testing.assert_array_equal(vnni.density, gemm.density)
+    np.testing.assert_array_equal(vnni.parent, gemm.parent)
+
+
+def test_scanned_lists_are_those_reached_before_the_quota():
+    """Each feature scans its other nearest lists while it has met fewer features than the quota (its own
+    list's included): the definition by cumulative sums, on uneven lists."""
+    rng = np.random.default_rng(3)
+    k, t, n = 40, 9, 500
+    counts = rng.integers(0, 60, k).astype(np.int32)
+    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
+    for quota in (0.0, 30.0, 150.0, 1e9):
+        sizes = counts[near[:, 1:]].astype(np.int64)
+        before = np.cumsum(sizes, axis=1) - sizes + counts[near[:, 0]][:, None]
+        expected = (before < quota).sum(axis=1)
+        got = inverted_lists._scanned_lists(counts, near, quota)
+        np.testing.assert_array_equal(got, expected)
+        assert ((before < quota) == (np.arange(t - 1)[None, :] < got[:, None])).all()  # a prefix of the lists
+
+
 def test_auto_runs_exact_below_its_size_and_engines_are_checked(scene):
     X, ids, exact = scene
     assert len(X) < FAST_FROM
