@@ -445,7 +445,7 @@ def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, im
         dens_o = dens_o + zcount - zero
 
     def exact_others(idx):
-        exact = pairs.exact_density_others(aug, idx, w, active, kernel)
+        exact = pairs.exact_density_others(aug, idx, w, active, kernel, threads)
         return exact if zcount is None else exact + zcount[idx] - zero[idx]
 
     # duplicates first: exact and equal, so their order is certain (by index) in both passes

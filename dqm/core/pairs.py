@@ -531,8 +531,10 @@ def exact_density_others(
     weights: np.ndarray,
     active: np.ndarray,
     kernel: str,
+    n_threads: Optional[int] = None,
 ) -> np.ndarray:
-    """Float64 densities (without the self term) of the given targets over all contributors.
+    """Float64 densities (without the self term) of the given targets over all contributors, in chunks
+    of targets, ``n_threads`` at a time (each target's value does not depend on the chunk or the thread).
 
     Gaussian: a float64 GEMM on the centred data (error ~1e-16 |x|^2 on a
     squared distance, far below any difference that decides the result).
@@ -552,7 +554,7 @@ def exact_density_others(
     if len(contrib) == 0:  # every sigma is 0: no kernel contributes (duplicates are counted by the caller)
         return out
     if aug.u8 is not None and kernel == "gaussian":
-        return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active)
+        return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active, n_threads)
     every = len(contrib) == aug.n  # no gathered copy of the data when every feature contributes
     cols = slice(None) if every else contrib
     wc = np.asarray(weights, dtype=np.float64)[cols]
@@ -578,8 +580,9 @@ def exact_density_others(
             d2 += nrm[t][:, None]
             d2 += ncon[None, :]
             return d2
-    step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch
-    for s in range(0, len(targets), step):
+    step = max(1, min(256, (8 << 20) // max(1, len(contrib))))  # ~64 MiB of float64 scratch a thread
+
+    def chunk(s: int) -> Tuple[int, np.ndarray]:
         t = targets[s:s + step]
         d2 = squared(t)
         np.maximum(d2, 0.0, out=d2)
@@ -594,31 +597,43 @@ def exact_density_others(
             exact_d2 = exact_sq_distances(aug.exact, t[r], contrib[c])
             sums = density.ExactSums(len(t))
             sums.add_terms(r, density.quadratic_terms(exact_d2, wc[c]))
-            out[s:s + step] = sums.values()
-            continue
+            return s, sums.values()
         d2 *= wc[None, :]
         np.negative(d2, out=d2)
         vals = np.exp(d2, out=d2)
         vals[rows, pos[rows]] = 0.0  # the self term
-        out[s:s + step] = vals.sum(axis=1)
+        return s, vals.sum(axis=1)
+
+    with tile_pool(n_threads) as run:
+        for s, values in run(chunk, range(0, len(targets), step)):
+            out[s:s + len(values)] = values
     return out
 
 
-def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarray, active: np.ndarray) -> np.ndarray:
+def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarray, active: np.ndarray,
+                         n_threads: Optional[int] = None) -> np.ndarray:
     """:func:`exact_density_others` (Gaussian) from the integer kernel's exact distances: every
     column's float64 term, summed with the 0/1 ``active`` weights (no gathered copies), in chunks
-    of ~1M terms that the allocator reuses."""
+    of ~1M terms, ``n_threads`` chunks at a time."""
     on = (np.asarray(active) > 0).astype(np.float64)
-    w = np.where(on > 0, weights, 0.0)
+    negw = -np.where(on > 0, weights, 0.0)
     out = np.empty(len(targets))
     step = max(1, (1 << 20) // aug.n)
-    for s in range(0, len(targets), step):
+    scratch = threading.local()  # each thread's float64 terms, reused from chunk to chunk
+
+    def chunk(s: int) -> Tuple[int, np.ndarray]:
         t = targets[s:s + step]
-        d2 = aug.d2_rows(t).astype(np.float64)
-        d2 *= -w[None, :]
-        vals = np.exp(d2, out=d2)
+        if not hasattr(scratch, "terms"):
+            scratch.terms = np.empty(step * aug.n)
+        vals = scratch.terms[:len(t) * aug.n].reshape(len(t), aug.n)
+        np.multiply(aug.d2_rows(t), negw[None, :], out=vals)  # float32 distances times float64: exact as before
+        np.exp(vals, out=vals)
         vals[np.arange(len(t)), t] = 0.0  # the self term
-        out[s:s + step] = vals @ on
+        return s, vals @ on
+
+    with tile_pool(n_threads) as run:
+        for s, values in run(chunk, range(0, len(targets), step)):
+            out[s:s + len(values)] = values
     return out
 
 

@@ -215,6 +215,30 @@ def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
     np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
 
 
+@pytest.mark.parametrize("as_float", [False, True])
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+def test_exact_densities_in_chunks_on_threads_are_the_same_bits(kernel, as_float):
+    """The refinement's float64 densities come in chunks of targets, several threads at a time: every value is
+    the same whatever the thread count, and each equals the sum over the active others computed directly."""
+    ds = sift_like(n_images=5, n_points=300, clutter_per_image=100, seed=8)
+    X = ds.descriptors.astype(np.float64) if as_float else ds.descriptors
+    aug = pairs.Augmented(X)
+    _, img = np.unique(ds.image_ids, return_inverse=True)
+    sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
+    w, active = clustering.kernel_weights(sig, kernel, 0.25)
+    idx = np.arange(aug.n)[::-1].copy()  # more than one chunk, out of order
+    one = pairs.exact_density_others(aug, idx, w, active, kernel, n_threads=1)
+    three = pairs.exact_density_others(aug, idx, w, active, kernel, n_threads=3)
+    np.testing.assert_array_equal(one, three)
+    Xd = ds.descriptors.astype(np.float64)
+    for i in idx[::97]:
+        d2 = ((Xd - Xd[i]) ** 2).sum(axis=1)
+        t = d2 * w
+        terms = np.exp(-t) if kernel == "gaussian" else np.maximum(1.0 - t, 0.0)
+        terms[i] = 0.0
+        np.testing.assert_allclose(one[idx == i], (terms * (active > 0)).sum(), rtol=1e-12, atol=1e-300)
+
+
 @pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
 def test_uint8_and_the_same_values_as_floats_give_identical_results(kernel):
     """uint8 input stays uint8 (the integer kernel where the CPU has it); the same values as
