@@ -171,8 +171,10 @@ def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1
         own = _nearest_centroids(S, centroids, 1, n_threads)[:, 0]
         counts = np.bincount(own, minlength=k)
         filled = np.flatnonzero(counts)
-        sums = np.stack([np.bincount(own, weights=S[:, j], minlength=k) for j in range(dim)], axis=1)
-        centroids[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
+        # each list's members in sample order, summed in float64 row by row (the order bincount adds in)
+        starts = (np.cumsum(counts) - counts)[filled]
+        sums = np.add.reduceat(S[_by_list(own, k), :dim].astype(np.float64), starts, axis=0)
+        centroids[filled] = (sums / counts[filled, None]).astype(np.float32)
     return centroids
 
 
