@@ -1348,3 +1348,40 @@ void dqm_smallest(const float *D, int64_t m, int64_t k, int64_t ldd, int32_t t, 
     }
     free(val);
 }
+
+/*
+ * Every child's nearest candidate (tree.nearest_candidates / select_parents): for the m edges
+ * child[e] -> cand[e] at dist[e], the first edge of each child in (dist, key, position) order, key[e]
+ * (or cand[e] when key is NULL); with density given, only candidates that rank above their child count
+ * (higher density, then the lower index). One pass, memory O(n): parent / pdist / row (n entries, filled
+ * by the caller with -1 / inf / -1) are updated on a strictly better edge only, so among equal (dist, key)
+ * the first position stays. A NaN distance comes after every number, as in a sort.
+ */
+void dqm_nearest_above(int64_t m, const int64_t *child, const int64_t *cand, const double *dist,
+                       const int64_t *key, const double *density, int64_t *parent, double *pdist,
+                       int64_t *row, int64_t *best_key)
+{
+    for (int64_t e = 0; e < m; ++e) {
+        const int64_t c = child[e], p = cand[e];
+        if (density && !(density[p] > density[c] || (density[p] == density[c] && p < c)))
+            continue;
+        const double d = dist[e];
+        const int64_t k = key ? key[e] : p;
+        const int64_t r = row[c];
+        int better;
+        if (r < 0)
+            better = 1;
+        else if (d != d)
+            better = 0;
+        else if (pdist[c] != pdist[c] || d < pdist[c])
+            better = 1;
+        else
+            better = d == pdist[c] && k < best_key[c];
+        if (better) {
+            parent[c] = p;
+            pdist[c] = d;
+            row[c] = e;
+            best_key[c] = k;
+        }
+    }
+}

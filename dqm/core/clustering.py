@@ -224,15 +224,28 @@ def _timed_sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images:
     return groups, sig
 
 
+#: edges handled at a time where every edge would otherwise need temporaries (exact distances, rank tests)
+EDGE_CHUNK = 1 << 22
+
+
 def _edges_within_radius(aug: pairs.Augmented, cr: np.ndarray, cc: np.ndarray, radius: np.ndarray,
                          image_index: Optional[np.ndarray]):
     """Candidate edges ``cr -> cc`` at their exact distances, those within the child's radius (and, when
-    ``image_index`` is given, between two images): ``(cr, cc, d)``."""
-    d = pairs.exact_distances(aug.exact, cr, cc)
-    keep = d < radius[cr]
-    if image_index is not None:
-        keep &= image_index[cr] != image_index[cc]
-    return cr[keep], cc[keep], d[keep]
+    ``image_index`` is given, between two images): ``(cr, cc, d)``. Chunk by chunk, the kept edges moved to
+    the front of ``cr`` and ``cc`` (overwritten: views of them are returned), so that the edges are held
+    once beside their distances (at 1M features, hundreds of millions of edges)."""
+    d = np.empty(len(cr))
+    kept = 0
+    for s in range(0, len(cr), EDGE_CHUNK):
+        r, c = cr[s:s + EDGE_CHUNK], cc[s:s + EDGE_CHUNK]
+        dc = pairs.exact_distances(aug.exact, r, c)
+        keep = dc < radius[r]
+        if image_index is not None:
+            keep &= image_index[r] != image_index[c]
+        m = int(keep.sum())
+        cr[kept:kept + m], cc[kept:kept + m], d[kept:kept + m] = r[keep], c[keep], dc[keep]  # copies first
+        kept += m
+    return cr[:kept], cc[:kept], d[:kept]
 
 
 def final_density_bounds(dens_o: np.ndarray, err: np.ndarray):
@@ -467,10 +480,12 @@ def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, im
     cr, cc, d = _edges_within_radius(aug, cr, cc, radius, image_index if other_image else None)
     # refine densities whose order on some candidate edge is not certain (the same rule in both passes,
     # so both refine the same features and end with the same density values)
-    uncertain = native.rank_relation(lo, hi, cc, cr) == 0
     refine = np.zeros(n, dtype=bool)
-    refine[cr[uncertain]] = True
-    refine[cc[uncertain]] = True
+    for s in range(0, len(cr), EDGE_CHUNK):
+        r, c = cr[s:s + EDGE_CHUNK], cc[s:s + EDGE_CHUNK]
+        uncertain = native.rank_relation(lo, hi, c, r) == 0
+        refine[r[uncertain]] = True
+        refine[c[uncertain]] = True
     refine[dup] = False
     idx = np.flatnonzero(refine)
     if len(idx):

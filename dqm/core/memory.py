@@ -25,10 +25,11 @@ from typing import Optional, Union
 
 from ..validation import InputError
 
-#: peak bytes per directed candidate edge of the dense path (int64 child and
-#: candidate, their concatenation, float64 distance and the radius filter's
-#: temporaries): 39 measured on graf at rho 1.5 (86M edges, 3.2 GiB), with margin
-BYTES_PER_EDGE = 48
+#: peak bytes per directed candidate edge of the dense path: int32 while the pass runs, then int64 child and
+#: candidate and the float64 distance, every other temporary taken in chunks (the radius filter, the rank
+#: tests, the parents in one native pass): 28 measured on 300k generated features (19.6M edges, 0.92 GiB
+#: peak of which 0.4 GiB held before the edges), with margin; 74 before the chunking
+BYTES_PER_EDGE = 32
 #: the dense path handles an edge in ~0.5 us (exact distance, sort); the
 #: streaming pass costs a second GEMM over all pairs. On graf (21,691 SIFT) they
 #: break even near n^2 / 117 edges (rho 1.2: 3.15 s dense, 2.95 s streaming);

@@ -95,6 +95,9 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_merge_clusters.restype = ctypes.c_int64
         lib.dqm_sq_dist_u8.argtypes = [u8, ctypes.c_int64, i64, i64, ctypes.c_int64, f64]
         lib.dqm_sq_dist_u8.restype = None
+        lib.dqm_nearest_above.argtypes = [ctypes.c_int64, i64, i64, f64, ctypes.c_void_p, ctypes.c_void_p, i64, f64,
+                                          i64, i64]
+        lib.dqm_nearest_above.restype = None
         lib.dqm_smallest.argtypes = [f32, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, i32]
         lib.dqm_smallest.restype = None
         lib.dqm_sum_roundings.restype = ctypes.c_int32
@@ -400,6 +403,27 @@ def merge_roots(n: int, child: np.ndarray, parent: np.ndarray, d: np.ndarray, si
     if code:
         raise MemoryError("dqm_merge_clusters: out of memory")
     return root
+
+
+def nearest_above(n: int, child: np.ndarray, cand: np.ndarray, dist: np.ndarray, key: Optional[np.ndarray] = None,
+                  density: Optional[np.ndarray] = None) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every child's first edge in (distance, key, position) order, natively in one pass (``dqm_nearest_above``;
+    with ``density``, only candidates that rank above their child): ``(parent, distance, row)`` as
+    :func:`dqm.core.tree.nearest_candidates` returns them; None without the native kernel."""
+    if _LIB is None:
+        return None
+    i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
+    child, cand = i64(child), i64(cand)
+    dist = np.ascontiguousarray(dist, dtype=np.float64)
+    key = None if key is None else i64(key)
+    density = None if density is None else np.ascontiguousarray(density, dtype=np.float64)
+    parent = np.full(n, -1, dtype=np.int64)
+    pdist = np.full(n, np.inf)
+    row = np.full(n, -1, dtype=np.int64)
+    best = np.zeros(n, dtype=np.int64)
+    _LIB.dqm_nearest_above(len(child), child, cand, dist, None if key is None else key.ctypes.data,
+                           None if density is None else density.ctypes.data, parent, pdist, row, best)
+    return parent, pdist, row
 
 
 def _terms(d2: np.ndarray, w, s, kernel: str) -> Tuple[np.ndarray, np.ndarray]:

@@ -461,6 +461,7 @@ def kernel_pass(
 
     child: List[np.ndarray] = []
     cand: List[np.ndarray] = []
+    narrow = n < np.iinfo(np.int32).max  # edges' indices fit int32
     held = 0
     with tile_pool(n_threads) as run:
         for done, (a, b, dr, er, dc, ec, r, c) in enumerate(run(work, tasks), start=1):
@@ -473,13 +474,14 @@ def kernel_pass(
                 progress(done, len(tasks))
             if not collecting[0]:
                 continue
-            r = r.astype(np.int64) + a
-            c = c.astype(np.int64) + b
             if on_edges is not None:
+                r, c = r.astype(np.int64) + a, c.astype(np.int64) + b
                 if dc is not None:
                     r, c = np.concatenate([r, c]), np.concatenate([c, r])
                 on_edges(*within_limit(r, c))
                 continue
+            # held as int32 until the end (half the memory of the edges while the pass runs)
+            r, c = (r + a, c + b) if narrow else (r.astype(np.int64) + a, c.astype(np.int64) + b)
             held += len(r) * (1 if dc is None else 2)
             if max_edges is not None and held > max_edges:
                 collecting[0] = False  # tiles in flight may still bring edges: ignored
@@ -497,7 +499,11 @@ def kernel_pass(
         return dens, err, None, None
     if not child:
         return dens, err, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    child_a, cand_a = within_limit(np.concatenate(child), np.concatenate(cand))
+    child_a = np.concatenate(child, dtype=np.int64)
+    child.clear()
+    cand_a = np.concatenate(cand, dtype=np.int64)
+    cand.clear()
+    child_a, cand_a = within_limit(child_a, cand_a)
     return dens, err, child_a, cand_a
 
 

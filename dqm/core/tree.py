@@ -41,6 +41,7 @@ def select_parents(
     cand: np.ndarray,
     dist: np.ndarray,
     density: np.ndarray,
+    use_native: bool = True,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """Parent of every feature among candidate edges ``child[k] -> cand[k]`` at ``dist[k]``.
 
@@ -48,20 +49,27 @@ def select_parents(
     it within the child's search radius (and may contain more). Features without
     a higher-ranked candidate get parent -1 and distance inf.
     """
+    fast = native.nearest_above(n, child, cand, dist, density=density) if use_native else None
+    if fast is not None:  # one pass, no temporary the size of the edges
+        return fast[0], fast[1]
     keep = ranks_above(density, cand, child)
-    parent, pdist, _ = nearest_candidates(child[keep], cand[keep], dist[keep], n)
+    parent, pdist, _ = nearest_candidates(child[keep], cand[keep], dist[keep], n, use_native=False)
     return parent, pdist
 
 
 def nearest_candidates(child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
-                       n: int, tie: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       n: int, tie: Optional[np.ndarray] = None,
+                       use_native: bool = True) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest candidate of every child (ties: the lowest candidate index or id, or the lowest
-    ``tie[k]`` when given: e.g. arrival order where ``cand`` are storage slots).
+    ``tie[k]`` when given: e.g. arrival order where ``cand`` are storage slots; then the first edge).
 
     Returns ``(parent, distance, row)``, arrays of length n: -1, inf and -1
     where a child has no candidate; ``row`` is the chosen edge's position in
-    the inputs.
+    the inputs. Natively in one pass where the kernel is built, else by grouping the edges by child.
     """
+    fast = native.nearest_above(n, child, cand, dist, key=tie) if use_native and len(child) else None
+    if fast is not None:
+        return fast
     parent = np.full(n, -1, dtype=np.int64)
     pdist = np.full(n, np.inf)
     row = np.full(n, -1, dtype=np.int64)

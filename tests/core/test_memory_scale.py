@@ -30,7 +30,7 @@ def model_only():
 def tight_budget(X):
     """A budget that holds the O(n) arrays but hardly any candidate edge (integer rows are kept as they are)."""
     itemsize = X.dtype.itemsize if X.dtype.kind in "iu" else None
-    return memory.base_bytes(len(X), X.shape[1], pairs.default_threads(), itemsize) + (256 << 10)
+    return memory.base_bytes(len(X), X.shape[1], pairs.default_threads(), itemsize) + (64 << 10)
 
 
 @pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])

@@ -1,8 +1,9 @@
 """The tree's nearest candidate per child against the definition: the first of each child in
 (distance, candidate or tie key, position) order."""
 import numpy as np
+import pytest
 
-from dqm.core import tree
+from dqm.core import native, tree
 
 
 def _by_lexsort(child, cand, dist, n, tie=None):
@@ -16,7 +17,10 @@ def _by_lexsort(child, cand, dist, n, tie=None):
     return parent, pdist, row
 
 
-def test_nearest_candidates_is_the_first_in_distance_then_key_order():
+@pytest.mark.parametrize("use_native", [True, False])
+def test_nearest_candidates_is_the_first_in_distance_then_key_order(use_native):
+    if use_native and not native.native_available():
+        pytest.skip("the native kernel is not built")
     rng = np.random.default_rng(0)
     for trial in range(400):
         n, m = int(rng.integers(1, 60)), int(rng.integers(1, 300))
@@ -32,10 +36,18 @@ def test_nearest_candidates_is_the_first_in_distance_then_key_order():
         if trial % 5 == 0:  # narrower index types than int64
             child, cand = child.astype(np.int32), cand.astype(np.int32)
             tie = None if tie is None else tie.astype(np.int32)
-        got = tree.nearest_candidates(child, cand, dist, n, tie=tie)
+        got = tree.nearest_candidates(child, cand, dist, n, tie=tie, use_native=use_native)
         for a, b in zip(got, _by_lexsort(child, cand, dist, n, tie=tie)):
             np.testing.assert_array_equal(a, b)
-    assert tree.nearest_candidates(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 3)[0].tolist() == [-1, -1, -1]
+        # parents: the nearest among the candidates that rank above the child (higher density, then lower index)
+        density = rng.integers(0, 3, n).astype(float)
+        above = (density[cand] > density[child]) | ((density[cand] == density[child]) & (cand < child))
+        want = _by_lexsort(child[above], cand[above], dist[above], n)
+        got = tree.select_parents(n, child, cand, dist, density, use_native=use_native)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert tree.nearest_candidates(np.zeros(0, int), np.zeros(0, int), np.zeros(0), 3,
+                                   use_native=use_native)[0].tolist() == [-1, -1, -1]
 
 
 def test_member_pairs_are_every_two_members_of_every_cluster_in_order():
