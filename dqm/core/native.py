@@ -417,6 +417,10 @@ def nearest_above(n: int, child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
     dist = np.ascontiguousarray(dist, dtype=np.float64)
     key = None if key is None else i64(key)
     density = None if density is None else np.ascontiguousarray(density, dtype=np.float64)
+    if len(child) and (child.min() < 0 or child.max() >= n):  # the C loop indexes with them unchecked
+        raise IndexError(f"nearest_above: a child index outside 0..{n - 1}")
+    if density is not None and len(cand) and (cand.min() < 0 or cand.max() >= len(density)):
+        raise IndexError("nearest_above: a candidate index outside the densities")
     parent = np.full(n, -1, dtype=np.int64)
     pdist = np.full(n, np.inf)
     row = np.full(n, -1, dtype=np.int64)

@@ -63,3 +63,13 @@ def test_member_pairs_are_every_two_members_of_every_cluster_in_order():
     assert a.dtype == np.int64 and list(zip(a.tolist(), b.tolist())) == want
     for few in ([], [7], [1, 2, 3]):
         assert len(member_pairs(np.array(few, np.int64))[0]) == 0
+
+
+def test_the_native_pass_refuses_indices_outside_its_arrays():
+    """The C loop writes at each child's slot: an index outside them raises instead of writing elsewhere."""
+    if not native.native_available():
+        pytest.skip("the native kernel is not built")
+    with pytest.raises(IndexError, match="child index"):
+        tree.nearest_candidates(np.array([0, 3]), np.array([1, 1]), np.array([1.0, 2.0]), 3)
+    with pytest.raises(IndexError, match="candidate index"):
+        tree.select_parents(3, np.array([0, 1]), np.array([1, -1]), np.array([1.0, 2.0]), np.ones(3))
