@@ -906,6 +906,42 @@ static inline int scan_keep(const uint64_t *col_bits, int64_t words, int64_t c, 
     return !((col_bits[c * words + (a >> 6)] >> (a & 63)) & 1u);
 }
 
+/* Of the lanes `all` (bit l: column c + l, at most `lanes` of them), those a SIMD scan row keeps: all but the
+   self pair on an own row; on a tested row those whose column does not scan the row's list. */
+static inline unsigned scan_keep_lanes(unsigned all, int64_t c, int64_t lanes, int own, int64_t self, int test,
+                                       const uint64_t *col_bits, int64_t words, int32_t a)
+{
+    unsigned keep = all;
+    if (own) {
+        if (self >= c && self < c + lanes)
+            keep &= ~(1u << (unsigned)(self - c));
+    } else if (test) {
+        for (int64_t l = 0; l < lanes; ++l)
+            if (!scan_keep(col_bits, words, c + l, a))
+                keep &= ~(1u << (unsigned)l);
+    }
+    return keep;
+}
+
+/* A SIMD scan row's edges of columns c + l, lane by lane: (r, c + l) where bit l of fwd is set (the row the
+   child), then (-1 - r, c + l) where bit l of rev is (the column the child); the count goes on past cap. */
+static inline int64_t scan_emit(unsigned fwd, unsigned rev, int32_t r, int64_t c, const float *g,
+                                int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t count, int64_t cap)
+{
+    for (unsigned both = fwd | rev; both; both &= both - 1) {
+        const int l = __builtin_ctz(both);
+        if (fwd & (1u << l)) {
+            if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
+            ++count;
+        }
+        if (rev & (1u << l)) {
+            if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
+            ++count;
+        }
+    }
+    return count;
+}
+
 static inline float term_scalar(int kernel, float g, float w, float s)
 {
     float t = (g < 0.0f ? 0.0f : g) * w;
@@ -967,17 +1003,9 @@ static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float 
     int64_t c = 0;
     for (; c + 8 <= k; c += 8) {
         __m256 gv = _mm256_loadu_ps(g + c);
-        int keepbits = 0xff;
-        if (own) {
-            if (self >= c && self < c + 8)
-                keepbits &= ~(1 << (int)(self - c));
-        } else if (test) {
-            for (int l = 0; l < 8; ++l)
-                if (!scan_keep(col_bits, words, c + l, a))
-                    keepbits &= ~(1 << l);
-            if (!keepbits)
-                continue;
-        }
+        const int keepbits = (int)scan_keep_lanes(0xffu, c, 8, own, self, test, col_bits, words, a);
+        if (!keepbits)
+            continue;
         __m256 keep = _mm256_castsi256_ps(_mm256_cmpeq_epi32(
             _mm256_and_si256(_mm256_set1_epi32(keepbits), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)),
             _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)));
@@ -988,18 +1016,7 @@ static int64_t scan_row_avx2(int kernel, const float *g, int64_t k, const float 
             _mm256_storeu_ps(cacc + c, _mm256_add_ps(ca, _mm256_and_ps(terms8(kernel, gv, wrv, srv), keep)));
         }
         int rev = own ? 0 : _mm256_movemask_ps(_mm256_cmp_ps(gv, _mm256_loadu_ps(rad2c + c), _CMP_LT_OQ)) & keepbits;
-        if (fwd | rev) {
-            for (int l = 0; l < 8; ++l) {
-                if (fwd & (1 << l)) {
-                    if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
-                    ++count;
-                }
-                if (rev & (1 << l)) {
-                    if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
-                    ++count;
-                }
-            }
-        }
+        count = scan_emit((unsigned)fwd, (unsigned)rev, r, c, g, cand_r, cand_c, cand_g, count, cap);
     }
     *dens_r += (double)hsum8(acc);
     return scan_row_scalar(kernel, g + c, k - c, wc + c, sc + c, wr, sr, limr, rad2c + c, own, self - c, test,
@@ -1030,18 +1047,10 @@ static int64_t scan_row_avx512(int kernel, const float *g, int64_t k, const floa
     __m512 vlim = _mm512_set1_ps(limr), wrv = _mm512_set1_ps(wr), srv = _mm512_set1_ps(sr);
     for (int64_t c = 0; c < k; c += 16) {
         const __mmask16 m = tail_mask(k - c);
-        __mmask16 keep = m;
-        if (own) {
-            if (self >= c && self < c + 16)
-                keep &= (__mmask16)~(1u << (unsigned)(self - c));
-        } else if (test) {
-            const int64_t lanes = k - c < 16 ? k - c : 16;
-            for (int64_t l = 0; l < lanes; ++l)
-                if (!scan_keep(col_bits, words, c + l, a))
-                    keep &= (__mmask16)~(1u << (unsigned)l);
-            if (!keep)
-                continue;
-        }
+        const __mmask16 keep = (__mmask16)scan_keep_lanes(m, c, k - c < 16 ? k - c : 16, own, self, test, col_bits,
+                                                          words, a);
+        if (!keep)
+            continue;
         __m512 gv = _mm512_maskz_loadu_ps(m, g + c);
         acc = _mm512_mask_add_ps(acc, keep, acc, scan_terms16(kernel, gv, _mm512_maskz_loadu_ps(m, wc + c),
                                                               _mm512_maskz_loadu_ps(m, sc + c)));
@@ -1051,17 +1060,7 @@ static int64_t scan_row_avx512(int kernel, const float *g, int64_t k, const floa
             _mm512_mask_storeu_ps(cacc + c, m, _mm512_mask_add_ps(ca, keep, ca, scan_terms16(kernel, gv, wrv, srv)));
             rev = _mm512_mask_cmp_ps_mask(keep, gv, _mm512_maskz_loadu_ps(m, rad2c + c), _CMP_LT_OQ);
         }
-        for (unsigned both = fwd | rev; both; both &= both - 1) {
-            const int l = __builtin_ctz(both);
-            if (fwd & (1u << l)) {
-                if (count < cap) { cand_r[count] = r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
-                ++count;
-            }
-            if (rev & (1u << l)) {
-                if (count < cap) { cand_r[count] = -1 - r; cand_c[count] = (int32_t)(c + l); cand_g[count] = g[c + l]; }
-                ++count;
-            }
-        }
+        count = scan_emit(fwd, rev, r, c, g, cand_r, cand_c, cand_g, count, cap);
     }
     *dens_r += (double)_mm512_reduce_add_ps(acc);
     return count;
@@ -1276,14 +1275,7 @@ void dqm_sq_dist_u8(const uint8_t *X, int64_t dim, const int64_t *a, const int64
     }
 }
 
-/*
- * The t smallest entries of every row of D (m x k floats, row stride ldd) as column indices ordered by
- * (value, index), into out (m x t); t <= k. NaN counts as +inf. The fast engine's nearest lists: one
- * pass over each row keeping a sorted run of the t best so far; a later column enters only when strictly
- * smaller than the run's last (its index is larger), about t ln(k / t) times a row in random order.
- * Measured on 200k x 512 distances, t = 32: 0.69 s (a max-heap instead: 0.86 s, its sift-down
- * branches mispredict; a partition and a sort of every row in numpy: about twice the time).
- */
+/* v (column j) into the sorted run val / o of n <= t entries, after its equals; a full run drops its last. */
 static inline void smallest_insert(float *val, int32_t *o, int32_t *n, int32_t t, float v, int32_t j)
 {
     if (*n == t)
@@ -1319,6 +1311,14 @@ static int64_t smallest_avx2(const float *d, int64_t j, int64_t k, float *val, i
 }
 #endif
 
+/*
+ * The t smallest entries of every row of D (m x k floats, row stride ldd) as column indices ordered by
+ * (value, index), into out (m x t); t <= k. NaN counts as +inf. The fast engine's nearest lists: one
+ * pass over each row keeping a sorted run of the t best so far; a later column enters only when strictly
+ * smaller than the run's last (its index is larger), about t ln(k / t) times a row in random order.
+ * Measured on 200k x 512 distances, t = 32: 0.69 s (a max-heap instead: 0.86 s, its sift-down
+ * branches mispredict; a partition and a sort of every row in numpy: about twice the time).
+ */
 void dqm_smallest(const float *D, int64_t m, int64_t k, int64_t ldd, int32_t t, int32_t *out)
 {
     if (t <= 0 || t > k)
@@ -1358,8 +1358,7 @@ void dqm_smallest(const float *D, int64_t m, int64_t k, int64_t ldd, int32_t t, 
  * the first position stays. A NaN distance comes after every number, as in a sort.
  */
 void dqm_nearest_above(int64_t m, const int64_t *child, const int64_t *cand, const double *dist,
-                       const int64_t *key, const double *density, int64_t *parent, double *pdist,
-                       int64_t *row, int64_t *best_key)
+                       const int64_t *key, const double *density, int64_t *parent, double *pdist, int64_t *row)
 {
     for (int64_t e = 0; e < m; ++e) {
         const int64_t c = child[e], p = cand[e];
@@ -1376,12 +1375,11 @@ void dqm_nearest_above(int64_t m, const int64_t *child, const int64_t *cand, con
         else if (pdist[c] != pdist[c] || d < pdist[c])
             better = 1;
         else
-            better = d == pdist[c] && k < best_key[c];
+            better = d == pdist[c] && k < (key ? key[r] : parent[c]); /* the held edge's key */
         if (better) {
             parent[c] = p;
             pdist[c] = d;
             row[c] = e;
-            best_key[c] = k;
         }
     }
 }

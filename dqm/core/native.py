@@ -96,7 +96,7 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_sq_dist_u8.argtypes = [u8, ctypes.c_int64, i64, i64, ctypes.c_int64, f64]
         lib.dqm_sq_dist_u8.restype = None
         lib.dqm_nearest_above.argtypes = [ctypes.c_int64, i64, i64, f64, ctypes.c_void_p, ctypes.c_void_p, i64, f64,
-                                          i64, i64]
+                                          i64]
         lib.dqm_nearest_above.restype = None
         lib.dqm_smallest.argtypes = [f32, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, i32]
         lib.dqm_smallest.restype = None
@@ -424,9 +424,8 @@ def nearest_above(n: int, child: np.ndarray, cand: np.ndarray, dist: np.ndarray,
     parent = np.full(n, -1, dtype=np.int64)
     pdist = np.full(n, np.inf)
     row = np.full(n, -1, dtype=np.int64)
-    best = np.zeros(n, dtype=np.int64)
     _LIB.dqm_nearest_above(len(child), child, cand, dist, None if key is None else key.ctypes.data,
-                           None if density is None else density.ctypes.data, parent, pdist, row, best)
+                           None if density is None else density.ctypes.data, parent, pdist, row)
     return parent, pdist, row
 
 
