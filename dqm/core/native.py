@@ -711,27 +711,23 @@ class U8Operands:
         """Buffers for up to ``m`` gathered rows (:meth:`gather_rows`)."""
         return np.zeros((m + _VNNI_ROWS, self.rows.shape[1]), np.int8), np.zeros(m + _VNNI_ROWS, np.int32)
 
-    def gather_rows(self, idx: np.ndarray, out: Optional[Tuple[np.ndarray, np.ndarray]] = None
-                    ) -> Tuple[np.ndarray, np.ndarray]:
+    def gather_rows(self, idx: np.ndarray, out: Tuple[np.ndarray, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """The packed rows of the features ``idx`` and their norms, with the padding the kernel reads past
-        the last row: the row operand of :meth:`d2_gathered`. ``out``: buffers of at least
-        ``len(idx) + 8`` rows to fill (a thread's workspace) instead of new arrays."""
+        the last row, in ``out`` (:meth:`row_buffers` of at least ``len(idx)`` rows: a thread's workspace):
+        the row operand of :meth:`d2_gathered`."""
         m = len(idx)
-        if out is None:
-            out = self.row_buffers(m)
         A, na = out[0][:m + _VNNI_ROWS], out[1][:m + _VNNI_ROWS]
         np.take(self.rows, idx, axis=0, out=A[:m])
         np.take(self.na, idx, out=na[:m])
         return A, na
 
-    def d2_gathered(self, rows: Tuple[np.ndarray, np.ndarray], b: int, b1: int,
-                    out: Optional[np.ndarray] = None) -> np.ndarray:
+    def d2_gathered(self, rows: Tuple[np.ndarray, np.ndarray], b: int, b1: int, out: np.ndarray) -> np.ndarray:
         """Exact squared distances (float32) of gathered rows (:meth:`gather_rows`) to the columns
         ``b..b1`` of these operands (``b`` a multiple of 32), in the head of the flat float32 buffer ``out``
-        when given (a thread's workspace)."""
+        (a thread's workspace), returned as a view of it."""
         A, na = rows
         m, k = len(A) - _VNNI_ROWS, b1 - b
-        G = np.empty((m, k), np.float32) if out is None else out[:m * k].reshape(m, k)
+        G = out[:m * k].reshape(m, k)
         _, _, _, B, nb = self._args(0, b)
         _check_code(_LIB.dqm_gemm_d2_u8(A.ctypes.data, A.shape[1], na.ctypes.data, m, B, nb, k, self.nq, G, k), k)
         return G

@@ -552,13 +552,10 @@ def exact_density_others(
     of the data.
     """
     targets = np.asarray(targets, dtype=np.int64)
-    out = np.zeros(len(targets))
-    if len(targets) == 0:
-        return out
-    nrm = aug.norm2
     contrib = np.flatnonzero(active > 0)
-    if len(contrib) == 0:  # every sigma is 0: no kernel contributes (duplicates are counted by the caller)
-        return out
+    if len(targets) == 0 or len(contrib) == 0:  # every sigma 0: no kernel contributes (the caller counts duplicates)
+        return np.zeros(len(targets))
+    nrm = aug.norm2
     if aug.u8 is not None and kernel == "gaussian":
         return _gaussian_density_u8(aug, targets, np.asarray(weights, np.float64), active, n_threads)
     every = len(contrib) == aug.n  # no gathered copy of the data when every feature contributes
@@ -610,8 +607,16 @@ def exact_density_others(
         vals[rows, pos[rows]] = 0.0  # the self term
         return s, vals.sum(axis=1)
 
+    return _by_chunks(len(targets), step, chunk, n_threads)
+
+
+def _by_chunks(n: int, step: int, chunk: Callable[[int], Tuple[int, np.ndarray]],
+               n_threads: Optional[int]) -> np.ndarray:
+    """``n`` float64 values computed ``step`` at a time by ``chunk(start) -> (start, values)``, on
+    ``n_threads`` threads, each written at its start."""
+    out = np.empty(n)
     with tile_pool(n_threads) as run:
-        for s, values in run(chunk, range(0, len(targets), step)):
+        for s, values in run(chunk, range(0, n, step)):
             out[s:s + len(values)] = values
     return out
 
@@ -623,7 +628,6 @@ def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarra
     of ~1M terms, ``n_threads`` chunks at a time."""
     on = (np.asarray(active) > 0).astype(np.float64)
     negw = -np.where(on > 0, weights, 0.0)
-    out = np.empty(len(targets))
     step = max(1, (1 << 20) // aug.n)
     scratch = threading.local()  # each thread's float64 terms, reused from chunk to chunk
 
@@ -637,10 +641,7 @@ def _gaussian_density_u8(aug: Augmented, targets: np.ndarray, weights: np.ndarra
         vals[np.arange(len(t)), t] = 0.0  # the self term
         return s, vals @ on
 
-    with tile_pool(n_threads) as run:
-        for s, values in run(chunk, range(0, len(targets), step)):
-            out[s:s + len(values)] = values
-    return out
+    return _by_chunks(len(targets), step, chunk, n_threads)
 
 
 def parent_pass(
