@@ -1108,6 +1108,62 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
 }
 
 /*
+ * One task of the fast engine's scan on uint8 descriptors, in one call (the Python loop it replaces paid
+ * about as much in per-call overhead as the kernels' own time): the task's m rows (indices idx into the
+ * operands, which are in list order) are gathered into the thread's buffers A / na (m + VNNI_ROWS rows),
+ * with their weights, activity, search radius min(rad2, limit) and list; then for every block of at
+ * most MAX_ROW of the list's columns lo..hi, their exact squared distances (dqm_gemm_d2_u8 from the
+ * multiple of 32 below the block, into G) go through dqm_scan_tile. The same operations in the same order
+ * as gather_rows / d2_gathered / scan_tile one block at a time, so the same bits. dens_r (m) and dens_c
+ * (hi - lo) are added to; edges as dqm_scan_tile's, their columns the features' indices (c0 added). limit is read once
+ * per row and column (another thread may tighten it meanwhile: any value read is a valid radius).
+ * row_f: 3 m floats of scratch; row_list: m; rad2c, cacc: MAX_ROW. Returns the count of edges, -1 past
+ * cap, -2 / -3 as the kernels.
+ */
+int64_t dqm_scan_task(const int8_t *rows_op, int64_t lda, const int32_t *na_op, const uint8_t *cols_op,
+                      const int32_t *nb_op, int64_t nq, const int64_t *idx, int64_t m, int64_t lo, int64_t hi,
+                      int64_t n_own, int64_t r0, const float *w, const float *s, int32_t kernel,
+                      const float *rad2, const volatile float *limit, const int32_t *lists, const uint64_t *bits,
+                      int64_t words, int32_t list, int8_t *A, int32_t *na, float *G, float *row_f,
+                      int32_t *row_list, float *rad2c, float *cacc, double *dens_r, double *dens_c,
+                      int32_t *cand_r, int32_t *cand_c, float *cand_g, int64_t cap)
+{
+    float *wr = row_f, *sr = row_f + m, *rad2r = row_f + 2 * m;
+    int64_t count = 0;
+    for (int64_t r = 0; r < m; ++r) {
+        int64_t i = idx[r];
+        memcpy(A + r * lda, rows_op + i * lda, (size_t)lda);
+        na[r] = na_op[i];
+        wr[r] = w[i];
+        sr[r] = s[i];
+        float lim = limit[i];
+        rad2r[r] = rad2[i] < lim ? rad2[i] : lim;
+        row_list[r] = lists[i];
+    }
+    for (int64_t c0 = lo; c0 < hi; c0 += MAX_ROW) {
+        int64_t c1 = hi - c0 < MAX_ROW ? hi : c0 + MAX_ROW;
+        int64_t b = c0 - c0 % 32, k = c1 - b;
+        int32_t code = dqm_gemm_d2_u8(A, lda, na, m, cols_op + (b / 16) * nq * 64, nb_op + b, k, nq, G, k);
+        if (code < 0)
+            return code;
+        for (int64_t c = c0; c < c1; ++c) {
+            float lim = limit[c];
+            rad2c[c - c0] = rad2[c] < lim ? rad2[c] : lim;
+        }
+        int64_t got = dqm_scan_tile(G + (c0 - b), m, c1 - c0, k, w + c0, s + c0, wr, sr, kernel, rad2r, rad2c,
+                                    n_own, lo + r0 - c0, row_list, bits + c0 * words, words, list, dens_r,
+                                    dens_c + (c0 - lo), cacc, cand_r + count, cand_c + count, cand_g + count,
+                                    cap - count);
+        if (got < 0)
+            return got;
+        for (int64_t e = count; e < count + got; ++e)
+            cand_c[e] += (int32_t)c0;
+        count += got;
+    }
+    return count;
+}
+
+/*
  * The fast engine's candidate keeper: each child's k nearest candidates, ordered by (g, cand).
  *
  * Edges come as the scan tile writes them: (r, c) with row r the child (child = rows[r], cand = c) or

@@ -142,18 +142,18 @@ def _scanned_lists(counts: np.ndarray, near: np.ndarray, quota: float) -> np.nda
 
 def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     """Every feature's scanned lists as a bitset: (n, ceil(k / 64)) uint64, bit l of word l // 64 set when the
-    feature scans list l (its own list included)."""
+    feature scans list l (its own list included). Set one column of ``near`` at a time: within a column the
+    rows differ, so no word is written twice by one assignment."""
     n = len(near)
     words = (k + 63) // 64
-    out = np.empty((n, words), dtype=np.uint64)
-    for s in range(0, n, 1 << 15):
-        e = min(n, s + (1 << 15))
-        m = np.zeros((e - s, words * 64), dtype=bool)
-        rows = np.arange(e - s)
-        m[rows, near[s:e, 0]] = True
-        rr, cc = np.nonzero(scans[s:e])
-        m[rr, near[s:e, 1:][rr, cc]] = True
-        out[s:e] = np.packbits(m, axis=1, bitorder="little").view(np.uint64)
+    out = np.zeros((n, words), dtype=np.uint64)
+    flat = out.reshape(-1)
+    base = np.arange(n, dtype=np.int64) * words
+    for j in range(near.shape[1]):
+        rows = slice(None) if j == 0 else np.flatnonzero(scans[:, j - 1])
+        lists = near[rows, j].astype(np.int64)
+        at = base[rows] + (lists >> 6)
+        flat[at] |= np.left_shift(np.uint64(1), (lists & 63).astype(np.uint64))
     return out
 
 
@@ -249,45 +249,41 @@ def scan(
             tasks.append((b, lo, hi, rows[r0:r0 + ROWS], r0))
 
     held = NearestCandidates(n, max_candidates, None if image_index is None else image_index[perm])
-    limit = held.limit  # read by the workers as the main thread tightens it: any value read is a valid radius
-
-    workspace = threading.local()  # each thread's buffers for the integer kernel's rows and distances
+    limit = held.limit  # read by the workers as they tighten it: any value read is a valid radius
+    keeping = threading.Lock()  # the kept set does not depend on the order edges come in
+    workspace = threading.local()  # each thread's buffers
+    if u8 is not None:  # gather, distances and scan tile in one native call per task
+        scanner = native.U8Scan(u8, wp, sp, kernel, rad2p, limit, listp, bits)
 
     def work(task):
         b, lo, hi, rows, r0 = task
         n_own = max(0, min(hi - lo - r0, len(rows)))
+        if u8 is not None:
+            if not hasattr(workspace, "scan"):
+                workspace.scan = scanner.buffers(ROWS)
+            dr, dc, (r, c, g) = scanner.run(rows, lo, hi, n_own, r0, b, workspace.scan)
+            with keeping:
+                held.add(r, c, g, rows)
+            return rows, dr, lo, dc, len(rows) * (hi - lo)
         dr = np.zeros(len(rows))
         dc = np.zeros(hi - lo)
-        if u8 is None:
-            L = Lp[rows]
-        else:
-            if not hasattr(workspace, "rows"):
-                workspace.rows = u8.row_buffers(ROWS)
-                workspace.d2 = np.empty(ROWS * (native.MAX_ROW + 32), np.float32)
-            L = u8.gather_rows(rows, workspace.rows)
+        L = Lp[rows]
         args = (wp[rows], sp[rows])
-        edges = []
         for c0 in range(lo, hi, native.MAX_ROW):
             c1 = min(hi, c0 + native.MAX_ROW)
-            part = dc[c0 - lo:c1 - lo]
-            if u8 is None:
-                G = L @ Rp[c0:c1].T
-            else:  # the integer kernel's columns start at a multiple of 32
-                G = u8.d2_gathered(L, c0 - c0 % 32, c1, workspace.d2)[:, c0 % 32:]
-            r, c, g = native.scan_tile(G, wp[c0:c1], sp[c0:c1], *args, kernel,
+            r, c, g = native.scan_tile(L @ Rp[c0:c1].T, wp[c0:c1], sp[c0:c1], *args, kernel,
                                        np.minimum(rad2p[rows], limit[rows]), np.minimum(rad2p[c0:c1], limit[c0:c1]),
-                                       n_own, lo + r0 - c0, listp[rows], bits[c0:c1], b, dr, part)
-            edges.append((r, c + c0, g))
-        return rows, dr, lo, dc, edges, len(rows) * (hi - lo)
+                                       n_own, lo + r0 - c0, listp[rows], bits[c0:c1], b, dr, dc[c0 - lo:c1 - lo])
+            with keeping:
+                held.add(r, c + c0, g, rows)
+        return rows, dr, lo, dc, len(rows) * (hi - lo)
 
     dens = np.zeros(n)
     computed = 0
     with pairs.tile_pool(n_threads) as run:
-        for done, (rows, dr, lo, dc, edges, size) in enumerate(run(work, tasks), start=1):
-            dens[rows] += dr  # a feature scans a list once: rows are distinct
+        for done, (rows, dr, lo, dc, size) in enumerate(run(work, tasks), start=1):
+            dens[rows] += dr  # a feature scans a list once: rows are distinct; in task order: the same sums
             dens[lo:lo + len(dc)] += dc
-            for r, c, g in edges:  # (r, c): the row is the child; (-1 - r, c): the column is
-                held.add(r, c, g, rows)
             computed += size
             if progress is not None:
                 progress(done, len(tasks))

@@ -87,6 +87,10 @@ def _load() -> Optional[ctypes.CDLL]:
             f32, f32, ctypes.c_int64, ctypes.c_int64, i32, u64, ctypes.c_int64, ctypes.c_int32, f64, f64, f32,
             i32, i32, f32, ctypes.c_int64]
         lib.dqm_scan_tile.restype = ctypes.c_int64
+        vp, i64v = ctypes.c_void_p, ctypes.c_int64
+        lib.dqm_scan_task.argtypes = [vp, i64v, vp, vp, vp, i64v, vp, i64v, i64v, i64v, i64v, i64v, vp, vp,
+                                      ctypes.c_int32, vp, vp, vp, vp, i64v, ctypes.c_int32] + [vp] * 12 + [i64v]
+        lib.dqm_scan_task.restype = ctypes.c_int64
         lib.dqm_keep_nearest.argtypes = [i32, i32, f32, ctypes.c_int64, i64, ctypes.c_void_p, ctypes.c_int32,
                                          f32, i32, i32, f32]
         lib.dqm_keep_nearest.restype = ctypes.c_int64
@@ -707,31 +711,6 @@ class U8Operands:
         return (self.rows[a:].ctypes.data, self.rows.shape[1], self.na[a:].ctypes.data,
                 self.cols[b // 16:].ctypes.data, self.nb[b:].ctypes.data)
 
-    def row_buffers(self, m: int) -> Tuple[np.ndarray, np.ndarray]:
-        """Buffers for up to ``m`` gathered rows (:meth:`gather_rows`)."""
-        return np.zeros((m + _VNNI_ROWS, self.rows.shape[1]), np.int8), np.zeros(m + _VNNI_ROWS, np.int32)
-
-    def gather_rows(self, idx: np.ndarray, out: Tuple[np.ndarray, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
-        """The packed rows of the features ``idx`` and their norms, with the padding the kernel reads past
-        the last row, in ``out`` (:meth:`row_buffers` of at least ``len(idx)`` rows: a thread's workspace):
-        the row operand of :meth:`d2_gathered`."""
-        m = len(idx)
-        A, na = out[0][:m + _VNNI_ROWS], out[1][:m + _VNNI_ROWS]
-        np.take(self.rows, idx, axis=0, out=A[:m])
-        np.take(self.na, idx, out=na[:m])
-        return A, na
-
-    def d2_gathered(self, rows: Tuple[np.ndarray, np.ndarray], b: int, b1: int, out: np.ndarray) -> np.ndarray:
-        """Exact squared distances (float32) of gathered rows (:meth:`gather_rows`) to the columns
-        ``b..b1`` of these operands (``b`` a multiple of 32), in the head of the flat float32 buffer ``out``
-        (a thread's workspace), returned as a view of it."""
-        A, na = rows
-        m, k = len(A) - _VNNI_ROWS, b1 - b
-        G = out[:m * k].reshape(m, k)
-        _, _, _, B, nb = self._args(0, b)
-        _check_code(_LIB.dqm_gemm_d2_u8(A.ctypes.data, A.shape[1], na.ctypes.data, m, B, nb, k, self.nq, G, k), k)
-        return G
-
     def d2(self, a: int, a1: int, b: int, b1: int, cols: Optional["U8Operands"] = None) -> np.ndarray:
         """Exact squared distances of rows ``a..a1`` to columns ``b..b1`` (float32); the columns
         are those of ``cols`` when given (packed from other descriptors of the same dimension)."""
@@ -741,6 +720,67 @@ class U8Operands:
             _, _, _, B, nb = cols._args(a, b)
         _check_code(_LIB.dqm_gemm_d2_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, G, b1 - b), b1 - b)
         return G
+
+
+class U8Scan:
+    """The fast engine's scan tasks on :class:`U8Operands` (the features in list order), one native call
+    each (``dqm_scan_task``: the task's rows gathered, their exact squared distances to the list's columns
+    and the scan tile, block by block; the same bits as :func:`scan_tile` on :meth:`U8Operands.d2` of the
+    same rows). ``w``, ``s``: the features' kernel weights and activity (float32); ``rad2``: their float32
+    search radii; ``limit``: the live array of radii the candidate keeper tightens (read, never copied);
+    ``lists``: each feature's list (int32); ``bits``: its scanned lists ((n, words) uint64)."""
+
+    def __init__(self, ops: U8Operands, w, s, kernel: str, rad2, limit, lists, bits):
+        def c(a, dtype):
+            a = np.asarray(a)
+            if a.dtype != dtype or not a.flags.c_contiguous or len(a) < ops.n:
+                raise ValueError(f"U8Scan: a C-contiguous {np.dtype(dtype).name} array of {ops.n} rows needed")
+            return a
+        self.ops = ops
+        self._keep = [c(w, np.float32), c(s, np.float32), c(rad2, np.float32), c(limit, np.float32),
+                      c(lists, np.int32), c(bits, np.uint64)]
+        self.words = int(bits.shape[1])
+        self.kernel = KERNEL_CODES[kernel]
+        self._operands = (ops.rows.ctypes.data, ops.rows.shape[1], ops.na.ctypes.data, ops.cols.ctypes.data,
+                      ops.nb.ctypes.data, ops.nq)
+        self._arrays = tuple(a.ctypes.data for a in self._keep)
+
+    def buffers(self, m: int) -> dict:
+        """A thread's workspace for tasks of up to ``m`` rows."""
+        cap = max(1024, 16 * m)  # a feature of a point seen in many images has many candidates: fewer retries
+        return {"m": m, "A": np.zeros((m + _VNNI_ROWS, self.ops.rows.shape[1]), np.int8),
+                "na": np.zeros(m + _VNNI_ROWS, np.int32), "G": np.empty(m * (MAX_ROW + 32), np.float32),
+                "row_f": np.empty(3 * m, np.float32), "row_list": np.empty(m, np.int32),
+                "rad2c": np.empty(MAX_ROW, np.float32), "cacc": np.empty(MAX_ROW, np.float32),
+                "edges": _edge_buffers(cap)}
+
+    def run(self, idx: np.ndarray, lo: int, hi: int, n_own: int, r0: int, list_index: int, ws: dict):
+        """One task: rows ``idx`` (int64, at most the workspace's ``m``) against the columns ``lo..hi``
+        (list ``list_index``; the first ``n_own`` rows are the columns ``lo + r0 ...``). Returns ``(dens_r,
+        dens_c, (r, c, g))``: the kernel sums of the rows and columns and the edges as :func:`scan_tile`'s,
+        columns as feature indices; the edges are views of the workspace, valid until its next task."""
+        idx = np.ascontiguousarray(idx, dtype=np.int64)
+        m = len(idx)
+        if m > ws["m"]:
+            raise ValueError(f"U8Scan.run: {m} rows for a workspace of {ws['m']}")
+        w, s, rad2, limit, lists, bits = self._arrays
+        while True:
+            cr, cc, cg = ws["edges"]
+            dens_r, dens_c = np.zeros(m), np.zeros(hi - lo)
+            got = _LIB.dqm_scan_task(*self._operands, idx.ctypes.data, m, lo, hi, n_own, r0, w, s, self.kernel, rad2,
+                                     limit, lists, bits, self.words, list_index, ws["A"].ctypes.data,
+                                     ws["na"].ctypes.data, ws["G"].ctypes.data, ws["row_f"].ctypes.data,
+                                     ws["row_list"].ctypes.data, ws["rad2c"].ctypes.data, ws["cacc"].ctypes.data,
+                                     dens_r.ctypes.data, dens_c.ctypes.data, cr.ctypes.data, cc.ctypes.data,
+                                     cg.ctypes.data, len(cr))
+            if got >= 0:
+                return dens_r, dens_c, (cr[:got], cc[:got], cg[:got])
+            _check_code(got, hi - lo)
+            ws["edges"] = _edge_buffers(4 * len(cr))
+
+
+def _edge_buffers(cap: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.empty(cap, np.int32), np.empty(cap, np.int32), np.empty(cap, np.float32)
 
 
 def u8_operands(X: np.ndarray) -> Optional[U8Operands]:

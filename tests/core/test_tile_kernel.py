@@ -292,6 +292,56 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
             np.testing.assert_array_equal(x, y)
 
 
+@needs_native
+@pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
+def test_a_scan_task_in_one_native_call_gives_the_block_by_block_results(kernel):
+    """U8Scan.run (gather, integer distances and scan tile in one call) against the loop it replaced: rows
+    gathered, U8Operands.d2 from the multiple of 32 below each block of at most MAX_ROW columns, scan_tile
+    per block. A list of 1,100 columns from an unaligned start (two blocks), own rows, a tightened limit on
+    some features, and an edge buffer far too small (retries): the same sums to the bit, the same edges."""
+    if native.simd_level() < 3:
+        pytest.skip("no AVX-512 VNNI on this CPU: the integer scan does not run here")
+    ds = sift_like(n_images=8, n_points=300, clutter_per_image=100, seed=5)
+    X = ds.descriptors
+    n = len(X)
+    rng = np.random.default_rng(1)
+    ops = native.U8Operands(X)
+    w = rng.uniform(1e-5, 1e-4, n).astype(np.float32)
+    s = (rng.random(n) < 0.9).astype(np.float32)
+    rad2 = np.full(n, 60000.0, np.float32)
+    limit = np.full(n, np.inf, np.float32)
+    limit[rng.random(n) < 0.3] = 30000.0
+    lists = rng.integers(0, 10, n).astype(np.int32)
+    bits = rng.integers(0, 2 ** 10, (n, 1)).astype(np.uint64)
+    lo, hi, r0, n_own, list_index = 37, 37 + 1100, 0, 50, 4
+    idx = np.concatenate([np.arange(lo, lo + n_own), rng.choice(np.arange(hi, n), 250, replace=False)])
+    lists[lo:hi] = list_index
+    rows = native.U8Operands(X[idx])
+    d_ref, c_ref, edges = np.zeros(len(idx)), np.zeros(hi - lo), []
+    for c0 in range(lo, hi, native.MAX_ROW):
+        c1 = min(hi, c0 + native.MAX_ROW)
+        b = c0 - c0 % 32
+        G = rows.d2(0, len(idx), b, c1, cols=ops)[:, c0 - b:]
+        r, c, g = native.scan_tile(np.ascontiguousarray(G), w[c0:c1], s[c0:c1], w[idx], s[idx], kernel,
+                                   np.minimum(rad2[idx], limit[idx]), np.minimum(rad2[c0:c1], limit[c0:c1]),
+                                   n_own, lo + r0 - c0, lists[idx], bits[c0:c1], list_index, d_ref,
+                                   c_ref[c0 - lo:c1 - lo])
+        edges.append((r, c + c0, g))
+    ref = [np.concatenate(e) for e in zip(*edges)]
+    assert len(edges) == 2 and (ref[0] < 0).any() and (ref[0] >= 0).any()
+    scan = native.U8Scan(ops, w, s, kernel, rad2, limit, lists, bits)
+    ws = scan.buffers(400)
+    ws["edges"] = native._edge_buffers(16)  # far too small: the task runs again with more room
+    d, c, got = scan.run(idx, lo, hi, n_own, r0, list_index, ws)
+    assert len(ws["edges"][0]) > 16
+    np.testing.assert_array_equal(d, d_ref)
+    np.testing.assert_array_equal(c, c_ref)
+    for x, y in zip(got, ref):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(ValueError):
+        scan.run(np.arange(401), lo, hi, n_own, r0, list_index, ws)  # more rows than the workspace holds
+
+
 def test_native_break_merge_gives_the_python_loops_labels():
     """dqm_merge_clusters against tree.merge_clusters' Python loop: ties in distance, NaN scales (Python's
     min() keeps the first NaN, the C code follows it), images seen many times, one-feature inputs."""
