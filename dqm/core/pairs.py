@@ -291,13 +291,9 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     bounds = np.searchsorted(image_index[order], np.arange(n_images + 1))
     slack = 2.0 * aug.d2_slack(np.arange(n))
     tasks = []
-    packed = {}  # image -> its representatives packed for the integer kernel (tiles start at 0 in each)
-    for img in range(n_images):
+    images = [img for img in range(n_images) if bounds[img + 1] - bounds[img] >= 2]
+    for img in images:
         lo, hi = bounds[img], bounds[img + 1]
-        if hi - lo < 2:
-            continue
-        if aug.u8 is not None and use_native:
-            packed[img] = (lo, native.U8Operands(aug.exact[order[lo:hi]]))
         starts = list(range(lo, hi, BLOCK))
         tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK), img) for i, a in enumerate(starts)
                   for b in starts[i:]]
@@ -315,12 +311,19 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
         rmin, cmin, r, c, g = native.nearest_sym(G, slack[ra], slack[rb], use_native=use_native)
         return ra[r], rb[c], g.astype(np.float64), ra, rmin, rb, cmin
 
+    def pack(img):
+        lo, hi = bounds[img], bounds[img + 1]
+        return img, (lo, native.U8Operands(aug.exact[order[lo:hi]]))
+
     best = np.full(n, np.inf)
     rows_l, cols_l, g_l = [], [], []
+    packed = {}  # image -> its representatives packed for the integer kernel (tiles start at 0 in each)
     with tile_pool(n_threads) as run:
+        if aug.u8 is not None and use_native:
+            packed.update(run(pack, images))  # on the threads: packing is copies that run without the GIL
         for r, c, g, ra, rmin, rb, cmin in run(work, tasks):
-            np.minimum.at(best, ra, rmin)
-            np.minimum.at(best, rb, cmin)
+            best[ra] = np.minimum(best[ra], rmin)  # a tile's rows (columns) are distinct features
+            best[rb] = np.minimum(best[rb], cmin)
             rows_l.append(r)
             cols_l.append(c)
             g_l.append(g)
