@@ -742,7 +742,7 @@ class U8Scan:
         self.words = int(bits.shape[1])
         self.kernel = KERNEL_CODES[kernel]
         self._operands = (ops.rows.ctypes.data, ops.rows.shape[1], ops.na.ctypes.data, ops.cols.ctypes.data,
-                      ops.nb.ctypes.data, ops.nq)
+                          ops.nb.ctypes.data, ops.nq)
         self._arrays = tuple(a.ctypes.data for a in self._keep)
 
     def buffers(self, m: int) -> dict:
@@ -763,6 +763,9 @@ class U8Scan:
         m = len(idx)
         if m > ws["m"]:
             raise ValueError(f"U8Scan.run: {m} rows for a workspace of {ws['m']}")
+        n = self.ops.n
+        if not 0 <= lo <= hi <= n or (m and (idx.min() < 0 or idx.max() >= n)):
+            raise IndexError(f"U8Scan.run: rows or columns {lo}..{hi} outside the {n} features")
         w, s, rad2, limit, lists, bits = self._arrays
         while True:
             cr, cc, cg = ws["edges"]

@@ -340,6 +340,9 @@ def test_a_scan_task_in_one_native_call_gives_the_block_by_block_results(kernel)
         np.testing.assert_array_equal(x, y)
     with pytest.raises(ValueError):
         scan.run(np.arange(401), lo, hi, n_own, r0, list_index, ws)  # more rows than the workspace holds
+    for bad_rows, bad_hi in (([0, n], hi), ([-1], hi), ([0], n + 1)):  # refused before the C loop reads
+        with pytest.raises(IndexError):
+            scan.run(np.array(bad_rows), lo, bad_hi, 0, r0, list_index, ws)
 
 
 def test_native_break_merge_gives_the_python_loops_labels():
