@@ -559,17 +559,22 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
                       itemsize=X.dtype.itemsize if aug.exact_d2 else None, held=held,
                       max_candidates=inverted_lists.MAX_CANDIDATES)
     stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
-    groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
-
+    # the lists' k-means does not need sigma: it runs beside sigma's pass (the same centroids)
+    with inverted_lists.centroids_meanwhile(aug.left, inverted_lists.n_lists(n), seed, threads) as centroids:
+        groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
+        t = time.perf_counter()
+        lists = centroids()
+        waited = time.perf_counter() - t
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
     dens_o, cr, cc, scan_stats = inverted_lists.scan(
         aug, w, active, kernel, radius, n_probe=n_probe, seed=seed, n_threads=threads,
         image_index=image_index if parent == "other-image" else None,
-        progress=feature_progress(progress, "quickmatch (fast)", n))
+        progress=feature_progress(progress, "quickmatch (fast)", n), centroids=lists)
+    scan_stats["time_lists"] += waited  # the k-means time not hidden behind sigma's
     stats.update(scan_stats)
-    stats["time_pass"] = time.perf_counter() - t
+    stats["time_pass"] = time.perf_counter() - t + waited
     LOG.info("list scan (%d lists, %d probed each; %.1f%% of all pairs): %.2f s", scan_stats["n_lists"],
              scan_stats["n_probe"], 100.0 * scan_stats["pairs_computed"] / max(1.0, n * (n - 1.0)),
              stats["time_pass"])

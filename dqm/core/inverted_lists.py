@@ -39,9 +39,11 @@ and every sum is added in list order whatever the thread count.
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from typing import Callable, Optional, Tuple
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator, Optional, Tuple
 
 import numpy as np
 
@@ -157,10 +159,12 @@ def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1) -> np.ndarray:
+def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1,
+           stop: Optional[threading.Event] = None) -> np.ndarray:
     """``k`` centroids of the rows of the augmented operand ``left`` (Lloyd's iterations on a seeded
     sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
-    operand's centred coordinates. Sums are float64 whatever the thread count: deterministic."""
+    operand's centred coordinates. Sums are float64 whatever the thread count: deterministic.
+    ``stop`` (set by another thread): give up before the next iteration (:class:`Stopped`)."""
     dim = left.shape[1] - 2
     rng = np.random.default_rng(seed)
     n = len(left)
@@ -168,6 +172,8 @@ def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1
     S = np.ascontiguousarray(left[sample])
     centroids = S[np.sort(rng.choice(len(S), size=k, replace=False)), :dim].copy()
     for _ in range(KMEANS_ITERATIONS):
+        if stop is not None and stop.is_set():
+            raise Stopped("k-means stopped")
         own = _nearest_centroids(S, centroids, 1, n_threads)[:, 0]
         counts = np.bincount(own, minlength=k)
         filled = np.flatnonzero(counts)
@@ -176,6 +182,28 @@ def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1
         sums = np.add.reduceat(S[_by_list(own, k), :dim].astype(np.float64), starts, axis=0)
         centroids[filled] = (sums / counts[filled, None]).astype(np.float32)
     return centroids
+
+
+class Stopped(Exception):
+    """:func:`kmeans` gave up: its caller no longer wants the centroids."""
+
+
+@contextlib.contextmanager
+def centroids_meanwhile(left: np.ndarray, k: int, seed: int = 0,
+                        n_threads: Optional[int] = None) -> Iterator[Callable[[], np.ndarray]]:
+    """:func:`kmeans` on a thread of its own while the caller computes something else (the fast engine's
+    sigma, which does not need the lists): the k-means is mostly one core's work, so the two together fill
+    both cores. Yields a function that waits for the centroids (the same as :func:`kmeans`'s, whatever
+    runs beside them). Leaving the block early (an error, Ctrl-C) stops the k-means before its next
+    iteration and waits for that."""
+    stop = threading.Event()
+    pool = ThreadPoolExecutor(max_workers=1)
+    future = pool.submit(kmeans, left, k, seed, n_threads, stop)
+    try:
+        yield future.result
+    finally:
+        stop.set()
+        pool.shutdown(wait=True)
 
 
 def scan(
@@ -192,10 +220,12 @@ def scan(
     progress: ProgressFn = None,
     max_candidates: int = MAX_CANDIDATES,
     image_index: Optional[np.ndarray] = None,
+    centroids: Optional[np.ndarray] = None,
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Densities (without the self term) and candidate edges from the probed lists.
 
-    Arguments as :func:`dqm.core.pairs.kernel_pass`. Returns ``(density_others, child, cand,
+    Arguments as :func:`dqm.core.pairs.kernel_pass`; ``centroids``: the lists' :func:`kmeans` centroids
+    (``lists`` of them, with this ``seed``) when the caller has them already (:func:`centroids_meanwhile`). Returns ``(density_others, child, cand,
     stats)``: each feature's sum of the kernel terms of the members of the lists it probes (itself
     left out), directed candidate edges ``child -> cand`` whose float32 distance is within
     ``radius[child]`` plus its error bound (each child's ``max_candidates`` nearest), and counts (lists,
@@ -207,7 +237,10 @@ def scan(
     k = n_lists(n) if lists is None else int(lists)
     t = int(min(max(1, n_probe), k))
     t0 = time.perf_counter()
-    centroids = kmeans(left, k, seed, n_threads)
+    if centroids is None:
+        centroids = kmeans(left, k, seed, n_threads)
+    elif len(centroids) != k:
+        raise ValueError(f"scan: {len(centroids)} centroids for {k} lists")
     near = _nearest_centroids(left, centroids, t, n_threads)
     time_lists = time.perf_counter() - t0
     own = near[:, 0].astype(np.int64)
