@@ -205,6 +205,24 @@ def test_each_features_nearest_lists_by_distance_then_index(use_native):
         np.testing.assert_array_equal(got, ref[:, :t])
     with pytest.raises(ValueError, match="t = 0"):
         native.smallest(D, 0, use_native=use_native)
+    # 512 columns: t chunks of a multiple of 8 columns, where the native pass bounds the t-th smallest with
+    # vector minima (SIMD level >= 1) or scalar ones (level 0); rows of NaN, of +inf, one chunk all NaN
+    W = rng.integers(0, 60, (200, 512)).astype(np.float32)
+    W[3, :] = np.nan
+    W[4, :] = np.inf
+    W[6, 16:32] = np.nan
+    W[8, ::3] = np.nan
+    ref = np.lexsort((np.broadcast_to(np.arange(512), W.shape), np.where(np.isnan(W), np.inf, W)), axis=1)
+    levels = [native.set_simd_level(99), 0] if use_native else [None]
+    try:
+        for level in levels:
+            if level is not None:
+                native.set_simd_level(level)
+            for t in (8, 32, 64):
+                np.testing.assert_array_equal(native.smallest(W, t, use_native=use_native), ref[:, :t])
+    finally:
+        if use_native:
+            native.set_simd_level(99)
 
 
 def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
@@ -229,3 +247,28 @@ def test_same_image_pairs_do_not_take_a_childs_candidate_places(scene):
     _, kr, kc, _ = inverted_lists.scan(aug, w, active, "gaussian", radius, max_candidates=1, image_index=img)
     assert (img[kr] != img[kc]).all()
     assert dict(zip(kr.tolist(), kc.tolist())) == best
+
+
+def test_the_lists_k_means_beside_sigma_gives_the_same_centroids_and_stops_when_left(scene):
+    """The fast engine runs the lists' k-means on its own thread while sigma's pass runs: the centroids are
+    kmeans()'s; a block left early (an error, Ctrl-C) stops it at its next iteration and raises the
+    block's own error."""
+    import threading
+
+    from dqm.core import pairs
+
+    X, _, _ = scene
+    aug = pairs.Augmented(X)
+    with inverted_lists.centroids_meanwhile(aug.left, 64, 3) as centroids:
+        got = centroids()
+    np.testing.assert_array_equal(got, inverted_lists.kmeans(aug.left, 64, 3))
+    with pytest.raises(KeyError, match="the caller's"):
+        with inverted_lists.centroids_meanwhile(aug.left, 64, 3):
+            raise KeyError("the caller's")
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(inverted_lists.Stopped):
+        inverted_lists.kmeans(aug.left, 64, 3, stop=stop)
+    with pytest.raises(ValueError, match="centroids for"):
+        inverted_lists.scan(aug, np.ones(len(X)), np.ones(len(X)), "gaussian", np.ones(len(X)), lists=32,
+                            centroids=got)
