@@ -225,12 +225,13 @@ def scan(
     """Densities (without the self term) and candidate edges from the probed lists.
 
     Arguments as :func:`dqm.core.pairs.kernel_pass`; ``centroids``: the lists' :func:`kmeans` centroids
-    (``lists`` of them, with this ``seed``) when the caller has them already (:func:`centroids_meanwhile`). Returns ``(density_others, child, cand,
-    stats)``: each feature's sum of the kernel terms of the members of the lists it probes (itself
-    left out), directed candidate edges ``child -> cand`` whose float32 distance is within
-    ``radius[child]`` plus its error bound (each child's ``max_candidates`` nearest), and counts (lists,
-    probes, pairs computed). With ``image_index`` (the parent must come from another image), pairs within
-    one image are left out before the nearest are chosen, so that they do not take a child's places.
+    (``lists`` of them, with this ``seed``) when the caller has them already (:func:`centroids_meanwhile`).
+    Returns ``(density_others, child, cand, stats)``: each feature's sum of the kernel terms of the
+    members of the lists it probes (itself left out), directed candidate edges ``child -> cand`` whose
+    float32 distance is within ``radius[child]`` plus its error bound (each child's ``max_candidates``
+    nearest), and counts (lists, probes, pairs computed). With ``image_index`` (the parent must come from
+    another image), pairs within one image are left out before the nearest are chosen, so that they do
+    not take a child's places.
     """
     n = aug.n
     left, right = aug.left, aug.right
