@@ -290,6 +290,10 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     order = first[np.argsort(image_index[first], kind="stable")]  # one per (vector, image), by image
     bounds = np.searchsorted(image_index[order], np.arange(n_images + 1))
     slack = 2.0 * aug.d2_slack(np.arange(n))
+    # exact float32 distances (integer descriptors): the minima are the exact squared distances themselves, so
+    # no tile needs to hand over the entries near them (a slack of -inf keeps none)
+    minima_only = aug.exact_d2
+    tile_slack = np.full(n, -np.inf, np.float32) if minima_only else slack
     tasks = []
     images = [img for img in range(n_images) if bounds[img + 1] - bounds[img] >= 2]
     for img in images:
@@ -308,7 +312,7 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
             G = aug.left[ra] @ aug.right[rb].T
         if a == b:
             np.fill_diagonal(G, np.finfo(np.float32).max)
-        rmin, cmin, r, c, g = native.nearest_sym(G, slack[ra], slack[rb], use_native=use_native)
+        rmin, cmin, r, c, g = native.nearest_sym(G, tile_slack[ra], tile_slack[rb], use_native=use_native)
         return ra[r], rb[c], g.astype(np.float64), ra, rmin, rb, cmin
 
     def pack(img):
@@ -329,6 +333,10 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
             g_l.append(g)
     sigma = np.full(n, np.nan)
     sigma[duplicated] = 0.0
+    if minima_only:  # the square root of the exact integer, as exact_distances takes it
+        has = (best < np.finfo(np.float32).max) & ~duplicated  # the huge diagonal: no other representative
+        sigma[has] = np.sqrt(best[has])
+        return sigma
     if not rows_l:
         return sigma
     r = np.concatenate(rows_l)
