@@ -383,3 +383,26 @@ def test_native_uint8_distances_are_the_exact_integers():
     np.testing.assert_array_equal(native.sq_distances_u8(X, a, b), want)
     np.testing.assert_array_equal(pairs.exact_sq_distances(X, a, b), want)
     assert native.sq_distances_u8(X.astype(np.int16), a, b) is None  # other dtypes: the numpy loop
+
+
+@pytest.mark.parametrize("use_native", [True, False])
+def test_sigma_of_integer_descriptors_from_tile_minima_matches_brute_force(levels, use_native):
+    """On integer descriptors the per-image pass takes sigma from the tiles' exact float32 minima alone: against
+    a brute-force oracle on small uint8 sets with duplicates within and across images, one-feature images
+    (nan) and images that get no feature, at every SIMD level and in numpy."""
+    if use_native and not native.native_available():
+        pytest.skip("the native kernel is not built")
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        n, dim, n_img = int(rng.integers(1, 90)), int(rng.integers(1, 20)), int(rng.integers(1, 8))
+        X = rng.integers(0, int(rng.choice([2, 4, 256])), (n, dim)).astype(np.uint8)
+        img = rng.integers(0, n_img, n)
+        D = np.sqrt(((X[:, None, :].astype(np.int64) - X[None, :, :]) ** 2).sum(-1))
+        D[(img[:, None] != img[None, :]) | np.eye(n, dtype=bool)] = np.inf
+        ref = D.min(axis=1)
+        ref[np.isinf(ref)] = np.nan
+        for level in (levels if use_native else [None]):
+            if level is not None:
+                native.set_simd_level(level)
+            got = pairs.nearest_same_image(pairs.Augmented(X), img, n_img, use_native=use_native)
+            np.testing.assert_array_equal(got, ref)
