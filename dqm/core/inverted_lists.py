@@ -234,7 +234,7 @@ def scan(
     not take a child's places.
     """
     n = aug.n
-    left, right = aug.left, aug.right
+    left = aug.left
     k = n_lists(n) if lists is None else int(lists)
     t = int(min(max(1, n_probe), k))
     t0 = time.perf_counter()
@@ -265,8 +265,8 @@ def scan(
     where[perm] = np.arange(n)
     # the rows' distances to a list: the integer (VNNI) kernel on uint8 descriptors where the CPU has it
     # (exact, as the float32 GEMM's on such data), else one float32 GEMM
-    u8 = None if aug.u8 is None else aug.u8.take(aug.exact, perm)
-    Lp, Rp = (None, None) if u8 is not None else (left[perm], right[perm])
+    u8 = native.U8Operands(aug.exact[perm]) if aug.integer_kernel else None
+    Lp, Rp = (None, None) if u8 is not None else (left[perm], aug.right[perm])
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)
     rad2p = pairs.search_rad2(aug, radius)[perm]

@@ -692,7 +692,10 @@ class U8Operands:
         self.rows[:n, :dim] = (X ^ np.uint8(0x80)).view(np.int8)  # x - 128 in two's complement
         cols = np.zeros((groups * 16, width), np.uint8)
         cols[:n, :dim] = X
-        self.cols = np.ascontiguousarray(cols.reshape(groups, 16, self.nq, 4).transpose(0, 2, 1, 3))
+        # each feature's 4 bytes of a step as one uint32: a 3-d transpose of words, not a 4-d one of bytes (the
+        # same bytes, several times faster)
+        self.cols = np.ascontiguousarray(cols.view(np.uint32).reshape(groups, 16, self.nq).transpose(0, 2, 1)) \
+            .view(np.uint8).reshape(groups, self.nq, 16, 4)
         if norms is None:
             norm = np.square(X, dtype=np.uint16).sum(axis=1, dtype=np.int32)  # 255^2 fits 16 bits
             norms = (norm, norm - 256 * X.sum(axis=1, dtype=np.int32))
@@ -786,11 +789,14 @@ def _edge_buffers(cap: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.empty(cap, np.int32), np.empty(cap, np.int32), np.empty(cap, np.float32)
 
 
+def u8_kernel_runs(X: np.ndarray) -> bool:
+    """Does the integer (VNNI) distance kernel run on these descriptors here (uint8, the CPU has AVX-512 VNNI)?"""
+    return _LIB is not None and X.dtype == np.uint8 and simd_level() >= 3 and len(X) > 0
+
+
 def u8_operands(X: np.ndarray) -> Optional[U8Operands]:
     """:class:`U8Operands` of uint8 descriptors where the CPU has AVX-512 VNNI (else None)."""
-    if _LIB is None or X.dtype != np.uint8 or simd_level() < 3 or len(X) == 0:
-        return None
-    return U8Operands(X)
+    return U8Operands(X) if u8_kernel_runs(X) else None
 
 
 def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel, rad2, dens_r, err_r,

@@ -178,11 +178,22 @@ class Augmented:
                 if info.min <= lo and hi <= info.max:
                     self.exact = X.astype(dt, copy=False)
                     break
-        #: uint8 descriptors packed for the native integer (VNNI) distance kernel, where the CPU has it:
-        #: exact squared distances (at most 258 x 255^2 < 2^24, so float32 holds them) at about 2.6x the
-        #: float32 GEMM's speed here; None elsewhere
-        self.u8 = (native.u8_operands(self.exact)
-                   if self.exact.dtype == np.uint8 and self.dim <= 258 else None)
+        #: the native integer (VNNI) distance kernel runs on these descriptors (decided here, once): exact
+        #: squared distances (at most 258 x 255^2 < 2^24, so float32 holds them) at about 2.6x the float32
+        #: GEMM's speed; :attr:`u8` holds them packed for it
+        self.integer_kernel = self.exact.dtype == np.uint8 and self.dim <= 258 and native.u8_kernel_runs(self.exact)
+        self._u8: Optional[native.U8Operands] = None
+
+    @property
+    def u8(self) -> Optional[native.U8Operands]:
+        """The descriptors packed for the integer kernel where it runs (:attr:`integer_kernel`; else None), made
+        on first use (the fast engine packs its own, in list order, and never needs these)."""
+        if not self.integer_kernel:
+            return None
+        with self._operands_lock:
+            if self._u8 is None:
+                self._u8 = native.U8Operands(self.exact)
+        return self._u8
 
     def _float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
         """The operands of the exact mode, made on first use chunk by chunk from the integer rows (the same
@@ -323,7 +334,7 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     rows_l, cols_l, g_l = [], [], []
     packed = {}  # image -> its representatives packed for the integer kernel (tiles start at 0 in each)
     with tile_pool(n_threads) as run:
-        if aug.u8 is not None and use_native:
+        if aug.integer_kernel and use_native:
             packed.update(run(pack, images))  # on the threads: packing is copies that run without the GIL
         for r, c, g, ra, rmin, rb, cmin in run(work, tasks):
             best[ra] = np.minimum(best[ra], rmin)  # a tile's rows (columns) are distinct features
@@ -427,7 +438,7 @@ def kernel_pass(
     err = np.zeros(n, dtype=np.float64)
     limit = n if rows_limit is None else int(rows_limit)
     cross = 0 if cols_from is None else int(cols_from)
-    fused = aug.u8 is not None and use_native
+    fused = aug.integer_kernel and use_native
     if cols_from is None:  # unordered block pairs, each once; diagonal blocks (a == b) use one direction
         starts = list(range(0, n, BLOCK))
         tasks = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for ia, a in enumerate(starts) if a < limit

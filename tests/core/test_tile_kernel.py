@@ -155,7 +155,7 @@ def test_own_by_batch_pass_meets_exactly_the_cross_pairs(monkeypatch, fused):
     if fused:
         assert aug.u8 is not None
     else:
-        monkeypatch.setattr(aug, "u8", None)
+        monkeypatch.setattr(aug, "integer_kernel", False)  # the float GEMM path (aug.u8 is then None)
     _, img = np.unique(ds.image_ids, return_inverse=True)
     sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
     n, zero, radius = aug.n, np.zeros(aug.n), 0.9 * sig
@@ -202,7 +202,7 @@ def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
     sig = pairs.nearest_same_image(aug, img.ravel(), int(img.max()) + 1)
     w, active = clustering.kernel_weights(sig, kernel, 0.25)
     fused = pairs.kernel_pass(aug, w, active, kernel, 1.1 * sig)
-    monkeypatch.setattr(aug, "u8", None)
+    monkeypatch.setattr(aug, "integer_kernel", False)
     plain = pairs.kernel_pass(aug, w, active, kernel, 1.1 * sig)
     assert sorted(zip(fused[2].tolist(), fused[3].tolist())) == sorted(zip(plain[2].tolist(), plain[3].tolist()))
     np.testing.assert_allclose(fused[0], plain[0], rtol=1e-6, atol=1e-30)
@@ -210,7 +210,7 @@ def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
     idx = np.arange(0, aug.n, 7)
     monkeypatch.undo()
     a = pairs.exact_density_others(aug, idx, w, active, kernel)
-    monkeypatch.setattr(aug, "u8", None)
+    monkeypatch.setattr(aug, "integer_kernel", False)
     b = pairs.exact_density_others(aug, idx, w, active, kernel)
     np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
 
