@@ -131,9 +131,8 @@ def load_input(args) -> io.FeatureSet:
             other = next((p for p in args.inputs if p != databases[0]), "--image-list")
             raise InputError(f"a COLMAP database ({databases[0]}) is matched on its own, not with {other}; "
                              "give one database, or FEATURES files, or images")
-        from ..vision.colmap import import_database, require_pycolmap
+        from ..vision.colmap import import_database
 
-        require_pycolmap(what="dqm match on a COLMAP database")
         image_dir = getattr(args, "image_dir", None)
         if image_dir is not None:
             if not Path(image_dir).is_dir():

@@ -102,6 +102,74 @@ def test_import_round_trip_database_features_clusters_database(scene, tmp_path):
         d2.close()
 
 
+def test_sift_databases_are_read_from_their_tables_as_pycolmap_reads_them(scene, tmp_path, monkeypatch):
+    """import_database reads SIFT databases straight from SQLite (no pycolmap import): the same arrays as
+    pycolmap's reading on a database of COLMAP 4's layout; a COLMAP 3 layout (no descriptor type column,
+    4-column keypoints) without pycolmap at all; another descriptor type or a row of other sizes is left to
+    pycolmap; a missing descriptor row is refused by name."""
+    import sqlite3
+
+    db = tmp_path / "a.db"
+    colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"], descriptors=scene["D"],
+                           verify=False)
+    fast, slow = colmap._read_tables(db), colmap._read_with_pycolmap(db)
+    assert [x[0] for x in fast] == [x[0] for x in slow]
+    for (_, k1, d1), (_, k2, d2) in zip(fast, slow):
+        assert k1.dtype == k2.dtype and d1.dtype == d2.dtype
+        np.testing.assert_array_equal(k1, k2)
+        np.testing.assert_array_equal(d1, d2)
+    # COLMAP 3's layout, read without pycolmap
+    old = tmp_path / "colmap3.db"
+    con = sqlite3.connect(old)
+    con.execute("CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER)")
+    con.execute("CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB)")
+    con.execute("CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB)")
+    rng = np.random.default_rng(0)
+    kp = [rng.uniform(1, 300, (n, 4)).astype(np.float32) for n in (5, 7)]
+    desc = [rng.integers(0, 256, (n, 128)).astype(np.uint8) for n in (5, 7)]
+    for image_id, name, k, d in ((7, "b.png", kp[1], desc[1]), (3, "a.png", kp[0], desc[0])):
+        con.execute("INSERT INTO images VALUES (?, ?, 1)", (image_id, name))
+        con.execute("INSERT INTO keypoints VALUES (?, ?, ?, ?)", (image_id, *k.shape, k.tobytes()))
+        con.execute("INSERT INTO descriptors VALUES (?, ?, ?, ?)", (image_id, *d.shape, d.tobytes()))
+    con.commit()
+    con.close()
+
+    def no_pycolmap(*args, **kwargs):
+        raise AssertionError("pycolmap was asked for")
+
+    monkeypatch.setattr(colmap, "require_pycolmap", no_pycolmap)
+    fs = colmap.import_database(old)
+    assert list(fs.image_names) == ["a.png", "b.png"]  # image-id order
+    np.testing.assert_array_equal(fs.descriptors, np.concatenate(desc))
+    np.testing.assert_array_equal(fs.image_ids, [0] * 5 + [1] * 7)
+    both = np.concatenate(kp)
+    np.testing.assert_allclose(fs.keypoints[:, :2], both[:, :2] - 0.5)
+    np.testing.assert_allclose(fs.keypoints[:, 3], np.degrees(both[:, 3]), rtol=1e-6)
+    monkeypatch.undo()
+    con = sqlite3.connect(old)
+    con.execute("UPDATE descriptors SET rows = 6 WHERE image_id = 3")  # 6 rows announced, 5 stored
+    con.commit()
+    assert colmap._read_tables(old) is None
+    con.execute("UPDATE descriptors SET rows = 5 WHERE image_id = 3")
+    con.execute("DELETE FROM descriptors WHERE image_id = 7")
+    con.commit()
+    con.close()
+    with pytest.raises(InputError, match="image b.png has no keypoints or no descriptors"):
+        colmap.import_database(old)
+    typed = tmp_path / "typed.db"
+    con = sqlite3.connect(typed)
+    con.execute("CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER)")
+    con.execute("CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB)")
+    con.execute("CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, type INTEGER, rows INTEGER, cols INTEGER,"
+                " data BLOB)")
+    con.execute("INSERT INTO images VALUES (1, 'a.png', 1)")
+    con.execute("INSERT INTO keypoints VALUES (1, 5, 4, ?)", (kp[0].tobytes(),))
+    con.execute("INSERT INTO descriptors VALUES (1, 1, 5, 32, ?)", (np.zeros((5, 32), np.float32).tobytes(),))
+    con.commit()
+    con.close()
+    assert colmap._read_tables(typed) is None  # not SIFT's uint8: pycolmap reads such a database
+
+
 def test_import_refuses_what_is_not_a_database(tmp_path):
     bad = tmp_path / "x.db"
     bad.write_text("not sqlite")
