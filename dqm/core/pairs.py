@@ -87,19 +87,25 @@ def augmented_rows(Xc: np.ndarray, norm2: Optional[np.ndarray] = None) -> Tuple[
     return left, right, norm2
 
 
-def _operands_from_chunks(n: int, dim: int, chunks, norm2: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _operands_from_chunks(n: int, dim: int, chunks, norm2: np.ndarray,
+                          sides: Tuple[bool, bool] = (True, True)) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
     """The float32 operands of :func:`augmented_rows` filled from ``(first row, centred rows)`` chunks
-    (the rows are not modified; scaling by -2 is exact in float32)."""
-    left = np.empty((n, dim + 2), dtype=np.float32)
-    right = np.empty((n, dim + 2), dtype=np.float32)
+    (the rows are not modified; scaling by -2 is exact in float32); ``sides``: which of (left, right) to make
+    (None for the other)."""
+    left = np.empty((n, dim + 2), dtype=np.float32) if sides[0] else None
+    right = np.empty((n, dim + 2), dtype=np.float32) if sides[1] else None
     for a, xc in chunks:
-        left[a:a + len(xc), :dim] = xc
-        right[a:a + len(xc), :dim] = xc
-        right[a:a + len(xc), :dim] *= -2.0
-    left[:, dim] = norm2
-    left[:, dim + 1] = 1.0
-    right[:, dim] = 1.0
-    right[:, dim + 1] = norm2
+        if left is not None:
+            left[a:a + len(xc), :dim] = xc
+        if right is not None:
+            right[a:a + len(xc), :dim] = xc
+            right[a:a + len(xc), :dim] *= -2.0
+    if left is not None:
+        left[:, dim] = norm2
+        left[:, dim + 1] = 1.0
+    if right is not None:
+        right[:, dim] = 1.0
+        right[:, dim + 1] = norm2
     return left, right
 
 
@@ -195,25 +201,29 @@ class Augmented:
                 self._u8 = native.U8Operands(self.exact)
         return self._u8
 
-    def _float32_operands(self) -> Tuple[np.ndarray, np.ndarray]:
-        """The operands of the exact mode, made on first use chunk by chunk from the integer rows (the same
-        values as :func:`augmented_rows` of the centred float32 rows, without a whole-array temporary).
-        Under a lock: the pass's worker threads ask at once, and each would otherwise make its own."""
+    def _float32_operand(self, side: int) -> np.ndarray:
+        """Operand ``side`` (0: left, 1: right) of the exact mode, made on first use chunk by chunk from the
+        integer rows (the same values as :func:`augmented_rows` of the centred float32 rows, without a
+        whole-array temporary), each side on its own: the fast engine on the integer kernel needs the left
+        one only. Under a lock: the pass's worker threads ask at once, and each would otherwise make its own."""
         with self._operands_lock:
             if self._operands is None:
-                self._operands = _operands_from_chunks(self.n, self.dim, _centred_float32_chunks(self._X, self.center),
-                                                       self.norm2)
-        return self._operands
+                self._operands = [None, None]
+            if self._operands[side] is None:
+                made = _operands_from_chunks(self.n, self.dim, _centred_float32_chunks(self._X, self.center),
+                                             self.norm2, (side == 0, side == 1))
+                self._operands[side] = made[side]
+        return self._operands[side]
 
     @property
     def left(self) -> np.ndarray:
         """float32 GEMM operand ``[x, |x|^2, 1]`` of the centred rows (made on first use in exact mode)."""
-        return self._float32_operands()[0]
+        return self._float32_operand(0)
 
     @property
     def right(self) -> np.ndarray:
         """float32 GEMM operand ``[-2x, 1, |x|^2]`` of the centred rows (made on first use in exact mode)."""
-        return self._float32_operands()[1]
+        return self._float32_operand(1)
 
     def d2_rows(self, rows: np.ndarray) -> np.ndarray:
         """Exact float32 squared distances of the features ``rows`` to every feature, from the integer
