@@ -546,7 +546,8 @@ static int64_t near_row(const float *g, int64_t k, float lr, const float *climit
  * entries equal to FLT_MAX are never reported).
  * Writes every row's and column's minimum over the tile and every (r, c) with
  * g <= rmin[r] + slack_r[r] or g <= cmin[c] + slack_c[c] (with its value), so
- * that the caller, knowing the global minima, can recompute those exactly.
+ * that the caller, knowing the global minima, can recompute those exactly;
+ * with slack_r NULL the minima only (where they are exact: integer descriptors).
  * Returns the count, -1 if more than cap, or -2 if k > MAX_ROW.
  */
 int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
@@ -568,6 +569,8 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
 #endif
         rmin[r] = minrow_scalar(G + r * ldg, k, cmin);
     }
+    if (slack_r == NULL)
+        return 0;
     float climit[MAX_ROW]; /* column limits once */
     for (int64_t c = 0; c < k; ++c)
         climit[c] = cmin[c] + slack_c[c];
@@ -1114,7 +1117,7 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
  * with their weights, activity, search radius min(rad2, limit) and list; then for every block of at
  * most MAX_ROW of the list's columns lo..hi, their exact squared distances (dqm_gemm_d2_u8 from the
  * multiple of 32 below the block, into G) go through dqm_scan_tile. The same operations in the same order
- * as gather_rows / d2_gathered / scan_tile one block at a time, so the same bits. dens_r (m) and dens_c
+ * as U8Operands.d2 and scan_tile on the gathered rows one block at a time, so the same bits (a test checks). dens_r (m) and dens_c
  * (hi - lo) are added to; edges as dqm_scan_tile's, their columns the features' indices (c0 added). limit is read once
  * per row and column (another thread may tighten it meanwhile: any value read is a valid radius).
  * row_f: 3 m floats of scratch; row_list: m; rad2c, cacc: MAX_ROW. Returns the count of edges, -1 past

@@ -228,6 +228,12 @@ def _timed_sigma(aug: pairs.Augmented, sigma, image_index: np.ndarray, n_images:
 EDGE_CHUNK = 1 << 22
 
 
+def _edge_chunks(cr: np.ndarray, cc: np.ndarray):
+    """The edges ``(child, candidate)`` :data:`EDGE_CHUNK` at a time, as views."""
+    for s in range(0, len(cr), EDGE_CHUNK):
+        yield cr[s:s + EDGE_CHUNK], cc[s:s + EDGE_CHUNK]
+
+
 def _edges_within_radius(aug: pairs.Augmented, cr: np.ndarray, cc: np.ndarray, radius: np.ndarray,
                          image_index: Optional[np.ndarray]):
     """Candidate edges ``cr -> cc`` at their exact distances, those within the child's radius (and, when
@@ -236,8 +242,7 @@ def _edges_within_radius(aug: pairs.Augmented, cr: np.ndarray, cc: np.ndarray, r
     once beside their distances (at 1M features, hundreds of millions of edges)."""
     d = np.empty(len(cr))
     kept = 0
-    for s in range(0, len(cr), EDGE_CHUNK):
-        r, c = cr[s:s + EDGE_CHUNK], cc[s:s + EDGE_CHUNK]
+    for r, c in _edge_chunks(cr, cc):
         dc = pairs.exact_distances(aug.exact, r, c)
         keep = dc < radius[r]
         if image_index is not None:
@@ -481,8 +486,7 @@ def _decide(aug, sig, groups, w, active, kernel, dens_o, err, cr, cc, radius, im
     # refine densities whose order on some candidate edge is not certain (the same rule in both passes,
     # so both refine the same features and end with the same density values)
     refine = np.zeros(n, dtype=bool)
-    for s in range(0, len(cr), EDGE_CHUNK):
-        r, c = cr[s:s + EDGE_CHUNK], cc[s:s + EDGE_CHUNK]
+    for r, c in _edge_chunks(cr, cc):
         uncertain = native.rank_relation(lo, hi, c, r) == 0
         refine[r[uncertain]] = True
         refine[c[uncertain]] = True

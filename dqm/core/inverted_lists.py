@@ -129,6 +129,11 @@ def _by_list(lists: np.ndarray, k: int) -> np.ndarray:
     return np.argsort(lists.astype(np.uint16) if k <= 1 << 16 else lists, kind="stable")
 
 
+def _list_bounds(lists: np.ndarray, k: int) -> np.ndarray:
+    """Where each of the ``k`` lists starts among entries ordered by :func:`_by_list` (and, last, their count)."""
+    return np.concatenate([[0], np.cumsum(np.bincount(lists, minlength=k))])
+
+
 def _scanned_lists(counts: np.ndarray, near: np.ndarray, quota: float) -> np.ndarray:
     """How many of each feature's other nearest lists (``near[:, 1:]``, nearest first) it scans: those it
     reaches having met fewer than ``quota`` features (its own list's ``counts`` included); a prefix, as the
@@ -248,7 +253,7 @@ def scan(
     # members of each list, in feature order; probing rows of each list: its members first (their own
     # list is their nearest), then the others, so that row i < len(members) is column i (the self pair)
     by_list = _by_list(own, k)
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(own, minlength=k))])
+    bounds = _list_bounds(own, k)
     # a feature scans its nearest lists until it has met as many features as n_probe lists of the mean size
     # hold: where lists are uneven (generated data, repeated texture), dense regions do not cost more per
     # feature than sparse ones
@@ -258,7 +263,7 @@ def scan(
     probe_list = near[:, 1:][scans]
     probe_row = np.repeat(np.arange(n), count)
     order = _by_list(probe_list, k)
-    pbounds = np.concatenate([[0], np.cumsum(np.bincount(probe_list, minlength=k))])
+    pbounds = _list_bounds(probe_list, k)
     # everything in list order: a list's members are one slice of the operands (no gather per tile)
     perm = by_list
     where = np.empty(n, dtype=np.int64)

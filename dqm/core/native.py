@@ -57,7 +57,7 @@ def _load() -> Optional[ctypes.CDLL]:
         nn = lib.dqm_nearest_sym
         nn.argtypes = [
             ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
-            f32, f32, f32, f32, i32, i32, f32, ctypes.c_int64,
+            ctypes.c_void_p, ctypes.c_void_p, f32, f32, i32, i32, f32, ctypes.c_int64,
         ]
         nn.restype = ctypes.c_int64
         aw = lib.dqm_any_within
@@ -292,15 +292,13 @@ def scan_tile(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list
         return scan_tile_numpy(G, wc, sc, wr, sr, kernel, rad2r, rad2c, n_own, self_col, row_list, col_bits,
                                list_index, dens_r, dens_c)
     m, k = G.shape
-    cap = max(1024, 16 * m)  # a feature of a point seen in many images has many candidates: fewer retries
+    cap = _scan_edge_cap(m)
     f = lambda a: np.ascontiguousarray(a, dtype=np.float32)  # noqa: E731
     args = (f(wc), f(sc), f(wr), f(sr), KERNEL_CODES[kernel], f(rad2r), f(rad2c), int(n_own), int(self_col),
             np.ascontiguousarray(row_list, dtype=np.int32), col_bits, col_bits.shape[1], int(list_index))
     cacc = np.empty(k, dtype=np.float32)
     while True:
-        cr = np.empty(cap, dtype=np.int32)
-        cc = np.empty(cap, dtype=np.int32)
-        cg = np.empty(cap, dtype=np.float32)
+        cr, cc, cg = _edge_buffers(cap)
         d_r = np.zeros(m)
         d_c = np.zeros(k)
         got = _LIB.dqm_scan_tile(G.ctypes.data, m, k, G.strides[0] // 4, *args, d_r, d_c, cacc, cr, cc, cg, cap)
@@ -489,29 +487,39 @@ def tile_sym(G, wc, sc, wr, sr, kernel, rad2r, rad2c, dens_r, err_r, dens_c, err
         cap *= 4
 
 
-def nearest_sym(G: np.ndarray, slack_r: np.ndarray, slack_c: np.ndarray, use_native: bool = True):
+def nearest_sym(G: np.ndarray, slack_r: Optional[np.ndarray], slack_c: Optional[np.ndarray],
+                use_native: bool = True):
     """Tile of the distinctiveness pass (self pairs already set to a huge value in ``G``).
 
     Returns ``(rmin, cmin, r, c, g)``: row and column minima of the tile and
-    every entry within ``slack`` of its row's or its column's minimum.
+    every entry within ``slack`` of its row's or its column's minimum; with
+    ``slack_r`` None the minima only (``r``, ``c``, ``g`` empty).
     """
     m, k = G.shape
+    none = np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32)
     if _LIB is None or not use_native:
         rmin = G.min(axis=1)
         cmin = G.min(axis=0)
+        if slack_r is None:
+            return (rmin, cmin) + none
         near = (G <= (rmin + slack_r)[:, None]) | (G <= (cmin + slack_c)[None, :])
         r, c = np.nonzero(near & (G < np.finfo(np.float32).max))
         return rmin, cmin, r, c, G[r, c]
-    cap = max(1024, 4 * (m + k))
     rmin = np.empty(m, dtype=np.float32)
     cmin = np.empty(k, dtype=np.float32)
+    if slack_r is None:
+        _check_code(_LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, None, None, rmin, cmin, *none, 0),
+                    k)
+        return (rmin, cmin) + none
     sr = np.ascontiguousarray(slack_r, dtype=np.float32)
     sc = np.ascontiguousarray(slack_c, dtype=np.float32)
+    cap = max(1024, 4 * (m + k))
     while True:
         cr = np.empty(cap, dtype=np.int32)
         cc = np.empty(cap, dtype=np.int32)
         cg = np.empty(cap, dtype=np.float32)
-        got = _LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, sr, sc, rmin, cmin, cr, cc, cg, cap)
+        got = _LIB.dqm_nearest_sym(G.ctypes.data, m, k, G.strides[0] // 4, sr.ctypes.data, sc.ctypes.data, rmin,
+                                   cmin, cr, cc, cg, cap)
         if got >= 0:
             return rmin, cmin, _head(cr, got), _head(cc, got), _head(cg, got)
         _check_code(got, k)
@@ -683,7 +691,7 @@ class U8Operands:
     a feature. Tiles start at multiples of 32 features.
     """
 
-    def __init__(self, X: np.ndarray, norms: Optional[Tuple[np.ndarray, np.ndarray]] = None):
+    def __init__(self, X: np.ndarray):
         n, dim = X.shape
         self.n, self.nq = n, -(-dim // 4)
         width = 4 * self.nq
@@ -696,17 +704,11 @@ class U8Operands:
         # same bytes, several times faster)
         self.cols = np.ascontiguousarray(cols.view(np.uint32).reshape(groups, 16, self.nq).transpose(0, 2, 1)) \
             .view(np.uint8).reshape(groups, self.nq, 16, 4)
-        if norms is None:
-            norm = np.square(X, dtype=np.uint16).sum(axis=1, dtype=np.int32)  # 255^2 fits 16 bits
-            norms = (norm, norm - 256 * X.sum(axis=1, dtype=np.int32))
+        norm = np.square(X, dtype=np.uint16).sum(axis=1, dtype=np.int32)  # 255^2 fits 16 bits
         self.na = np.zeros(n + _VNNI_ROWS, np.int32)
-        self.na[:n] = norms[0]
+        self.na[:n] = norm
         self.nb = np.zeros(groups * 16, np.int32)
-        self.nb[:n] = norms[1]
-
-    def take(self, X: np.ndarray, idx: np.ndarray) -> "U8Operands":
-        """The operands of ``X[idx]`` (``X`` the descriptors these were made of), reusing their norms."""
-        return U8Operands(X[idx], (self.na[idx], self.nb[idx]))
+        self.nb[:n] = norm - 256 * X.sum(axis=1, dtype=np.int32)
 
     def _args(self, a: int, b: int):
         if b % 32:
@@ -750,7 +752,7 @@ class U8Scan:
 
     def buffers(self, m: int) -> dict:
         """A thread's workspace for tasks of up to ``m`` rows."""
-        cap = max(1024, 16 * m)  # a feature of a point seen in many images has many candidates: fewer retries
+        cap = _scan_edge_cap(m)
         return {"m": m, "A": np.zeros((m + _VNNI_ROWS, self.ops.rows.shape[1]), np.int8),
                 "na": np.zeros(m + _VNNI_ROWS, np.int32), "G": np.empty(m * (MAX_ROW + 32), np.float32),
                 "row_f": np.empty(3 * m, np.float32), "row_list": np.empty(m, np.int32),
@@ -785,6 +787,12 @@ class U8Scan:
             ws["edges"] = _edge_buffers(4 * len(cr))
 
 
+def _scan_edge_cap(m: int) -> int:
+    """First size of the edge buffers of a scan tile or task of ``m`` rows: a feature of a point seen in many
+    images has many candidates, so room for 16 a row makes retries rare."""
+    return max(1024, 16 * m)
+
+
 def _edge_buffers(cap: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.empty(cap, np.int32), np.empty(cap, np.int32), np.empty(cap, np.float32)
 
@@ -793,10 +801,6 @@ def u8_kernel_runs(X: np.ndarray) -> bool:
     """Does the integer (VNNI) distance kernel run on these descriptors here (uint8, the CPU has AVX-512 VNNI)?"""
     return _LIB is not None and X.dtype == np.uint8 and simd_level() >= 3 and len(X) > 0
 
-
-def u8_operands(X: np.ndarray) -> Optional[U8Operands]:
-    """:class:`U8Operands` of uint8 descriptors where the CPU has AVX-512 VNNI (else None)."""
-    return U8Operands(X) if u8_kernel_runs(X) else None
 
 
 def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel, rad2, dens_r, err_r,

@@ -83,30 +83,22 @@ def augmented_rows(Xc: np.ndarray, norm2: Optional[np.ndarray] = None) -> Tuple[
     so ``left_i . right_j`` is the squared distance; and the float64 ``|x|^2`` (computed unless given)."""
     if norm2 is None:
         norm2 = np.einsum("ij,ij->i", Xc, Xc)
-    left, right = _operands_from_chunks(len(Xc), Xc.shape[1], [(0, Xc)], norm2)
-    return left, right, norm2
+    n, dim = Xc.shape
+    return _operand_from_chunks(n, dim, [(0, Xc)], norm2, 0), _operand_from_chunks(n, dim, [(0, Xc)], norm2, 1), norm2
 
 
-def _operands_from_chunks(n: int, dim: int, chunks, norm2: np.ndarray,
-                          sides: Tuple[bool, bool] = (True, True)) -> Tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-    """The float32 operands of :func:`augmented_rows` filled from ``(first row, centred rows)`` chunks
-    (the rows are not modified; scaling by -2 is exact in float32); ``sides``: which of (left, right) to make
-    (None for the other)."""
-    left = np.empty((n, dim + 2), dtype=np.float32) if sides[0] else None
-    right = np.empty((n, dim + 2), dtype=np.float32) if sides[1] else None
+def _operand_from_chunks(n: int, dim: int, chunks, norm2: np.ndarray, side: int) -> np.ndarray:
+    """Float32 operand ``side`` of :func:`augmented_rows` (0: left ``[x, |x|^2, 1]``, 1: right ``[-2x, 1, |x|^2]``)
+    filled from ``(first row, centred rows)`` chunks (the rows are not modified; scaling by -2 is exact in
+    float32)."""
+    out = np.empty((n, dim + 2), dtype=np.float32)
     for a, xc in chunks:
-        if left is not None:
-            left[a:a + len(xc), :dim] = xc
-        if right is not None:
-            right[a:a + len(xc), :dim] = xc
-            right[a:a + len(xc), :dim] *= -2.0
-    if left is not None:
-        left[:, dim] = norm2
-        left[:, dim + 1] = 1.0
-    if right is not None:
-        right[:, dim] = 1.0
-        right[:, dim + 1] = norm2
-    return left, right
+        out[a:a + len(xc), :dim] = xc
+        if side:
+            out[a:a + len(xc), :dim] *= -2.0
+    out[:, dim + side] = norm2
+    out[:, dim + 1 - side] = 1.0
+    return out
 
 
 def error_gamma(dim: int) -> float:
@@ -163,12 +155,12 @@ class Augmented:
         if small and 4.0 * max_norm2 < _F32_EXACT_INT:
             self.Xc = None  # exact mode: float32 GEMMs give exact distances (exact_density_others uses them)
             self.norm2 = norm2
-            self._operands = None  # made on first use: the integer kernels, where they run, need none
+            self._operands = [None, None]  # made on first use: the integer kernels, where they run, need none
         else:
             Xc = X - self.center
             self.Xc = Xc
             left, right, self.norm2 = augmented_rows(Xc)
-            self._operands = (left, right)
+            self._operands = [left, right]
         self.max_norm2 = float(self.norm2.max()) if self.n else 0.0
         #: the float32 GEMM distances are exact integers (see the class docstring)
         self.exact_d2 = self.Xc is None
@@ -207,12 +199,9 @@ class Augmented:
         whole-array temporary), each side on its own: the fast engine on the integer kernel needs the left
         one only. Under a lock: the pass's worker threads ask at once, and each would otherwise make its own."""
         with self._operands_lock:
-            if self._operands is None:
-                self._operands = [None, None]
             if self._operands[side] is None:
-                made = _operands_from_chunks(self.n, self.dim, _centred_float32_chunks(self._X, self.center),
-                                             self.norm2, (side == 0, side == 1))
-                self._operands[side] = made[side]
+                self._operands[side] = _operand_from_chunks(
+                    self.n, self.dim, _centred_float32_chunks(self._X, self.center), self.norm2, side)
         return self._operands[side]
 
     @property
@@ -310,11 +299,10 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     duplicated = count[inverse.ravel()] > 1  # an identical vector in the same image
     order = first[np.argsort(image_index[first], kind="stable")]  # one per (vector, image), by image
     bounds = np.searchsorted(image_index[order], np.arange(n_images + 1))
-    slack = 2.0 * aug.d2_slack(np.arange(n))
     # exact float32 distances (integer descriptors): the minima are the exact squared distances themselves, so
-    # no tile needs to hand over the entries near them (a slack of -inf keeps none)
+    # no tile needs to hand over the entries near them
     minima_only = aug.exact_d2
-    tile_slack = np.full(n, -np.inf, np.float32) if minima_only else slack
+    slack = None if minima_only else 2.0 * aug.d2_slack(np.arange(n))
     tasks = []
     images = [img for img in range(n_images) if bounds[img + 1] - bounds[img] >= 2]
     for img in images:
@@ -333,7 +321,8 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
             G = aug.left[ra] @ aug.right[rb].T
         if a == b:
             np.fill_diagonal(G, np.finfo(np.float32).max)
-        rmin, cmin, r, c, g = native.nearest_sym(G, tile_slack[ra], tile_slack[rb], use_native=use_native)
+        sr, sc = (None, None) if minima_only else (slack[ra], slack[rb])
+        rmin, cmin, r, c, g = native.nearest_sym(G, sr, sc, use_native=use_native)
         return ra[r], rb[c], g.astype(np.float64), ra, rmin, rb, cmin
 
     def pack(img):

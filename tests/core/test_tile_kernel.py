@@ -406,3 +406,29 @@ def test_sigma_of_integer_descriptors_from_tile_minima_matches_brute_force(level
                 native.set_simd_level(level)
             got = pairs.nearest_same_image(pairs.Augmented(X), img, n_img, use_native=use_native)
             np.testing.assert_array_equal(got, ref)
+
+
+@needs_native
+def test_distinctiveness_tile_matches_numpy_with_slack_and_minima_only(levels):
+    """nearest_sym natively at every SIMD level against its numpy twin: the minima, and with a slack every entry
+    within it of its row's or column's minimum (a huge diagonal never reported); without one the minima only."""
+    rng = np.random.default_rng(4)
+    G = rng.uniform(10.0, 50.0, (300, 217)).astype(np.float32)
+    G[np.arange(200), np.arange(5, 205)] = np.finfo(np.float32).max  # the self pairs of a diagonal tile
+    sr, sc = rng.uniform(0.0, 3.0, 300).astype(np.float32), rng.uniform(0.0, 3.0, 217).astype(np.float32)
+    ref = native.nearest_sym(G, sr, sc, use_native=False)
+    assert len(ref[2]) > 300  # entries beside the minima are reported
+    for level in levels:
+        native.set_simd_level(level)
+        got = native.nearest_sym(G, sr, sc)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        assert sorted(zip(got[2].tolist(), got[3].tolist(), got[4].tolist())) == \
+            sorted(zip(ref[2].tolist(), ref[3].tolist(), ref[4].tolist()))
+        only = native.nearest_sym(G, None, None)
+        np.testing.assert_array_equal(only[0], ref[0])
+        np.testing.assert_array_equal(only[1], ref[1])
+        assert all(len(x) == 0 for x in only[2:])
+    numpy_only = native.nearest_sym(G, None, None, use_native=False)
+    np.testing.assert_array_equal(numpy_only[0], ref[0])
+    assert all(len(x) == 0 for x in numpy_only[2:])
