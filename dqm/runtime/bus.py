@@ -476,9 +476,12 @@ class Bus:
         """The receiver thread: decode, check the epoch, acknowledge, drop duplicates, hand over."""
         while not self._closed:
             try:
-                key, raw = self._raw.get(timeout=0.2)
+                item = self._raw.get(timeout=0.2)
             except queue.Empty:
                 continue
+            if item is None:  # close() wakes the thread at once
+                continue
+            key, raw = item
             if key == self._probe_key:
                 probe = self._probes.get(raw)
                 if probe is not None:
@@ -533,6 +536,7 @@ class Bus:
         if self._closed:
             return
         self._closed = True
+        self._raw.put(None)  # the receiver leaves now, not at its next 0.2-s poll (every process's exit waited for it)
         for obj in (self._token, self._live_sub, self._sub):
             try:
                 obj.undeclare()
