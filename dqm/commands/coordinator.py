@@ -40,8 +40,8 @@ def add_arguments(p) -> None:
                    help="--mode auto: the cores of each agent host, for the cost model that picks the mode "
                         "(default: this host's, its CPU quota included)")
     p.add_argument("--gather-cores", type=float, metavar="CORES",
-                   help="--mode auto: the cores this host gives a gather (default: this host's, its CPU quota "
-                        "included)")
+                   help="--mode auto: the cores agent 0's host gives a gather, once the other agents have sent "
+                        "their features (default: this host's, its CPU quota included)")
     p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
     add_limits(p, COORDINATOR)
     add_algorithm(p)

@@ -114,8 +114,8 @@ def run(args) -> int:
         print(f"Against ground truth: precision {s.precision:.3f}, recall {s.recall:.3f}, F1 {s.f1:.3f}.")
     cpu = {int(a): st.get("cpu_s", 0.0) for a, st in rep.get("per_agent", {}).items()}
     if mode == "gather":
-        print(f"Work: the coordinator matched every feature itself in {rep.get('match_s', 0.0):.2f} s "
-              f"(dqm.quickmatch); the agents sent their features ({sum(cpu.values()):.2f} CPU s in all).")
+        print(f"Work: agent 0 matched every feature itself in {rep.get('match_s', 0.0):.2f} s (dqm.quickmatch); "
+              f"the other agents sent it their features ({sum(cpu.values()):.2f} CPU s in all).")
     elif cpu:
         busiest = max(cpu, key=cpu.get)
         pairs = [st.get("pairs", 0.0) for st in rep["per_agent"].values()]

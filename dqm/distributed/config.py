@@ -20,8 +20,9 @@ Modes (``mode=``):
 Two more modes exist only in the runtime (``dqm run``, ``dqm coordinator``, ``dqm agent``:
 :data:`RUNTIME_MODES`), not in the simulator:
 
-* ``"gather"``: every agent sends its features to the coordinator, which runs
-  :func:`dqm.quickmatch` with the job's kernel and rho (the balanced mode's clusters);
+* ``"gather"``: every other agent sends its features to agent 0, which keeps its own, runs
+  :func:`dqm.quickmatch` with the job's kernel and rho (the balanced mode's clusters) and sends the
+  coordinator the labels;
 * ``"auto"``: the coordinator measures the link to every agent process once all are
   ready and picks gather, lean or balanced with :mod:`dqm.distributed.costmodel`.
 """
@@ -42,7 +43,7 @@ MODES = ("balanced", "lean", "paper")
 #: process runs the lost agents again from their start, fed again by the others, who keep their work) or
 #: ``restart`` (every process starts the job again in the next epoch); docs/runtime.md
 RECOVERY = ("takeover", "restart")
-#: the modes a runtime job may be started with: the algorithms, ``gather`` (centralized at the coordinator)
+#: the modes a runtime job may be started with: the algorithms, ``gather`` (centralized at agent 0)
 #: and ``auto`` (the coordinator picks gather, lean or balanced from measured links; docs/runtime.md)
 RUNTIME_MODES = MODES + ("gather", "auto")
 DEFAULT_MODE = "balanced"
@@ -105,8 +106,8 @@ class DQMConfig:
         choices=partition.PARTITION_MODES))
     mode: str = field(default=DEFAULT_MODE, metadata=_meta(
         "balanced (clusters identical to centralized, work spread evenly), lean (the hand-down cascade: fewer "
-        "bytes, work gathers at agent 0), paper (the seed paper's literal procedure), gather (every agent's "
-        "features to the coordinator, which matches them centrally) or auto (the coordinator measures the links "
+        "bytes, work gathers at agent 0), paper (the seed paper's literal procedure), gather (every other agent's "
+        "features to agent 0, which matches them all centrally) or auto (the coordinator measures the links "
         "and picks gather, lean or balanced); docs/distributed.md, docs/runtime.md",
         "--mode", 2, choices=RUNTIME_MODES))
     rho: float = field(default=DEFAULT_RHO, metadata=_meta(_qm_help("rho"), "--rho", 5))

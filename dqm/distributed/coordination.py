@@ -11,8 +11,8 @@ operator should read in its events. It has no clock and no bus: the zenoh coordi
 
 Its phases: ``tokens`` (before :meth:`~CoordinatorCore.begin`), ``start`` (the epoch's ``start``
 sent, waiting for every hosting process's ``ready``), ``probe`` (``--mode auto``: the shell
-times the links), ``running`` (``go`` sent, collecting results, catalogs, statistics or gathered
-features), ``takeover`` (a loss while running: waiting for every live process's ``taken``), then
+times the links), ``running`` (``go`` sent, collecting results, catalogs and statistics),
+``takeover`` (a loss while running: waiting for every live process's ``taken``), then
 ``done`` (:meth:`~CoordinatorCore.result`) or ``failed``.
 
 Losses (docs/runtime.md): a process that had delivered every result and statistic it owed is
@@ -37,7 +37,7 @@ import numpy as np
 from . import costmodel, protocol, sources
 from .config import RECOVERY, DQMConfig
 from .driver import start_fields
-from .gathering import GatheredParts, match_gathered
+from .gathering import GATHERER
 
 #: an outgoing message of the coordinator: (process, kind, fields)
 Outgoing = Tuple[int, str, dict]
@@ -113,7 +113,6 @@ class CoordinatorCore:
         self.stats: Dict[int, dict] = {}
         self.stats_bytes: Dict[int, int] = {}
         self.catalog_parts: Dict[int, Dict[int, dict]] = defaultdict(dict)
-        self.gathered: Optional[GatheredParts] = None
         #: auto: the report's ``auto`` block once the mode is picked
         self.auto: Optional[dict] = None
         #: the CLUSTERS arrays once the job is done (with ``catalog``)
@@ -168,7 +167,7 @@ class CoordinatorCore:
         """Whether everything the job's result needs is in."""
         return (self.phase == "running" and len(self.stats) == self.m
                 and all(self.catalog_done(a) for a in range(self.m))
-                and (self.gathered is None or self.gathered.complete()))
+                and (self.cfg.mode != "gather" or GATHERER in self.results))
 
     def unready(self) -> List[int]:
         """The processes whose ``ready`` (``taken`` during a takeover) is still missing."""
@@ -204,7 +203,6 @@ class CoordinatorCore:
             self.runs += 1
         self.results, self.stats, self.stats_bytes, self.ready, self.states = {}, {}, {}, {}, {}
         self.catalog_parts.clear()
-        self.gathered = None
         self.round, self.taken, self.replaying = 0, {}, set()
         self.phase = "start"
         fields = start_fields(cfg, self.owners, self.catalog)
@@ -228,14 +226,13 @@ class CoordinatorCore:
     def _go(self) -> None:
         """Every process is ready: run. In the epoch where ``--mode auto`` measured, ``go`` names the
         mode it picked, and the processes make that mode's drivers (no second start)."""
-        self.gathered = GatheredParts(range(self.m)) if self.cfg.mode == "gather" else None
         fields = {"mode": self.cfg.mode} if self.requested.mode == "auto" else {}
         for p in self.hosts():
             self.outbox.append((p, "go", fields))
         self.phase = "running"
 
     def handle(self, msg: dict) -> None:
-        """Record one decoded message: progress, refusal, ready, result, catalog, statistics, gather parts."""
+        """Record one decoded message: progress, refusal, ready, result, catalog, statistics."""
         kind, src = msg["kind"], msg["src"]
         if kind == "progress":
             self.states[src] = msg["state"]
@@ -263,8 +260,6 @@ class CoordinatorCore:
             self.stats[src] = msg["values"]
             # the stats message itself was sent after the agent's meter snapshot
             self.stats_bytes[src] = msg["_bytes"] + len(msg["_key"])
-        elif kind == "gather" and self.gathered is not None:
-            self.gathered.take(msg)
 
     def processes_lost(self, gone: Sequence[int]) -> None:
         """These processes' tokens vanished. One that owed nothing is lost harmlessly; otherwise its agents
@@ -352,7 +347,7 @@ class CoordinatorCore:
         try:
             job = self._job_shape()
             choices = [costmodel.choose(job, costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores),
-                                        started=True, modes=self.requested.auto_choices)
+                                        started=True, modes=self.requested.auto_choices, gather_from_all=False)
                        for r in costmodel.CLEAR_RATES_BYTES_S]
         except InputError:
             return False  # the measuring path says what is wrong
@@ -379,7 +374,7 @@ class CoordinatorCore:
             job = self._job_shape()
             choice = costmodel.choose(job, costmodel.Hosts.of([rates[p] for p in hosts], cores,
                                                               gather_cores=gather_cores), started=True,
-                                      modes=self.requested.auto_choices)
+                                      modes=self.requested.auto_choices, gather_from_all=False)
         except InputError as exc:
             self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
                                 "Give the job's mode explicitly (--mode balanced, lean or gather)."))
@@ -401,14 +396,10 @@ class CoordinatorCore:
         self._go()
 
     def result(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Once :attr:`done`: the job's ``(ids, labels)`` (gather: the centralized match of the gathered
-        features), the CLUSTERS arrays with ``catalog``, and ``finish`` to every live process."""
+        """Once :attr:`done`: the job's ``(ids, labels)`` (gather: the gathering agent's, every feature's), the
+        CLUSTERS arrays with ``catalog``, and ``finish`` to every live process."""
         if self.cfg.mode == "gather":
-            self.phase = "match"
-            try:
-                ids, labels = match_gathered(*self.gathered.features(), self.cfg.params)
-            except ValueError as exc:  # InputError included: duplicate ids, mixed types, over the memory budget
-                self.fail(JobFailed(f"the gathered features cannot be matched: {exc}", None, "match"))
+            ids, labels = self.results[GATHERER]["ids"], self.results[GATHERER]["labels"]
         else:
             ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
                                                    for a in range(self.m)])

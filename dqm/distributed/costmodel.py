@@ -14,7 +14,8 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   ``t = start + gather_link_factor * max(B / r_g, max_p B_p / r_p) + (pair_cpu_s * W + match_fixed_cpu_s) / c_g``
   with ``B = raw * (1 + ROW_BYTES / (dim * itemsize))``
   (ids and image ids travel with each row) times the share of the features not already on the
-  gathering host, all of it into the gathering host's link ``r_g`` (the median measured rate);
+  gathering host, all of it into the gathering host's link ``r_g`` (agent 0's rate, at most the median,
+  when agent 0 gathers; the median measured rate when every source sends);
   ``B_p``: one source's part;
 * **balanced** (cells; each agent computes about ``1/M`` of the pairs, times an imbalance):
   ``t = start + balanced_fixed_s + balanced_link_factor * b * raw / M / r_min
@@ -28,7 +29,7 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   median).
 
 ``start`` is the processes' start-up: ``run_start_cpu_s / c_0`` for a job of ``dqm run`` /
-``dqm coordinator`` (host 0 holds agent 0 and the coordinator, gather included),
+``dqm coordinator`` (host 0 holds agent 0, which gathers in gather mode, and the coordinator),
 ``(gather_start_cpu_s + gather_skew_cpu_s) / c_g`` for the stand-alone gathering of
 ``dqm.runtime.gather`` (its own start-up, and its wait for the last source to start); 0 when the
 processes are already running (``started=True``: the coordinator's case, whose start-up is paid
@@ -243,10 +244,10 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     """Predicted time to result of gather, balanced and lean (:data:`AUTO_MODES` order).
 
     ``started``: the processes are already running (start-up left out: the coordinator's case).
-    ``gather_from_all``: every agent sends its features to the gathering host (the coordinator of a
-    ``dqm run`` job, which holds none); False: the gathering host is source 0 and keeps its own
-    (``dqm.runtime.gather``, the benchmark's gather). ``gather_bytes_over_raw`` (when every source
-    sends), ``balanced_bytes_over_raw``, ``lean_bytes_over_raw``: the modes' bytes over the raw
+    ``gather_from_all``: every agent sends its features to the gathering host (a host that holds none);
+    False: the gathering host is source 0 and keeps its own (the gather of a ``dqm run`` job, where agent 0
+    gathers, and ``dqm.runtime.gather``, the benchmark's stand-alone gather). ``gather_bytes_over_raw``
+    (when every source sends), ``balanced_bytes_over_raw``, ``lean_bytes_over_raw``: the modes' bytes over the raw
     descriptor bytes (default: ``1 + ROW_BYTES / (dim * itemsize)``, and the fitted
     :func:`default_balanced_bytes` / :func:`default_lean_bytes`): what a change of the wire format
     (compression) changes.
@@ -259,7 +260,7 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     r_mid = float(np.median(rates))
     r_min, c_min, r0, c0 = float(rates.min()), float(cores.min()), min(float(rates[0]), r_mid), float(cores[0])
     c_g = hosts.gather_cores or c0
-    r_g = hosts.gather_rate or r_mid
+    r_g = hosts.gather_rate or (r_mid if gather_from_all else r0)  # the coordinator's link, or agent 0's
     b_bal = default_balanced_bytes(m, k) if balanced_bytes_over_raw is None else \
         _nonnegative(balanced_bytes_over_raw, "balanced_bytes_over_raw")
     b_lean = default_lean_bytes(m, k) if lean_bytes_over_raw is None else \

@@ -7,22 +7,23 @@
   numbered canonically (as :func:`dqm.distributed.sources.assemble_labels` numbers a distributed job's):
   with the quadratic kernel the balanced mode's labels exactly;
 * :class:`GatherDriver`: one agent of a ``gather`` job, the same calls as
-  :class:`~dqm.distributed.driver.AgentDriver`: it sends its features (and its catalog) to the
-  coordinator, then its statistics.
+  :class:`~dqm.distributed.driver.AgentDriver`: agent 0 gathers every other agent's features, keeps its
+  own and sends the coordinator the labels; the others send it their features.
 
-The coordinator of a ``dqm run`` job in ``--mode gather`` (:mod:`dqm.distributed.coordination`) and the
-stand-alone gathering of :mod:`dqm.runtime.gather` use them.
+The agents of a ``dqm run`` job in ``--mode gather`` (:mod:`dqm.distributed.hosting`) and the stand-alone
+gathering of :mod:`dqm.runtime.gather` use them.
 """
 from __future__ import annotations
 
 import time
-from typing import Dict, Iterable, Optional, Tuple
+from typing import Callable, Dict, Iterable, Optional, Tuple
 
 import numpy as np
 
 from ..core.params import FINITE_KERNEL, QuickMatchParams
 from . import messages, protocol
 from .config import DQMConfig
+from .driver import JobAborted
 from .ledger import COORDINATOR
 from .sources import AgentFeatures, assemble_labels
 
@@ -80,35 +81,52 @@ class GatheredParts:
 
 
 def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarray,
-                   params: Optional[QuickMatchParams] = None, approximate: bool = False
-                   ) -> Tuple[np.ndarray, np.ndarray]:
+                   params: Optional[QuickMatchParams] = None, approximate: bool = False,
+                   n_threads: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`dqm.quickmatch` of the gathered features (in feature-id order, as :meth:`GatheredParts.features`
     gives them) with ``params`` (default: the quadratic kernel, the rest QuickMatch's defaults; a distributed
-    job's :attr:`~dqm.distributed.config.DQMConfig.params`): ``(ids, labels)``, labels numbered canonically.
-    Feature ids must be unique."""
+    job's :attr:`~dqm.distributed.config.DQMConfig.params`) on ``n_threads`` threads (None: the default):
+    ``(ids, labels)``, labels numbered canonically. Feature ids must be unique."""
     import dqm
 
     if len(np.unique(ids)) != len(ids):
         raise ValueError("two sources sent the same feature id (feature ids must be unique across the job: give "
                          "each FEATURES file its own feature_ids, or none)")
     r = dqm.quickmatch(descriptors, image_ids, params=params or QuickMatchParams(kernel=FINITE_KERNEL),
-                       approximate=approximate)
+                       approximate=approximate, n_threads=n_threads)
     return assemble_labels([(ids, r.labels)])
 
 
+#: the agent that gathers in a ``gather`` job of the runtime: it keeps its own features (they do not cross a link)
+GATHERER = 0
+
+
 class GatherDriver:
-    """One hosted agent of a ``gather`` job (``--mode gather``, or ``auto`` when the coordinator picked it):
-    on ``go`` it sends its features to the coordinator as ``gather`` messages (:func:`gather_payload` in
-    parts, numbered on its link and acknowledged) and its catalog when the job asked for it, then its
-    statistics once every part is acknowledged, and waits for ``finish``. The same calls as
-    :class:`~dqm.distributed.driver.AgentDriver` (``begin``, ``handle``, ``settle``, ``check_timeout``)."""
+    """One hosted agent of a ``gather`` job (``--mode gather``, or ``auto`` when the coordinator picked it),
+    the same calls as :class:`~dqm.distributed.driver.AgentDriver` (``begin``, ``handle``, ``settle``,
+    ``check_timeout``).
+
+    Agent :data:`GATHERER` (0) gathers, as the stand-alone baseline's source 0 does: on ``go`` every other
+    agent sends it its features as ``gather`` messages (:func:`gather_payload` in parts, numbered on the
+    link and acknowledged), and it keeps its own; once every part is in it runs :func:`match_gathered` on
+    all of them and sends the coordinator the ``result`` (every feature's id and label). Every agent sends
+    its catalog to the coordinator when the job asked for it, then its statistics once everything it sent
+    is acknowledged, and waits for ``finish``. A takeover needs nothing more: the process that takes over
+    agent 0 gets every part again from the senders' logs, one that takes over a sender runs it from its
+    start (its repeated parts are dropped as duplicates)."""
 
     def __init__(self, me: int, cfg: DQMConfig, transport, features: AgentFeatures, epoch: int,
-                 home: int, catalog: bool, phase_timeout_s: float = 120.0):
+                 home: int, catalog: bool, phase_timeout_s: float = 120.0, match_threads: Optional[int] = None,
+                 on_state: Optional[Callable[[int, str], None]] = None):
         self.me, self.cfg, self.bus, self.features = me, cfg, transport, features
+        self.match_threads = match_threads
+        self.on_state = on_state  # called on entering every state (a test's fault injection)
         self.epoch, self.home, self.catalog = epoch, home, catalog
         self.phase_timeout_s = phase_timeout_s
-        self.states = ("wait_start", "gather", "wait_acks", "wait_finish")
+        self.gathers = me == GATHERER
+        self.gathered = GatheredParts(a for a in range(cfg.agents) if a != me) if self.gathers else None
+        self.states = ("wait_start", "gather", "match", "wait_acks", "wait_finish") if self.gathers else \
+            ("wait_start", "gather", "wait_acks", "wait_finish")
         self.state = "wait_start"
         self.phase_started = time.monotonic()
         self.cpu0 = time.process_time()
@@ -126,31 +144,63 @@ class GatherDriver:
         self.bus.send(self.me, COORDINATOR, "progress", messages.encode(
             "progress", self.cfg.job, self.me, epoch=self.epoch, state=state, features=len(self.features),
             bytes=int(self.bus.meter.sent_by(self.me))))
+        if self.on_state is not None:
+            self.on_state(self.me, state)
 
-    def _send_parts(self, kind: str, payload: Dict[str, np.ndarray]) -> None:
+    def _send_parts(self, kind: str, dst: int, payload: Dict[str, np.ndarray]) -> None:
         n = protocol.part_count(kind, payload)
-        seq0 = self.bus.next_seq(self.me, COORDINATOR, n)
+        seq0 = self.bus.next_seq(self.me, dst, n)
         for j, msg in enumerate(protocol.data_messages(kind, self.cfg.job, self.me, payload, seq0=seq0,
                                                        epoch=self.epoch)):
-            self.bus.send(self.me, COORDINATOR, kind, msg, seq=seq0 + j)
+            self.bus.send(self.me, dst, kind, msg, seq=seq0 + j)
 
     def begin(self, seed: int) -> None:
-        """``go``: send the features (and the catalog) to the coordinator."""
+        """``go``: the catalog (when asked) to the coordinator; a sender's features to the gathering agent."""
         self._enter("gather")
-        f = self.features
-        self._send_parts("gather", gather_payload(f.ids, f.image_ids, f.descriptors))
         if self.catalog:
-            self._send_parts("catalog", self.features.catalog)
-        self._enter("wait_acks")
+            self._send_parts("catalog", COORDINATOR, self.features.catalog)
+        if not self.gathers:
+            f = self.features
+            self._send_parts("gather", GATHERER, gather_payload(f.ids, f.image_ids, f.descriptors))
+            self._enter("wait_acks")
+        else:
+            self._match_when_complete()
 
     def handle(self, msg: dict) -> None:
-        """Nothing comes to a gathering source from other agents."""
+        """The gathering agent keeps each ``gather`` part of another agent (a repeated part replaces itself), also
+        before its own ``go``; once it has matched, parts sent again (a sender run again after a takeover) are
+        dropped."""
+        if msg["kind"] != "gather" or self.gathered is None:
+            return
+        if msg["src"] not in self.gathered.sources:
+            raise ValueError(f"agent {self.me} got a gather message of agent {msg['src']}, which is not in the job")
+        self.gathered.take(msg)
+        if self.state == "gather":
+            self._match_when_complete()
+
+    def _match_when_complete(self) -> None:
+        if not self.gathered.complete():
+            return
+        self._enter("match")
+        t = time.monotonic()
+        try:
+            ids, labels = match_gathered(*self.gathered.features(own=self.features), self.cfg.params,
+                                         n_threads=self.match_threads)
+        except ValueError as exc:  # InputError included: duplicate ids, mixed types, over the memory budget
+            reason = f"the gathered features cannot be matched: {exc}"
+            self.bus.send_single(self.me, COORDINATOR, "refuse", reason=reason[:1000], param="")
+            raise JobAborted(reason) from None
+        self.core_stats = {"match_s": time.monotonic() - t, "gathered": float(len(ids))}
+        self.gathered = None  # the parts are no longer needed
+        self.bus.send_single(self.me, COORDINATOR, "result", ids=ids, labels=labels)
+        self._enter("wait_acks")
 
     def settle(self) -> None:
         """Once every part is acknowledged: the statistics, then wait for ``finish``."""
         if self.state == "wait_acks" and self.bus.unacknowledged(self.me) == 0:
             self._enter("wait_finish")
             stats = dict(self.times)
+            stats.update(self.core_stats)
             stats["cpu_s"] = time.process_time() - self.cpu0
             stats["host"] = float(self.home)
             stats["features"] = float(len(self.features))
@@ -160,7 +210,13 @@ class GatherDriver:
             self.bus.send_single(self.me, COORDINATOR, "stats", values=stats)
 
     def check_timeout(self) -> None:
-        """Parts unacknowledged for longer than the phase timeout end the process (TimeoutError)."""
-        if self.state == "wait_acks" and time.monotonic() - self.phase_started > self.phase_timeout_s:
-            raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s for the coordinator "
-                               "to acknowledge its features")
+        """Waiting longer than the phase timeout for acknowledgements (a sender) or for the other agents'
+        features (the gathering agent) ends the process (TimeoutError)."""
+        if self.state not in ("gather", "wait_acks") or time.monotonic() - self.phase_started <= self.phase_timeout_s:
+            return
+        if self.state == "gather":
+            waiting = [s for s in self.gathered.sources if not self.gathered.done(s)]
+            raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s for the features of "
+                               f"agents {waiting} (parts in: {self.gathered.progress()})")
+        raise TimeoutError(f"agent {self.me} waited more than {self.phase_timeout_s:.0f} s for its messages to "
+                           "be acknowledged")

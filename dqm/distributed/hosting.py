@@ -64,12 +64,13 @@ class ProcessHost:
     ``load(agent)``: another agent's features for a takeover (raises :class:`Refused` when it
     cannot); ``on_state(agent, state)``: handed to the home agent's driver in the first epoch that
     computes (a test's fault injection), or in every epoch with ``on_state_always``; ``trace``: the
-    drivers keep what the simulator reports."""
+    drivers keep what the simulator reports; ``gather_threads``: the threads of the match when this process
+    hosts the gathering agent of a gather job (None: :func:`dqm.core.pairs.default_threads`)."""
 
     def __init__(self, home: int, cfg: DQMConfig, transport: HostTransport, features: AgentFeatures,
                  load: Callable[[int], AgentFeatures], phase_timeout_s: float = 120.0,
                  on_state: Optional[Callable[[int, str], None]] = None, trace: bool = False,
-                 on_state_always: bool = False):
+                 on_state_always: bool = False, gather_threads: Optional[int] = None):
         self.home = home
         self.cfg = cfg
         self.bus = transport
@@ -78,12 +79,13 @@ class ProcessHost:
         self.on_state = on_state
         self.on_state_always = on_state_always
         self.trace = trace
+        self.gather_threads = gather_threads
         self.features: Dict[int, AgentFeatures] = {home: features}
         transport.dim = features.descriptors.shape[1]
         self.slots: Dict[int, object] = {}  # AgentDriver, or GatherDriver in a gather job
         #: the configuration of the running epoch: ``cfg`` with, when ``cfg.mode`` is auto, the coordinator's pick
         self.job_cfg = cfg
-        self.ran = False  # whether an epoch of a mode that computes has started (fault injection: the first)
+        self.ran = False  # whether drivers were made in an epoch (fault injection: into the first)
         self.epoch = -1
         self.seed: Optional[int] = None
         self.done = False
@@ -93,6 +95,7 @@ class ProcessHost:
         self.waiting: List[int] = []  # agents taken over, to run from their start on ``resume``
         self.moved: List[int] = []  # agents whose process changed since the last resume
         self.hosted: List[int] = []  # the agents this process hosts in this epoch
+        self.early: List[tuple] = []  # (agent, message) that came before the go of an auto epoch made the drivers
 
     @property
     def phase(self) -> str:
@@ -171,7 +174,7 @@ class ProcessHost:
         self.epoch = msg["epoch"]
         self.seed = msg["seed"]
         self.owners = np.asarray(msg["owners"], np.int64).copy()
-        self.round, self.waiting, self.moved = 0, [], []
+        self.round, self.waiting, self.moved, self.early = 0, [], [], []
         previous, self.job_cfg = self.job_cfg.mode, cfg
         if "auto" in (cfg.mode, previous):
             log.info("epoch %d: mode %s", self.epoch, cfg.mode)
@@ -189,7 +192,7 @@ class ProcessHost:
     def _make_drivers(self) -> None:
         first = not self.ran or self.on_state_always  # faults are injected into the first run only
         self.slots = {a: self._driver(a, self._features(a), first) for a in self.hosted}
-        self.ran = self.job_cfg.mode != "gather" or self.ran
+        self.ran = True
 
     def _pick(self, mode: str) -> None:
         """``go`` of an auto epoch: the mode the coordinator picked; make its drivers (no second start)."""
@@ -199,12 +202,16 @@ class ProcessHost:
         self.job_cfg = self.job_cfg.but(mode=mode)
         log.info("epoch %d: mode %s", self.epoch, mode)
         self._make_drivers()
+        early, self.early = self.early, []
+        for dst, msg in early:
+            self.deliver(dst, msg)
 
     def _driver(self, a: int, f: AgentFeatures, faults: bool = False):
         """A fresh driver of hosted agent ``a`` in this epoch (``faults``: with the test's ``on_state``)."""
         cfg = self.job_cfg
         if cfg.mode == "gather":
-            return GatherDriver(a, cfg, self.bus, f, self.epoch, self.home, self.catalog, self.phase_timeout_s)
+            return GatherDriver(a, cfg, self.bus, f, self.epoch, self.home, self.catalog, self.phase_timeout_s,
+                                self.gather_threads, on_state=self.on_state if faults and a == self.home else None)
         return AgentDriver(a, cfg, self.bus, f.ids, f.image_ids, f.descriptors, phase_timeout_s=self.phase_timeout_s,
                            epoch=self.epoch, home=self.home, catalog=f.catalog if self.catalog else None,
                            trace=self.trace, on_state=self.on_state if faults and a == self.home else None)
@@ -244,9 +251,12 @@ class ProcessHost:
                 self.slots[a].begin(self.seed)
 
     def deliver(self, dst: int, msg: dict) -> None:
-        """A message of another agent for hosted agent ``dst``."""
+        """A message of another agent for hosted agent ``dst``. In an auto epoch the drivers are made on ``go``,
+        and another process's first messages can come before this process's ``go``: they wait for it."""
         if dst in self.slots:
             self.slots[dst].handle(msg)
+        elif dst in self.hosted and self.job_cfg.mode == "auto":
+            self.early.append((dst, msg))
 
     def settle(self) -> None:
         """Let every hosted agent advance as far as its messages allow."""

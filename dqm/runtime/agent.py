@@ -65,6 +65,17 @@ class RouterLost(RuntimeError):
     """The session's router is gone: nothing can arrive or leave any more."""
 
 
+def gather_threads() -> int:
+    """Threads of this process's match when its agent gathers (gather mode): every core it may run on, at most 8.
+    ``DQM_THREADS`` (a share of the host's cores, when agents compute side by side) does not apply: in a gather
+    job the other agents only send."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(8, cores))
+
+
 class AgentHost:
     """One agent process: the zenoh shell around :class:`~dqm.distributed.hosting.ProcessHost` (its own
     agent ``home`` and any lost agents' cells the coordinator gave it, whose features it re-reads from
@@ -82,7 +93,7 @@ class AgentHost:
         self.phase_timeout_s = phase_timeout_s
         own = own if own is not None else sources.load_agent_features(paths[home], home)
         self.host = ProcessHost(home, cfg, bus, own, self._load, phase_timeout_s=phase_timeout_s,
-                                on_state=on_state)
+                                on_state=on_state, gather_threads=gather_threads())
         self.t0 = time.monotonic()
         self._router_checked = self.t0
 

@@ -31,6 +31,7 @@ from ..distributed.coordination import (  # noqa: F401 - JobFailed and the helpe
     default_max_lost,
     failure_paragraph,
 )
+from ..distributed.gathering import GATHERER
 from ..distributed.ledger import COORDINATOR, TrafficLedger
 from ..logging_config import tag_lines
 from ..wording import count, seconds
@@ -76,7 +77,6 @@ class Coordinator:
         self.host_cores, self.gather_cores = host_cores, gather_cores
         self.announce = announce or (lambda text: log.info("%s", text))
         self.probe_answers: Dict[int, float] = {}
-        self.match_s = 0.0
         self._probes: Optional[measure.ProbeEncoder] = None
         self.job = cfg.job
         self.m = cfg.agents
@@ -206,6 +206,17 @@ class Coordinator:
                         "per host, or raise --ready-timeout), or cannot reach the router (check their logs)."))
                 return missing
 
+    def wait_agents_left(self, timeout_s: float) -> bool:
+        """After ``finish``: wait until no agent process's token is left (a process leaves once it has its
+        ``finish``), at most ``timeout_s``, so that closing the coordinator's session cuts no one off;
+        returns whether they all left."""
+        end = time.monotonic() + timeout_s
+        while any(self.bus.agent_alive(p) for p in range(self.m)):
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.005)
+        return True
+
     # ------------------------------------------------------------------ --mode auto
     def _probe_pair(self, p: int, token_a: int, token_b: int, nbytes: int) -> None:
         """Send process ``p`` two probes of ``nbytes`` filler bytes back to back, both encoded first (not
@@ -264,12 +275,10 @@ class Coordinator:
                     pass
                 continue
             self._step()
-        t = time.monotonic()
-        ids, labels = self._drive(self.core.result)
-        if self.cfg.mode == "gather":
-            self.match_s = time.monotonic() - t
-        t_done = time.monotonic()
+        # the router's sockets counted before ``finish``: the agents leave (and their sockets close) once they have it
         wire = tcp_bytes_received(tcp_port) if tcp_port else None
+        ids, labels = self._drive(self.core.result)
+        t_done = time.monotonic()
         if self.view is not None:
             self.view.close()
         return self.report(ids, labels, t_ready - t0, t_done - t_ready, wire)
@@ -316,13 +325,15 @@ class Coordinator:
                               + self.bus.meter.counters()[1]),
             "per_agent": agents,
         }
-        if self.cfg.mode == "gather":
-            out["match_s"] = self.match_s
+        if self.cfg.mode == "gather":  # the gathering agent's match
+            out["match_s"] = float(core.stats.get(GATHERER, {}).get("match_s", 0.0))
         if core.auto is not None:
             out["auto"] = {**core.auto, "probe_bytes": probe_bytes}
         return out
 
 
+#: how long the coordinator waits, once the job is done, for the agent processes to leave before it closes
+FINISH_WAIT_S = 2.0
 #: exit codes of ``dqm coordinator`` (docs/runtime.md)
 EXIT_OK, EXIT_FAILED, EXIT_REFUSED = 0, 3, 4  # 130 / 143: dqm.signals
 
@@ -389,7 +400,11 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
               "bytes metered"
                   + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else "")
                   + (f"; wrote {clusters}" if clusters else ""))
-        time.sleep(0.2)  # let the finish messages leave before closing
+        # the finish messages reach the agents before the session closes: they leave once they have them (a
+        # blind 0.2-s sleep here was in every job's time to result)
+        if not coord.wait_agents_left(FINISH_WAIT_S):
+            log.warning("some agent processes had not left %s after the job's end; closing anyway",
+                        seconds(FINISH_WAIT_S))
         return EXIT_OK
     except JobFailed as exc:
         if view is not None:

@@ -400,8 +400,8 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
 
 
 def _local_host_cores(agents: int) -> float:
-    """--mode auto on this one host: every agent process gets its share of this host's cores (the coordinator,
-    which gathers, reads all of them itself)."""
+    """--mode auto on this one host: every agent process gets its share of this host's cores (a gather, once the
+    other agents have sent their features, has all of them: the coordinator's --gather-cores, this host's)."""
     from .measure import host_cores
 
     return host_cores() / max(1, agents)

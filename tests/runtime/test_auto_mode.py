@@ -113,8 +113,17 @@ def test_an_auto_agent_takes_the_mode_the_coordinator_names(data):
 
 
 # ---------------------------------------------------------------------- jobs
-def test_dqm_run_mode_auto_picks_records_and_matches_centralized(data, tmp_path):
-    X, ids = data
+def test_dqm_run_mode_auto_picks_records_and_matches_centralized(tmp_path):
+    from dqm.synthetic import sift_like
+
+    ds = sift_like(n_images=6, n_points=700, clutter_per_image=80, noise=0.3, seed=5)
+    X, ids = ds.descriptors, ds.image_ids
+    # a job whose best mode turns on the link rate in the cost model (3 agents on this host): the links are timed
+    host = measure.host_cores()
+    picks = {costmodel.choose(costmodel.JobShape(n=len(X), agents=3, dim=128),
+                              costmodel.Hosts.of([r] * 3, host / 3, gather_cores=host), gather_from_all=False).mode
+             for r in costmodel.CLEAR_RATES_BYTES_S}
+    assert len(picks) > 1, picks
     features = tmp_path / "f.npz"
     io.save_features(features, io.FeatureSet(X, ids))
     report, out = tmp_path / "r.json", tmp_path / "c.npz"
@@ -183,9 +192,12 @@ def test_auto_skips_the_probes_only_where_every_link_rate_gives_one_mode():
     unclear = core_ready(2, 21691)
     assert not unclear.decide_unmeasured(1.0, 1.0) and unclear.phase == "probe" and unclear.auto is None
     picks = {costmodel.choose(costmodel.JobShape(n=21691, agents=2, dim=128),
-                              costmodel.Hosts.of([r, r], 1.0, gather_cores=1.0)).mode
+                              costmodel.Hosts.of([r, r], 1.0, gather_cores=1.0), gather_from_all=False).mode
              for r in costmodel.CLEAR_RATES_BYTES_S}
     assert len(picks) > 1
+    # a small job: agent 0 gathers the others' features (they cross one link, its own none) at every rate
+    small = core_ready(3, 1321)
+    assert small.decide_unmeasured(0.66, 2.0) and small.cfg.mode == "gather"
 
 
 @pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
@@ -203,7 +215,11 @@ def test_gather_inside_dqm_run_equals_centralized(data, tmp_path, kernel):
     np.testing.assert_array_equal(labels, dqm.quickmatch(X, ids, params=cfg.params).labels)
     # the report a distributed job writes: ids, labels, bytes per link and kind, times, per-agent stats
     assert rep["features"] == len(X) and rep["clusters"] == labels.max() + 1
-    assert rep["kinds"]["gather"]["messages"] >= 3 and rep["total_bytes"] > X.size * 0.5
+    # agent 0 gathers: the other two send it their features (its own cross no link), it sends the labels
+    assert rep["kinds"]["gather"]["messages"] >= 2 and rep["kinds"]["result"]["messages"] == 1
+    assert rep["total_bytes"] > X.size * 2 / 3 * 0.5
+    links = {(e["src"], e["dst"]) for e in rep["links"]}
+    assert {("agent1", "agent0"), ("agent2", "agent0")} <= links  # (agent 0 -> 1, 2: its acknowledgements)
     assert {e["src"] for e in rep["links"] if e["dst"] == "coordinator"} == {"agent0", "agent1", "agent2"}
     assert set(rep["per_agent"]) == {"0", "1", "2"} and rep["time_run_s"] > 0 and rep["match_s"] > 0
     if kernel == "quadratic":

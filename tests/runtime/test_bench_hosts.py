@@ -44,6 +44,12 @@ def runs(tmp_path_factory):
                              _wait_ready_file, prefix=nss.prefix(nss.router_ns))
                 for mode in ("gather", "balanced", "lean", "auto"):
                     out[mode] = run_on_hosts(nss, mode, cfg, files, wd, timeout_s=120)
+                # a job whose best mode turns on the link rate: auto times the links
+                big = synthetic.sift_like(n_images=4, n_points=2000, seed=6)
+                out["big"] = big
+                big_files = write_agent_files(big.descriptors, big.image_ids, 2, wd / "big")
+                big_cfg = DQMConfig(agents=2, seed=1, job="hosts-test-big").validated(len(big.descriptors))
+                out["auto-big"] = run_on_hosts(nss, "auto", big_cfg, big_files, wd / "big", timeout_s=120)
             finally:
                 procs.stop_all()
     except NamespacesUnavailable as exc:
@@ -74,11 +80,26 @@ def test_gather_moves_about_one_copy_and_balanced_more(runs):
     assert all(runs[m].seconds > 0 for m in ("gather", "balanced", "lean"))
 
 
-def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
+def test_auto_picks_without_probes_where_the_size_decides_and_gives_its_clusters(runs):
     a, g = runs["auto"], runs["gather"]
+    # 1000 features on 2 hosts: agent 0 gathering the other's half is the fastest at every link rate
+    assert a.detail["picked"] == "gather" and a.detail["probe_s"] == 0 and a.detail["rates_mbit"] == {}
+    assert np.array_equal(a.ids, g.ids) and evaluation.comembership_scores(a.labels, g.labels).f1 == 1.0
+
+
+def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
+    import dqm
+    from dqm.distributed import costmodel
+
+    a, big = runs["auto-big"], runs["big"]
+    picks = {costmodel.choose(costmodel.JobShape(n=len(big.descriptors), agents=2, dim=128),
+                              costmodel.Hosts.of([r, r], 1.0, gather_cores=1.0), gather_from_all=False).mode
+             for r in costmodel.CLEAR_RATES_BYTES_S}
+    assert len(picks) > 1, picks  # the job's answer turns on the rate
     assert a.detail["picked"] in ("gather", "balanced", "lean")
-    assert np.array_equal(a.ids, g.ids)
-    assert evaluation.comembership_scores(a.labels, g.labels).f1 >= (0.99 if a.detail["picked"] == "lean" else 1.0)
+    ref = dqm.quickmatch(big.descriptors, big.image_ids, kernel="quadratic").labels
+    assert np.array_equal(a.ids, np.arange(len(big.descriptors)))
+    assert evaluation.comembership_scores(a.labels, ref).f1 >= (0.99 if a.detail["picked"] == "lean" else 1.0)
     # the links are capped at 100 Mbit/s: the probes see about that
     assert all(50 < r < 200 for r in a.detail["rates_mbit"].values()), a.detail["rates_mbit"]
     assert 0 < a.detail["probe_s"] < 5 and a.detail["job_s"] >= a.detail["probe_s"]

@@ -91,6 +91,23 @@ def test_agent_killed_while_hosting_a_taken_over_agent(data, tmp_path):
     assert rep["owners"] == [2, 2, 2, 3]
 
 
+@pytest.mark.parametrize("victim,state", [(0, "gather"), (2, "wait_acks")])
+def test_gather_survives_the_loss_of_the_gathering_agent_or_a_sender(data, tmp_path, victim, state):
+    """Gather inside dqm run: agent 0 gathers. Lost while it waits for the parts, the next process takes it over
+    and gets every part again from the senders' logs; a sender lost before its parts are acknowledged is run
+    again from its start where it is taken over. Either way the labels are the centralized ones."""
+    import dqm
+
+    X, ids = data
+    cfg = DQMConfig(agents=3, seed=1, mode="gather", job=f"kill-gather-{victim}")
+    outcome, _ = run_with_kill(X, ids, cfg, tmp_path, state, victims=(victim,))
+    assert "ok" in outcome, outcome.get("error")
+    rep = outcome["ok"]
+    np.testing.assert_array_equal(np.asarray(rep["labels"]), dqm.quickmatch(X, ids, params=cfg.params).labels)
+    assert [(x["process"], x["recovery"]) for x in rep["lost"]] == [(victim, "takeover")] and rep["epochs"] == 1
+    assert rep["owners"] == ([1, 1, 2] if victim == 0 else [0, 1, 0])
+
+
 def test_too_many_lost_fails_cleanly_and_fast(data, tmp_path):
     X, ids = data
     cfg = DQMConfig(agents=3, seed=1, job="kill-limit")
