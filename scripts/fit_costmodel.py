@@ -8,7 +8,7 @@ for every row the predicted against the measured time to result, and for every (
 the mode the model picks and whether that mode's measured time is within 10% of the best measured of
 gather, lean and balanced. Two picks: as the benchmark ran (every mode's own start-up; the gather of
 dqm.runtime.gather, whose gathering host keeps its own features), and as the coordinator of a
-``--mode auto`` job picks (processes already started, every agent sends to the coordinator) against
+``--mode auto`` job picks (processes already started, agent 0 gathers the others' features) against
 the measured times after start-up.
 
     .venv/bin/python scripts/fit_costmodel.py
@@ -129,7 +129,8 @@ def report(rows: List[dict], k: CostConstants) -> bool:
         ratio = ran[pick]["seconds"] / ran[best]["seconds"] if pick in ran else float("inf")
         ok = ratio <= 1.10
         ok_all &= ok
-        coord = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=True, modes=modes).mode
+        coord = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=True, modes=modes,
+                                 gather_from_all=False).mode
         warm = {x: after_start_up(r) for x, r in ran.items() if "job_s" in r or "gather_s" in r}
         if warm and coord in warm:
             w_ratio = warm[coord] / min(warm.values())
