@@ -12,6 +12,7 @@ the process with a clear error.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from typing import Callable, Dict, List, Optional
@@ -25,7 +26,7 @@ from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
 from .bus import Bus, check_job_free, open_client
 from .limits import RuntimeLimits
-from .measure import probe_answer
+from .measure import host_cores, probe_answer
 
 log = logging.getLogger("dqm.runtime")
 
@@ -66,14 +67,11 @@ class RouterLost(RuntimeError):
 
 
 def gather_threads() -> int:
-    """Threads of this process's match when its agent gathers (gather mode): every core it may run on, at most 8.
+    """Threads of this process's match when its agent gathers (gather mode): every core it may use
+    (:func:`dqm.runtime.measure.host_cores`, a partial core of a quota counted whole), at most 8.
     ``DQM_THREADS`` (a share of the host's cores, when agents compute side by side) does not apply: in a gather
     job the other agents only send."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(8, cores))
+    return max(1, min(8, math.ceil(host_cores())))
 
 
 class AgentHost:
