@@ -2,13 +2,16 @@
 
 The engine reports progress as ``callback(done, total)``, so the core stays free of any display
 library; :class:`ProgressBar` adapts that callback to tqdm, which does the drawing, rate and ETA.
+tqdm is imported when a bar is first drawn: its import (about 15 ms, most of it ``importlib.metadata``
+for its version) is in every process that imports the engine, and most of them never draw one.
 """
 from __future__ import annotations
 
 import sys
-from typing import Callable, Optional, TextIO, Union
+from typing import TYPE_CHECKING, Callable, Optional, TextIO, Union
 
-from tqdm import tqdm
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 
 class ProgressBar:
@@ -25,13 +28,15 @@ class ProgressBar:
         self.stream = stream if stream is not None else sys.stderr
         tty = getattr(self.stream, "isatty", lambda: False)()
         self.enabled = tty if force is None else force
-        self._bar: Optional[tqdm] = None
+        self._bar: Optional["tqdm"] = None
         self._done = 0
 
     def __call__(self, done: int, total: int) -> None:
         if not self.enabled:
             return
         if self._bar is None or done < self._done:
+            from tqdm import tqdm
+
             self.close()
             self._bar = tqdm(total=total, desc=self.label, unit=self.unit, file=self.stream,
                              dynamic_ncols=True, mininterval=0.1, leave=True)
