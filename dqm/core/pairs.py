@@ -382,6 +382,31 @@ def search_rad2(aug: Augmented, radius: np.ndarray) -> np.ndarray:
     return rad2
 
 
+def pass_tile(aug: Augmented, a: int, a1: int, b: int, b1: int, diag: bool, w: np.ndarray, s: np.ndarray,
+              kernel: str, rad2: np.ndarray, fused: bool, use_native: bool = True):
+    """One tile of :func:`kernel_pass`, rows ``a:a1`` by columns ``b:b1`` (``diag``: the same block, one
+    direction): ``(dens_r, err_r, dens_c, err_c, child, cand)``, the columns' sums None on the diagonal;
+    ``fused``: distances and kernel terms in one call of the integer kernel (uint8 on VNNI)."""
+    dr = np.zeros(a1 - a)
+    er = np.zeros(a1 - a)
+    if fused:  # distances and kernel fused in one native call
+        if diag:
+            r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er)
+            return dr, er, None, None, r, c
+        dc, ec = np.zeros(b1 - b), np.zeros(b1 - b)
+        r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er, dc, ec, diag=False)
+        return dr, er, dc, ec, r, c
+    G = aug.left[a:a1] @ aug.right[b:b1].T
+    if diag:
+        r, c = native.tile(G, w[b:b1], s[b:b1], kernel, rad2[a:a1], 0, dr, er, use_native=use_native)
+        return dr, er, None, None, r, c
+    dc = np.zeros(b1 - b)
+    ec = np.zeros(b1 - b)
+    r, c = native.tile_sym(G, w[b:b1], s[b:b1], w[a:a1], s[a:a1], kernel, rad2[a:a1], rad2[b:b1],
+                           dr, er, dc, ec, use_native=use_native)
+    return dr, er, dc, ec, r, c
+
+
 def kernel_pass(
     aug: Augmented,
     weights: np.ndarray,
@@ -450,26 +475,8 @@ def kernel_pass(
 
     def work(task: Tuple[int, int, int, int]):
         a, a1, b, b1 = task
-        diag = a == b and cols_from is None
-        rad2 = rad2_all if collecting[0] else no_edges
-        dr = np.zeros(a1 - a)
-        er = np.zeros(a1 - a)
-        if fused:  # distances and kernel fused in one native call
-            if diag:
-                r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er)
-                return a, b, dr, er, None, None, r, c
-            dc, ec = np.zeros(b1 - b), np.zeros(b1 - b)
-            r, c = native.pass_tile_u8(aug.u8, a, a1, b, b1, w, s, kernel, rad2, dr, er, dc, ec, diag=False)
-            return a, b, dr, er, dc, ec, r, c
-        G = aug.left[a:a1] @ aug.right[b:b1].T
-        if diag:
-            r, c = native.tile(G, w[b:b1], s[b:b1], kernel, rad2[a:a1], 0, dr, er, use_native=use_native)
-            return a, b, dr, er, None, None, r, c
-        dc = np.zeros(b1 - b)
-        ec = np.zeros(b1 - b)
-        r, c = native.tile_sym(G, w[b:b1], s[b:b1], w[a:a1], s[a:a1], kernel, rad2[a:a1], rad2[b:b1],
-                               dr, er, dc, ec, use_native=use_native)
-        return a, b, dr, er, dc, ec, r, c
+        return (a, b) + pass_tile(aug, a, a1, b, b1, a == b and cols_from is None, w, s, kernel,
+                                  rad2_all if collecting[0] else no_edges, fused, use_native)
 
     def within_limit(ch: np.ndarray, ca: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         if cross:
@@ -526,6 +533,54 @@ def kernel_pass(
     cand.clear()
     child_a, cand_a = within_limit(child_a, cand_a)
     return dens, err, child_a, cand_a
+
+
+#: rows of :func:`pair_cpu_s_here`'s generated block: three 1024-row tiles, 3-4 ms of CPU on AVX-512 VNNI
+#: (uint8, 128 dimensions), 15-20 ms in portable C
+PROBE_ROWS = 2048
+
+
+def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 2, kernel: str = "quadratic") -> float:
+    """CPU-seconds per pair-dimension of :func:`kernel_pass` on one thread, measured here: the least of
+    ``repeats`` passes (after one to warm up) over ``rows`` generated rows of ``dim`` elements of ``dtype``
+    (uint8 or float32), on a thread of its own timed by that thread's CPU clock (a CPU quota's throttling and the
+    process's other threads do not count).
+
+    What the machine does with the same code: ``--mode auto``'s cost model scales its fitted compute by this
+    over the value measured where it was fitted (:class:`dqm.distributed.costmodel.CostConstants`). Over
+    all-pairs passes of 5,000 to 40,000 generated features, a full :func:`dqm.quickmatch` on one thread took
+    0.75-1.05x this per pair-dimension at every SIMD level of one machine (AVX-512 VNNI, AVX2, portable C)."""
+    import time
+
+    dt = np.dtype(dtype)
+    if dt not in (np.dtype(np.uint8), np.dtype(np.float32)) or int(dim) < 1 or int(rows) < 2:
+        raise ValueError(f"pair_cpu_s_here times uint8 or float32 rows of dim >= 1, got {dt} x {dim}, {rows} rows")
+    rng = np.random.default_rng(0)
+    X = rng.integers(0, 256, size=(int(rows), int(dim)), dtype=np.uint8)
+    X = X if dt == np.uint8 else (X / np.float32(256)).astype(np.float32)
+    n = len(X)
+    aug = Augmented(X)
+    w = np.full(n, 1e-6, np.float32)
+    active = np.ones(n, np.float32)
+    rad2 = np.full(n, -np.inf, np.float32)  # no edges: the pass's distances and kernel terms only
+    fused = aug.integer_kernel
+    starts = range(0, n, BLOCK)
+    tiles = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for a in starts for b in starts if b >= a]
+    times: List[float] = []
+
+    def run() -> None:  # in a thread of its own: its CPU clock counts this work only, its BLAS single-threaded
+        native.single_threaded_blas_in_this_thread()
+        for _ in range(max(1, int(repeats)) + 1):  # the first pass warms up (operands, pages): not counted
+            t = time.thread_time()
+            for a, a1, b, b1 in tiles:
+                pass_tile(aug, a, a1, b, b1, a == b, w, active, kernel, rad2, fused)
+            times.append(time.thread_time() - t)
+
+    worker = threading.Thread(target=run, name="dqm-pair-probe")
+    worker.start()
+    worker.join()
+    best = min(times[1:])
+    return max(best, 1e-9) / (n * (n - 1) / 2.0 * X.shape[1])
 
 
 def term_error_factor(aug: Augmented) -> np.ndarray:

@@ -432,3 +432,30 @@ def test_distinctiveness_tile_matches_numpy_with_slack_and_minima_only(levels):
     numpy_only = native.nearest_sym(G, None, None, use_native=False)
     np.testing.assert_array_equal(numpy_only[0], ref[0])
     assert all(len(x) == 0 for x in numpy_only[2:])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_the_pair_rate_probe_measures_the_pass_it_names(levels, dtype):
+    """pair_cpu_s_here (what --mode auto scales its cost model by): kernel_pass on one thread over other
+    rows of the same shape takes about that much per pair-dimension, at the best SIMD level and in portable
+    C (loose bounds: a timing on a shared machine, wall time against the probe's CPU time)."""
+    import time
+
+    X = np.random.default_rng(1).integers(0, 256, size=(3072, 128), dtype=np.uint8)
+    X = X if dtype == np.uint8 else (X / np.float32(256)).astype(np.float32)
+    n = len(X)
+    args = (np.full(n, 1e-6, np.float32), np.ones(n, np.float32), "quadratic", np.zeros(n))
+    for level in levels[:1] + levels[-1:]:
+        native.set_simd_level(level)
+        rate = pairs.pair_cpu_s_here(128, dtype)
+        assert np.isfinite(rate) and rate > 0
+        aug = pairs.Augmented(X)
+        spent = []
+        for _ in range(3):  # the first warms up
+            t = time.perf_counter()
+            pairs.kernel_pass(aug, *args, n_threads=1)
+            spent.append(time.perf_counter() - t)
+        per_pair_dim = min(spent[1:]) / (n * (n - 1) / 2 * 128)
+        assert 0.33 < per_pair_dim / rate < 3.0, (level, per_pair_dim, rate)
+    with pytest.raises(ValueError, match="uint8 or float32"):
+        pairs.pair_cpu_s_here(128, np.int16)
