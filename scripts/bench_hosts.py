@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dqm import evaluation, synthetic  # noqa: E402
+from dqm.core.pairs import pair_cpu_s_here  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.runtime.launcher import Processes, work_folder, write_agent_files  # noqa: E402
 from dqm.runtime.multihost import (  # noqa: E402
@@ -91,6 +92,8 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
     raw = X.size * X.dtype.itemsize
     cpu = 2.0 / m
     cfg = DQMConfig(agents=m, seed=1, job=f"hosts{m}").validated(len(X))
+    # this machine's all-pairs kernel: scripts/fit_costmodel.py scales each row's pair work by it
+    kernel = pair_cpu_s_here(X.shape[1], X.dtype)
     for rate in rates:
         with EmulatedHosts(hosts=m, rate_mbit=rate, cpu_cores=cpu) as nss:
             procs = Processes()
@@ -101,7 +104,7 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
                 for mode in modes:
                     t = time.perf_counter()
                     row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                           "mode": mode}
+                           "mode": mode, "kernel_cpu_s": kernel}
                     try:
                         r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
                     except RuntimeError as exc:  # JobFailure included: the row says why

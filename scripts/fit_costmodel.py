@@ -46,15 +46,41 @@ def job_of(r: dict) -> JobShape:
     return JobShape(n=int(r["n"]), agents=int(r["m"]), dim=DIM, itemsize=1)
 
 
+def reference_kernel(rows: List[dict]) -> float:
+    """The fit's ``kernel_cpu_s``: the median of the rows' measured kernel (bench_hosts.py records
+    dqm.core.pairs.pair_cpu_s_here in every row); costmodel.FITTED's when no row has one."""
+    have = [r["kernel_cpu_s"] for r in rows if r.get("kernel_cpu_s")]
+    if have and len(have) != len(rows):
+        raise SystemExit("fit_costmodel: some rows carry kernel_cpu_s and some do not: rows measured on "
+                         "machines of unknown speed cannot be fitted with the others (rerun bench_hosts.py)")
+    return float(np.median(have)) if have else costmodel.FITTED.kernel_cpu_s
+
+
+def speed(r: dict, ref: float) -> float:
+    """The row's pair work in the reference machine's time: its measured kernel over the reference."""
+    return r["kernel_cpu_s"] / ref if r.get("kernel_cpu_s") else 1.0
+
+
+def relative_nnls(A, b):
+    """Non-negative least squares on relative residuals (each row over its measured value): a graf row of
+    0.4 s weighs as much as a 100k row of 40 s, so that the picks of small jobs are fitted too."""
+    b = np.asarray(b, float)
+    return nnls(np.asarray(A, float) / b[:, None], np.ones_like(b))
+
+
 def fit(rows: List[dict]) -> CostConstants:
-    """Non-negative least squares per mechanism on what the rows measured."""
+    """Non-negative least squares per mechanism on what the rows measured (pair work scaled by each row's
+    measured kernel over the reference: rows of several machines fit one model)."""
+    ref = reference_kernel(rows)
     g = [r for r in rows if r["mode"] == "gather" and "error" not in r]
     # the centralized pass: match_s at the host's cores = pair_cpu_s * W + match_fixed_cpu_s
-    (pair, match0), _ = nnls(np.array([[job_of(r).pair_work, 1.0] for r in g]),
-                             np.array([r["match_s"] * r["cpu_per_host"] for r in g]))
+    (pair, match0), _ = relative_nnls([[job_of(r).pair_work * speed(r, ref), 1.0] for r in g],
+                                      [r["match_s"] * r["cpu_per_host"] for r in g])
     # the gathering: gather_s = the sources' start-up skew / cores + factor * bytes / rate (into the gathering host)
-    (g_skew, g_link), _ = nnls(np.array([[1.0 / r["cpu_per_host"], r["bytes"] / bytes_s(r)] for r in g]),
-                                np.array([r["gather_s"] for r in g]))
+    (g_skew, g_link), _ = relative_nnls([[1.0 / r["cpu_per_host"], r["bytes"] / bytes_s(r)] for r in g],
+                                        [r["gather_s"] for r in g])
+    # its wire bytes over the raw bytes of the features sent (agent 0 keeps its own)
+    g_bytes = float(np.mean([r["bytes_over_raw"] * r["m"] / (r["m"] - 1) for r in g]))
     # start-up: the stand-alone gathering process, and dqm run's host 0 (CPU-seconds at one core)
     g_start = float(np.mean([(r["seconds"] - r["gather_s"] - r["match_s"]) * r["cpu_per_host"] for r in g]))
     run = [r for r in rows if r["mode"] in ("lean", "balanced") and "error" not in r]
@@ -63,16 +89,17 @@ def fit(rows: List[dict]) -> CostConstants:
     for mode in ("balanced", "lean"):
         rs = [r for r in rows if r["mode"] == mode and "error" not in r]
         if mode == "balanced":  # 1/M of the pairs per agent; one link's share of the bytes
-            A = [[1.0, pair * job_of(r).pair_work / r["m"] / r["cpu_per_host"], 1 / r["cpu_per_host"],
+            A = [[1.0, pair * speed(r, ref) * job_of(r).pair_work / r["m"] / r["cpu_per_host"], 1 / r["cpu_per_host"],
                   r["bytes"] / r["m"] / bytes_s(r)] for r in rs]
         else:  # agent 0: all the pairs (times a share), all the bytes into its link
-            A = [[1.0, pair * job_of(r).pair_work / r["cpu_per_host"], 1 / r["cpu_per_host"],
+            A = [[1.0, pair * speed(r, ref) * job_of(r).pair_work / r["cpu_per_host"], 1 / r["cpu_per_host"],
                   r["bytes"] / bytes_s(r)] for r in rs]
-        out[mode], _ = nnls(np.array(A), np.array([r["job_s"] for r in rs]))
+        out[mode], _ = relative_nnls(A, [r["job_s"] for r in rs])
         per = [r["bytes_over_raw"] / (r["m"] if mode == "balanced" else (r["m"] - 1) / r["m"]) for r in rs]
         out[mode + "_bytes"] = float(np.mean(per))
     b, lean = out["balanced"], out["lean"]
-    return replace(costmodel.FITTED, pair_cpu_s=float(pair), match_fixed_cpu_s=float(match0),
+    return replace(costmodel.FITTED, pair_cpu_s=float(pair), kernel_cpu_s=ref, gather_bytes=g_bytes,
+                   match_fixed_cpu_s=float(match0),
                    gather_skew_cpu_s=float(g_skew), gather_link_factor=float(g_link), gather_start_cpu_s=g_start,
                    run_start_cpu_s=run_start, balanced_fixed_s=float(b[0]), balanced_imbalance=float(b[1]),
                    balanced_fixed_cpu_s=float(b[2]), balanced_link_factor=float(b[3]),
@@ -82,12 +109,12 @@ def fit(rows: List[dict]) -> CostConstants:
 
 
 def hosts_of(r: dict) -> Hosts:
-    return Hosts.of([bytes_s(r)] * int(r["m"]), r["cpu_per_host"])
+    return Hosts.of([bytes_s(r)] * int(r["m"]), r["cpu_per_host"], kernel_cpu_s=r.get("kernel_cpu_s"))
 
 
 def predicted(r: dict, k: CostConstants, started: bool = False) -> costmodel.Prediction:
     """The row's mode as the benchmark ran it (the stand-alone gather keeps host 0's features there)."""
-    return costmodel.predict(job_of(r), hosts_of(r), k, started=started, gather_from_all=False)[r["mode"]]
+    return costmodel.predict(job_of(r), hosts_of(r), k, started=started)[r["mode"]]
 
 
 def after_start_up(r: dict) -> float:
@@ -124,13 +151,12 @@ def report(rows: List[dict], k: CostConstants) -> bool:
         best = min(ran, key=lambda x: ran[x]["seconds"])
         any_row = next(iter(by_mode.values()))
         modes = tuple(x for x in MODES if x in by_mode)
-        pick = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=False, gather_from_all=False,
+        pick = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=False,
                                 modes=modes).mode
         ratio = ran[pick]["seconds"] / ran[best]["seconds"] if pick in ran else float("inf")
         ok = ratio <= 1.10
         ok_all &= ok
-        coord = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=True, modes=modes,
-                                 gather_from_all=False).mode
+        coord = costmodel.choose(job_of(any_row), hosts_of(any_row), k, started=True, modes=modes).mode
         warm = {x: after_start_up(r) for x, r in ran.items() if "job_s" in r or "gather_s" in r}
         if warm and coord in warm:
             w_ratio = warm[coord] / min(warm.values())

@@ -329,60 +329,65 @@ class CoordinatorCore:
                            + (f"; restarting at epoch {self.epoch}" if restart else
                               "; the survivors keep their work, the moved agents run again at their new process"))
 
-    def _job_shape(self) -> costmodel.JobShape:
+    def job_shape(self) -> costmodel.JobShape:
+        """The job as the cost model sees it, from the hosting processes' ``ready``."""
         hosts = self.hosts()
         ref = self.ready[hosts[0]]
         n = int(sum(self.ready[p]["features"] for p in hosts))
         return costmodel.JobShape(n=max(1, n), agents=self.m, dim=int(ref["dim"]),
                                   itemsize=np.dtype(ref["dtype"]).itemsize)
 
-    def decide_unmeasured(self, cores: float, gather_cores: float) -> bool:
-        """``--mode auto`` from cheap facts: when the cost model picks the same mode at every link rate
-        of :data:`costmodel.CLEAR_RATES_BYTES_S` (features, agents and cores decide it whatever the
-        links), start that mode without timing the links; returns whether it did (else the shell
-        measures them and calls :meth:`decide`)."""
+    def decide_unmeasured(self, cores: float, gather_cores: float, kernel_cpu_s: Optional[float] = None) -> bool:
+        """``--mode auto`` from cheap facts: when the cost model predicts one mode within
+        :data:`costmodel.CLEAR_WITHIN` of the fastest at every link rate of :data:`costmodel.CLEAR_RATES_BYTES_S`
+        (features, agents, cores and the pair rate decide it whatever the links), start that mode without timing
+        the links; returns whether it did (else the shell measures them and calls :meth:`decide`).
+        ``kernel_cpu_s``: the shell's :func:`dqm.core.pairs.pair_cpu_s_here` (None: the fit machine's speed)."""
         from ..validation import InputError
 
         hosts = self.hosts()
         try:
-            job = self._job_shape()
-            choices = [costmodel.choose(job, costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores),
-                                        started=True, modes=self.requested.auto_choices, gather_from_all=False)
-                       for r in costmodel.CLEAR_RATES_BYTES_S]
+            job = self.job_shape()
+            found = costmodel.rate_free_choice(
+                job, lambda r: costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores,
+                                                  kernel_cpu_s=kernel_cpu_s), modes=self.requested.auto_choices)
         except InputError:
             return False  # the measuring path says what is wrong
-        if len({c.mode for c in choices}) != 1:
+        if found is None:
             return False
-        low, high = choices[0], choices[-1]
+        mode, worst, (least, most) = found
         lo_s, hi_s = (costmodel.mbit_text(r) for r in (costmodel.CLEAR_RATES_BYTES_S[0],
                                                         costmodel.CLEAR_RATES_BYTES_S[-1]))
-        reason = (f"{low.mode} without timing the links: the fastest at every link rate from {lo_s} to "
-                  f"{hi_s} Mbit/s (predicted {high.predictions[low.mode].seconds:.1f} to "
-                  f"{low.predictions[low.mode].seconds:.1f} s; {job.n} features on {self.m} agents, cores per "
-                  f"host {cores:.3g})")
-        self._picked(low.mode, {}, low.predictions[low.mode].seconds, reason, 0.0, {}, cores, gather_cores, job.n)
+        how = "the fastest" if worst <= 1 + 1e-9 else f"within {100 * (worst - 1):.0f}% of the fastest"
+        reason = (f"{mode} without timing the links: {how} at every link rate from {lo_s} to {hi_s} Mbit/s "
+                  f"(predicted {least:.1f} to {most:.1f} s; {job.n} features on {self.m} agents, cores per host "
+                  f"{cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
+        self._picked(mode, {}, {mode: round(most, 3)}, reason, 0.0, {}, cores, gather_cores, job.n, kernel_cpu_s)
         return True
 
     def decide(self, rates: Dict[int, float], cores: float, gather_cores: float, probe_s: float,
-               pairs: Optional[Dict[int, list]] = None) -> None:
-        """``--mode auto``: pick the mode from the measured rates (bytes/s to each hosting process) with the
-        cost model, and run it (``go`` names it: the processes make its drivers in this epoch)."""
+               pairs: Optional[Dict[int, list]] = None, kernel_cpu_s: Optional[float] = None) -> None:
+        """``--mode auto``: pick the mode from the measured rates (bytes/s to each hosting process) and pair
+        rate (``kernel_cpu_s``, as in :meth:`decide_unmeasured`) with the cost model, and run it (``go`` names
+        it: the processes make its drivers in this epoch)."""
         from ..validation import InputError
 
         hosts = self.hosts()
         try:
-            job = self._job_shape()
+            job = self.job_shape()
             choice = costmodel.choose(job, costmodel.Hosts.of([rates[p] for p in hosts], cores,
-                                                              gather_cores=gather_cores), started=True,
-                                      modes=self.requested.auto_choices, gather_from_all=False)
+                                                              gather_cores=gather_cores, kernel_cpu_s=kernel_cpu_s),
+                                      started=True,
+                                      modes=self.requested.auto_choices)
         except InputError as exc:
             self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
                                 "Give the job's mode explicitly (--mode balanced, lean or gather)."))
         self._picked(choice.mode, rates, choice.predicted_s, choice.reason, probe_s, pairs or {}, cores,
-                     gather_cores, job.n)
+                     gather_cores, job.n, kernel_cpu_s)
 
-    def _picked(self, mode: str, rates: Dict[int, float], predicted_s: float, reason: str, probe_s: float,
-                pairs: Dict[int, list], cores: float, gather_cores: float, n: int) -> None:
+    def _picked(self, mode: str, rates: Dict[int, float], predicted_s: Dict[str, Optional[float]], reason: str,
+                probe_s: float, pairs: Dict[int, list], cores: float, gather_cores: float, n: int,
+                kernel_cpu_s: Optional[float]) -> None:
         hosts = self.hosts()
         self.cfg = self.requested.but(mode=mode)
         self.auto = {
@@ -390,7 +395,7 @@ class CoordinatorCore:
             "picked": mode, "predicted_s": predicted_s, "reason": reason,
             "probe_s": probe_s,
             "probe_pairs": {str(p): [list(x) for x in pairs.get(p, [])] for p in hosts if p in pairs},
-            "cores_per_host": cores, "gather_cores": gather_cores, "features": n,
+            "cores_per_host": cores, "gather_cores": gather_cores, "features": n, "kernel_cpu_s": kernel_cpu_s,
         }
         self.runs += 1
         self._go()

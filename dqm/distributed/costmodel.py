@@ -10,13 +10,12 @@ The model follows the mechanisms, with constants fitted to the emulated-host ben
 With ``raw = n * dim * itemsize`` (the descriptor bytes), ``W = n (n - 1) / 2 * dim`` (the pair work
 of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` a link rate (bytes/s):
 
-* **gather** (every source sends its features to one host, which runs centralized QuickMatch):
+* **gather** (agent 0 gathers: every other source sends it its features, and it runs centralized QuickMatch
+  on them and its own):
   ``t = start + gather_link_factor * max(B / r_g, max_p B_p / r_p) + (pair_cpu_s * W + match_fixed_cpu_s) / c_g``
-  with ``B = raw * (1 + ROW_BYTES / (dim * itemsize))``
-  (ids and image ids travel with each row) times the share of the features not already on the
-  gathering host, all of it into the gathering host's link ``r_g`` (agent 0's rate, at most the median,
-  when agent 0 gathers; the median measured rate when every source sends);
-  ``B_p``: one source's part;
+  with ``B = gather_bytes * raw * (M - 1) / M`` the wire bytes of the features not already on agent 0
+  (``gather_bytes``: their bytes over their raw descriptor bytes, compressed, ids included), all of it into
+  agent 0's link ``r_g`` (its rate, at most the median); ``B_p``: one source's part;
 * **balanced** (cells; each agent computes about ``1/M`` of the pairs, times an imbalance):
   ``t = start + balanced_fixed_s + balanced_link_factor * b * raw / M / r_min
   + (balanced_imbalance * pair_cpu_s * W / M * k + balanced_fixed_cpu_s) / c_min`` with ``b`` the bytes
@@ -27,6 +26,12 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   + (lean_work_share * pair_cpu_s * W + lean_fixed_cpu_s) / c_0`` with ``l`` its bytes over raw
   (``lean_bytes * (M - 1) / M`` unless given), into agent 0's link ``r_0`` (its rate, at most the
   median).
+
+``pair_cpu_s`` is the fit machine's; a job measures its own host's all-pairs kernel
+(:func:`dqm.core.pairs.pair_cpu_s_here`, a few milliseconds) and the model scales ``pair_cpu_s`` by it over
+the fit machine's measurement ``kernel_cpu_s`` (:meth:`Hosts.pair_cpu_s`): the fitted constant alone
+mispredicted the centralized pass 3x on a machine faster than the fit's, and picked balanced where gather
+was faster.
 
 ``start`` is the processes' start-up: ``run_start_cpu_s / c_0`` for a job of ``dqm run`` /
 ``dqm coordinator`` (host 0 holds agent 0, which gathers in gather mode, and the coordinator),
@@ -47,7 +52,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -55,55 +60,64 @@ from ..validation import InputError
 
 #: the modes :func:`choose` picks from, in the order that breaks an exact tie
 AUTO_MODES = ("gather", "balanced", "lean")
-#: link rates (bytes/s, 1 Mbit/s to 10 Gbit/s) over which ``--mode auto`` asks whether one mode is the fastest
-#: whatever the links: then it starts that mode without timing them
+#: link rates (bytes/s, 1 Mbit/s to 10 Gbit/s) over which ``--mode auto`` asks whether one mode is (about) the
+#: fastest whatever the links: then it starts that mode without timing them (:func:`rate_free_choice`)
 CLEAR_RATES_BYTES_S = tuple(mbit * 1e6 / 8 for mbit in (1, 3, 10, 30, 100, 300, 1000, 3000, 10000))
-#: bytes per feature row besides its descriptor on the wire of a gather: the feature id and image id (int64)
-ROW_BYTES = 16
+#: a mode is picked without timing the links when, at every rate of :data:`CLEAR_RATES_BYTES_S`, its predicted
+#: time is at most this factor of the fastest mode's: the probes (0.1-0.2 s per process) would cost more than
+#: they could save
+CLEAR_WITHIN = 1.10
 
 
 @dataclass(frozen=True)
 class CostConstants:
     """The model's constants (seconds, CPU-seconds at one core, and factors).
 
-    Fitted by ``.venv/bin/python scripts/fit_costmodel.py`` (non-negative least squares per mechanism
-    on the rows of docs/bench_hosts_graf.json and docs/bench_hosts_100k.json, 2-core AMD EPYC,
-    uint8 SIFT descriptors of 128 dimensions); ``starve_s`` is set from the lease (above).
+    Fitted by ``.venv/bin/python scripts/fit_costmodel.py`` (non-negative least squares per mechanism on
+    relative residuals, on the rows of docs/bench_hosts_graf.json and docs/bench_hosts_100k.json: 2-core AMD
+    EPYC Zen 4 with AVX-512 VNNI, uint8 SIFT descriptors of 128 dimensions, 2026-11-28); ``starve_s`` is set
+    from the lease (above). The pair work scales with the kernel measured where a job runs (``kernel_cpu_s``).
     """
 
     #: CPU-seconds per pair-dimension of the centralized all-pairs pass (uint8, the VNNI tile kernel)
-    pair_cpu_s: float = 4.365e-11
+    pair_cpu_s: float = 1.259e-11
+    #: :func:`dqm.core.pairs.pair_cpu_s_here` (uint8, 128 dimensions) on the machine of the fit: a job's
+    #: pair work is predicted at ``pair_cpu_s`` times its own host's measurement over this
+    kernel_cpu_s: float = 1.065e-11
+    #: a gather's wire bytes over the raw descriptor bytes of the features sent (compressed, ids included;
+    #: graf 0.77, 0.67, 0.73 at M = 2, 4, 8, 100k 0.80 at M = 8)
+    gather_bytes: float = 0.7394
     #: CPU-seconds of a centralized match beyond its pairs (imports, sigma, tree)
-    match_fixed_cpu_s: float = 0.1282
+    match_fixed_cpu_s: float = 0
     #: CPU-seconds a stand-alone gathering host waits for its sources to start (start-up skew)
-    gather_skew_cpu_s: float = 0.05747
+    gather_skew_cpu_s: float = 0.02187
     #: the gathered bytes' time over bytes / rate
-    gather_link_factor: float = 1.132
+    gather_link_factor: float = 1.178
     #: CPU-seconds a stand-alone gathering process spends starting
-    gather_start_cpu_s: float = 0.7268
+    gather_start_cpu_s: float = 0.2477
     #: CPU-seconds of host 0's start-up in a dqm run job (agent 0, the coordinator, the ready handshake)
-    run_start_cpu_s: float = 1.553
+    run_start_cpu_s: float = 0.416
     #: seconds of a balanced job beyond its work and bytes (the set-up's and the rounds' round trips)
-    balanced_fixed_s: float = 0.7002
+    balanced_fixed_s: float = 0.009854
     #: the busiest agent's pair work over the centralized pass's / M (cells and ghost copies)
-    balanced_imbalance: float = 1.351
+    balanced_imbalance: float = 2.061
     #: CPU-seconds of a balanced agent beyond its pairs (set-up, sketches, rounds)
-    balanced_fixed_cpu_s: float = 0.119
+    balanced_fixed_cpu_s: float = 0.3393
     #: one link's share of the balanced bytes: its time over bytes / rate (rounds wait for each other)
-    balanced_link_factor: float = 1.066
-    #: balanced bytes over raw, per agent (graf 0.50, 0.52, 0.46 at M = 2, 4, 8; 100k 0.55 at M = 8,
-    #: 0.83 at 10 Mbit/s with resends)
-    balanced_bytes_per_agent: float = 0.53
+    balanced_link_factor: float = 1.467
+    #: balanced bytes over raw, per agent (graf 0.50, 0.53, 0.46 at M = 2, 4, 8; 100k 0.55 at M = 8, the same
+    #: at 10 Mbit/s)
+    balanced_bytes_per_agent: float = 0.5089
     #: seconds of a lean job beyond its work and bytes
-    lean_fixed_s: float = 0.9853
+    lean_fixed_s: float = 0.1297
     #: agent 0's pair work in a lean job over the centralized pass's (the cascade gathers it there)
-    lean_work_share: float = 1.048
+    lean_work_share: float = 1.177
     #: CPU-seconds of lean's agent 0 beyond its pairs
-    lean_fixed_cpu_s: float = 0.02113
+    lean_fixed_cpu_s: float = 0
     #: lean's bytes (into agent 0's link): their time over bytes / rate
-    lean_link_factor: float = 0.5658
-    #: lean bytes over raw, times M / (M - 1) (graf 1.39, 1.73, 1.67 at M = 2, 4, 8; 100k 1.76-1.87 at M = 8)
-    lean_bytes: float = 1.647
+    lean_link_factor: float = 0.8962
+    #: lean bytes over raw, times M / (M - 1) (graf 1.39, 1.73, 1.67 at M = 2, 4, 8; 100k 1.76 at M = 8)
+    lean_bytes: float = 1.637
     #: balanced is unavailable when one link's share of its bytes takes longer than this (seconds)
     starve_s: float = 16
 
@@ -141,18 +155,20 @@ class Hosts:
     process's host (one number: every host); ``gather_cores``: the cores the gathering host gives
     the centralized match (default: host 0's); ``gather_rate``: the rate into the gathering host
     (default: the median measured: its own link bounds every path it measured, and the median is not
-    misled by one process whose probes read high, e.g. one sharing the coordinator's host and link).
-    Process 0 hosts agent 0.
+    misled by one process whose probes read high, e.g. one sharing the coordinator's host and link);
+    ``kernel_cpu_s``: :func:`dqm.core.pairs.pair_cpu_s_here` measured where the job runs (None: the machine of
+    the fit's speed is assumed). Process 0 hosts agent 0.
     """
 
     rates: Tuple[float, ...]
     cores: Tuple[float, ...]
     gather_cores: Optional[float] = None
     gather_rate: Optional[float] = None
+    kernel_cpu_s: Optional[float] = None
 
     @classmethod
     def of(cls, rates: Sequence[float], cores, gather_cores: Optional[float] = None,
-           gather_rate: Optional[float] = None) -> "Hosts":
+           gather_rate: Optional[float] = None, kernel_cpu_s: Optional[float] = None) -> "Hosts":
         """Hosts from a rate per process and the cores (one number, or one per process), checked."""
         rates = tuple(_positive(r, f"link rate of process {p}") for p, r in enumerate(_seq(rates, "rates")))
         if not rates:
@@ -163,7 +179,15 @@ class Hosts:
         if len(cores) != len(rates):
             raise InputError(f"the cost model got {len(rates)} link rates but cores for {len(cores)} processes")
         return cls(rates, cores, None if gather_cores is None else _positive(gather_cores, "gather_cores"),
-                   None if gather_rate is None else _positive(gather_rate, "gather_rate"))
+                   None if gather_rate is None else _positive(gather_rate, "gather_rate"),
+                   None if kernel_cpu_s is None else _positive(kernel_cpu_s, "kernel_cpu_s"))
+
+    def pair_cpu_s(self, constants: "CostConstants") -> float:
+        """CPU-seconds per pair-dimension on these hosts: the fitted value, scaled by the hosts' measured
+        :attr:`kernel_cpu_s` over the fit machine's (the fitted value as it is when nothing was measured)."""
+        if self.kernel_cpu_s is None:
+            return constants.pair_cpu_s
+        return constants.pair_cpu_s * self.kernel_cpu_s / constants.kernel_cpu_s
 
 
 @dataclass(frozen=True)
@@ -238,47 +262,43 @@ def default_lean_bytes(agents: int, constants: CostConstants = FITTED) -> float:
 
 
 def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, started: bool = False,
-            gather_from_all: bool = True, gather_bytes_over_raw: Optional[float] = None,
-            balanced_bytes_over_raw: Optional[float] = None, lean_bytes_over_raw: Optional[float] = None
-            ) -> Dict[str, Prediction]:
+            gather_bytes_over_raw: Optional[float] = None, balanced_bytes_over_raw: Optional[float] = None,
+            lean_bytes_over_raw: Optional[float] = None) -> Dict[str, Prediction]:
     """Predicted time to result of gather, balanced and lean (:data:`AUTO_MODES` order).
 
-    ``started``: the processes are already running (start-up left out: the coordinator's case).
-    ``gather_from_all``: every agent sends its features to the gathering host (a host that holds none);
-    False: the gathering host is source 0 and keeps its own (the gather of a ``dqm run`` job, where agent 0
-    gathers, and ``dqm.runtime.gather``, the benchmark's stand-alone gather). ``gather_bytes_over_raw``
-    (when every source sends), ``balanced_bytes_over_raw``, ``lean_bytes_over_raw``: the modes' bytes over the raw
-    descriptor bytes (default: ``1 + ROW_BYTES / (dim * itemsize)``, and the fitted
-    :func:`default_balanced_bytes` / :func:`default_lean_bytes`): what a change of the wire format
+    ``started``: the processes are already running (start-up left out: the coordinator's case); else
+    lean and balanced pay ``dqm run``'s start-up and gather that of ``dqm.runtime.gather``, the benchmark's
+    stand-alone gathering (its agent 0 keeps its own features, as agent 0 does in ``dqm run``).
+    ``gather_bytes_over_raw`` (of the features sent), ``balanced_bytes_over_raw``, ``lean_bytes_over_raw``: the
+    modes' bytes over the raw descriptor bytes (default: the fitted ``gather_bytes``,
+    :func:`default_balanced_bytes` and :func:`default_lean_bytes`): what a change of the wire format
     (compression) changes.
     """
     check_job(job)
     k = constants
     m, raw, W = job.agents, job.raw_bytes, job.pair_work
+    pair = hosts.pair_cpu_s(k)
     procs = len(hosts.rates)
     rates, cores = np.asarray(hosts.rates, float), np.asarray(hosts.cores, float)
     r_mid = float(np.median(rates))
     r_min, c_min, r0, c0 = float(rates.min()), float(cores.min()), min(float(rates[0]), r_mid), float(cores[0])
     c_g = hosts.gather_cores or c0
-    r_g = hosts.gather_rate or (r_mid if gather_from_all else r0)  # the coordinator's link, or agent 0's
+    r_g = hosts.gather_rate or r0  # agent 0's link
     b_bal = default_balanced_bytes(m, k) if balanced_bytes_over_raw is None else \
         _nonnegative(balanced_bytes_over_raw, "balanced_bytes_over_raw")
     b_lean = default_lean_bytes(m, k) if lean_bytes_over_raw is None else \
         _nonnegative(lean_bytes_over_raw, "lean_bytes_over_raw")
     run_start = 0.0 if started else k.run_start_cpu_s / c0
 
-    # gather: every source's rows into one host's link, then the centralized pass on its cores
-    share = 1.0 if gather_from_all else (m - 1) / m
-    g_all = (1.0 + ROW_BYTES / (job.dim * job.itemsize)) if gather_bytes_over_raw is None else \
+    # gather: the other sources' rows into agent 0's link, then the centralized pass on its cores
+    g_all = k.gather_bytes if gather_bytes_over_raw is None else \
         _nonnegative(gather_bytes_over_raw, "gather_bytes_over_raw")
-    g_bytes = raw * g_all * share
-    senders = m if gather_from_all else max(1, m - 1)
-    per_source = max(g_bytes / senders / r for r in rates) if senders and g_bytes else 0.0
-    alone = not (gather_from_all or started)  # the stand-alone gathering's own start-up and its wait for sources
-    g_parts = {"start": run_start if gather_from_all else k.gather_start_cpu_s / c_g if alone else 0.0,
-               "fixed": k.gather_skew_cpu_s / c_g if alone and m > 1 else 0.0,
+    g_bytes = raw * g_all * (m - 1) / m
+    per_source = max(g_bytes / (m - 1) / r for r in rates) if m > 1 else 0.0
+    g_parts = {"start": 0.0 if started else k.gather_start_cpu_s / c_g,
+               "fixed": k.gather_skew_cpu_s / c_g if not started and m > 1 else 0.0,
                "transfer": k.gather_link_factor * max(g_bytes / r_g, per_source),
-               "compute": (k.pair_cpu_s * W + k.match_fixed_cpu_s) / c_g}
+               "compute": (pair * W + k.match_fixed_cpu_s) / c_g}
     out = {"gather": Prediction("gather", sum(g_parts.values()), g_parts, g_bytes)}
 
     # balanced: 1/M of the pairs per agent (times the imbalance), the bytes spread over M links
@@ -286,7 +306,7 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     busiest = math.ceil(m / procs)
     b_parts = {"start": run_start, "fixed": k.balanced_fixed_s,
                "transfer": k.balanced_link_factor * per_link / r_min,
-               "compute": (k.balanced_imbalance * k.pair_cpu_s * W / m * busiest + k.balanced_fixed_cpu_s) / c_min}
+               "compute": (k.balanced_imbalance * pair * W / m * busiest + k.balanced_fixed_cpu_s) / c_min}
     starve = per_link / r_min
     why = "" if starve <= k.starve_s else (
         f"its {per_link / 1e6:.1f} MB per link take {starve:.1f} s at {r_min / 1e6:.3g} MB/s, more than "
@@ -296,7 +316,7 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     # lean: the cascade gathers the work and the bytes at agent 0
     l_parts = {"start": run_start, "fixed": k.lean_fixed_s,
                "transfer": k.lean_link_factor * b_lean * raw / r0,
-               "compute": (k.lean_work_share * k.pair_cpu_s * W + k.lean_fixed_cpu_s) / c0}
+               "compute": (k.lean_work_share * pair * W + k.lean_fixed_cpu_s) / c0}
     out["lean"] = Prediction("lean", sum(l_parts.values()), l_parts, b_lean * raw)
     return out
 
@@ -317,6 +337,13 @@ def mbit_text(bytes_s: float) -> str:
     return f"{mbit:.0f}" if mbit >= 100 else f"{mbit:.3g}"
 
 
+def speed_text(kernel_cpu_s: Optional[float], constants: CostConstants = FITTED) -> str:
+    """``, pair work at 0.93x the fit's CPU time`` for a measured :attr:`Hosts.kernel_cpu_s`, else ``""``."""
+    if kernel_cpu_s is None:
+        return ""
+    return f", pair work at {kernel_cpu_s / constants.kernel_cpu_s:.2f}x the fit's CPU time"
+
+
 def _rate_text(bytes_s: float) -> str:
     return f"{mbit_text(bytes_s)} Mbit/s"
 
@@ -325,7 +352,7 @@ def choose(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, st
            modes: Sequence[str] = AUTO_MODES, **options) -> Choice:
     """The available mode of ``modes`` with the least predicted time (ties: the order of :data:`AUTO_MODES`),
     every mode's prediction and a one-line reason. Deterministic: the same inputs give the same answer.
-    ``options``: :func:`predict`'s (``gather_from_all``, the bytes over raw)."""
+    ``options``: :func:`predict`'s (the bytes over raw)."""
     bad = [m for m in modes if m not in AUTO_MODES]
     if bad or not modes:
         raise InputError(f"the cost model picks from {', '.join(AUTO_MODES)}, got {list(modes)!r}")
@@ -341,7 +368,33 @@ def choose(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, st
             else f"{_rate_text(float(rates.min()))} to {_rate_text(float(rates.max()))}")
     reason = (f"{best}: predicted {preds[best].seconds:.1f} s" + (f" against {others}" if others else "")
               + f" ({job.n} features of {job.dim} x {job.itemsize} B on {job.agents} agents, links {link}, "
-              f"cores per host {min(hosts.cores):.3g})")
+              f"cores per host {min(hosts.cores):.3g}{speed_text(hosts.kernel_cpu_s, constants)})")
     if not preds["balanced"].available and "balanced" in modes:
         reason += f"; balanced ruled out: {preds['balanced'].why_not}"
     return Choice(best, {m: preds[m] for m in AUTO_MODES if m in modes}, reason)
+
+
+def rate_free_choice(job: JobShape, hosts_at: Callable[[float], Hosts], constants: CostConstants = FITTED, *,
+                     modes: Sequence[str] = AUTO_MODES, within: float = CLEAR_WITHIN
+                     ) -> Optional[Tuple[str, float, Tuple[float, float]]]:
+    """The mode to run without timing the links, if there is one: the available mode of ``modes`` whose predicted
+    time (processes started) is at most ``within`` times the fastest's at every rate ``r`` of
+    :data:`CLEAR_RATES_BYTES_S` (``hosts_at(r)``: the hosts with their links at ``r``), the least such worst ratio
+    first (ties: :data:`AUTO_MODES` order). Returns ``(mode, worst ratio, (least, most) predicted seconds)``, or
+    None when the answer turns on the links (then they are timed)."""
+    preds = [predict(job, hosts_at(r), constants, started=True) for r in CLEAR_RATES_BYTES_S]
+    candidates = [m for m in AUTO_MODES if m in modes]
+    worst: Dict[str, float] = {}
+    for mode in candidates:
+        ratios = []
+        for p in preds:
+            usable = [p[m].seconds for m in candidates if p[m].available]
+            ratios.append(p[mode].seconds / min(usable) if p[mode].available and usable else math.inf)
+        worst[mode] = 1.0 if len(candidates) == 1 else max(ratios)  # one mode to run: nothing to measure
+    if not worst:
+        return None
+    best = min(worst, key=lambda m: (round(worst[m], 9), AUTO_MODES.index(m)))
+    if worst[best] > within:
+        return None
+    seconds = [p[best].seconds for p in preds]
+    return best, worst[best], (min(seconds), max(seconds))

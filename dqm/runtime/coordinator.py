@@ -239,12 +239,21 @@ class Coordinator:
                                     "must be started with --mode auto."))
         return self.probe_answers.pop(token)
 
+    def _kernel_cpu_s(self) -> float:
+        """This host's all-pairs kernel for the job's descriptors (CPU-seconds per pair-dimension,
+        :func:`dqm.core.pairs.pair_cpu_s_here`: a few milliseconds while the agents wait for ``go``)."""
+        from ..core.pairs import pair_cpu_s_here
+
+        shape = self.core.job_shape()
+        return pair_cpu_s_here(shape.dim, "uint8" if shape.itemsize == 1 else "float32")
+
     def _measure(self) -> None:
         """--mode auto: let the core pick the mode from the job's size where the links cannot change the
         answer; else time the link to each hosting process, then let the core pick."""
         t0 = time.monotonic()
         own = self.gather_cores or measure.host_cores()
-        if self._drive(self.core.decide_unmeasured, self.host_cores or own, own):
+        kernel = self._kernel_cpu_s()
+        if self._drive(self.core.decide_unmeasured, self.host_cores or own, own, kernel):
             self.announce(auto_summary(self.core.auto))
             return
         epoch = self.bus.epoch
@@ -259,7 +268,7 @@ class Coordinator:
             rates[p] = measure.measure_link(p, self._probe_pair, self._probe_answer, tokens, time.monotonic, start)
             start = measure.next_start_bytes(rates[p])
         self._drive(self.core.decide, {p: rates[p].bytes_s for p in hosts}, self.host_cores or own, own,
-                    time.monotonic() - t0, {p: rates[p].pairs for p in hosts})
+                    time.monotonic() - t0, {p: rates[p].pairs for p in hosts}, kernel)
         self.announce(auto_summary(self.core.auto))
 
     def run(self, tcp_port: Optional[int] = None) -> dict:

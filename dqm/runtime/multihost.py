@@ -392,11 +392,12 @@ def _by_id(ids, labels) -> tuple:
 
 
 def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
-                 timeout_s: float = 600.0) -> HostRun:
+                 timeout_s: float = 600.0, gather_cores: Optional[float] = None) -> HostRun:
     """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
     router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
     agent per host); the coordinator, or the gathering host, is host 0 (``auto``: told that every host has
-    the hosts' CPU quota, which it cannot read inside a namespace)."""
+    the hosts' CPU quota, which it cannot read inside a namespace, and that agent 0's host gives a gathering
+    match ``gather_cores``, by default the same)."""
     m = cfg.agents
     connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
     procs = Processes()
@@ -406,7 +407,8 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
             job = start_job(procs, cfg.but(mode=mode), files, workdir,
                             connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)),
                             limits=START_LIMITS.but(job_timeout_s=timeout_s),
-                            tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores, gather_cores=nss.cpu_cores)
+                            tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores,
+                            gather_cores=nss.cpu_cores if gather_cores is None else gather_cores)
             rep = finish_job(job, timeout_s + 15)
             detail: Dict[str, object] = {"job_s": rep["time_run_s"]}
             if "auto" in rep:

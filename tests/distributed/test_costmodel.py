@@ -40,7 +40,7 @@ def test_gather_on_a_slow_link_with_few_features():
         assert choose(small, hosts(10), started=started).mode == "gather"
     # graf on two 1-core hosts at 10 Mbit/s: gather was the measured best, and is the pick as benchmarked
     graf2 = JobShape(n=21691, agents=2, dim=128)
-    assert choose(graf2, hosts(10, m=2, cores=1.0), started=False, gather_from_all=False).mode == "gather"
+    assert choose(graf2, hosts(10, m=2, cores=1.0), started=False).mode == "gather"
 
 
 def test_balanced_at_large_n_on_fast_links_as_calibrated():
@@ -48,8 +48,11 @@ def test_balanced_at_large_n_on_fast_links_as_calibrated():
         c = choose(BIG, hosts(mbit), started=True)
         assert c.mode == "balanced", c.reason
         assert c.predicted_s["gather"] > 3 * c.predicted_s["balanced"]
-    # graf at M = 8: balanced was the measured best at 100 Mbit/s, and is picked
-    assert choose(GRAF, hosts(100), started=False, gather_from_all=False).mode == "balanced"
+    # graf at M = 8: gather was the measured best at 100 Mbit/s (its pair work is small on this machine), and
+    # is picked; on a machine 3x slower at the pairs, balanced is
+    assert choose(GRAF, hosts(100), started=False).mode == "gather"
+    slow = Hosts.of([100 * MBIT] * 8, 0.25, kernel_cpu_s=3 * FITTED.kernel_cpu_s)
+    assert choose(GRAF, slow, started=False).mode == "balanced"
 
 
 def test_balanced_is_unavailable_where_its_keep_alives_starved():
@@ -75,10 +78,50 @@ def test_predictions_follow_the_mechanisms():
     assert all(p.parts["start"] == 0 for p in started.values())
     more_cores = predict(BIG, hosts(100, cores=1.0))
     assert more_cores["balanced"].parts["compute"] < predict(BIG, hosts(100))["balanced"].parts["compute"]
-    # gather's bytes: every row once with its ids, into one link; balanced's and lean's per the calibration
+    # gather's bytes: the rows of every agent but agent 0, once (compressed, with their ids, as measured);
+    # balanced's and lean's per the calibration
     p = predict(GRAF, hosts(100))
-    assert p["gather"].bytes == pytest.approx(GRAF.raw_bytes * (1 + 16 / 128))
+    assert p["gather"].bytes == pytest.approx(GRAF.raw_bytes * FITTED.gather_bytes * 7 / 8)
     assert p["balanced"].bytes == pytest.approx(GRAF.raw_bytes * FITTED.balanced_bytes_per_agent * 8)
+
+
+def test_a_measured_kernel_scales_the_pair_work_and_nothing_else():
+    """The hosts' measured kernel (dqm.core.pairs.pair_cpu_s_here) over the fit machine's scales the
+    pair work of every mode; as fast as the fit's, the prediction is the unmeasured one."""
+    k = FITTED
+    base = predict(GRAF, hosts(100))
+    same = predict(GRAF, Hosts.of([100 * MBIT] * 8, 0.25, kernel_cpu_s=k.kernel_cpu_s))
+    slow = predict(GRAF, Hosts.of([100 * MBIT] * 8, 0.25, kernel_cpu_s=2 * k.kernel_cpu_s))
+    fixed = {"gather": k.match_fixed_cpu_s, "balanced": k.balanced_fixed_cpu_s, "lean": k.lean_fixed_cpu_s}
+    for mode in costmodel.AUTO_MODES:
+        assert same[mode].seconds == pytest.approx(base[mode].seconds)
+        assert {p: v for p, v in slow[mode].parts.items() if p != "compute"} == \
+            {p: v for p, v in base[mode].parts.items() if p != "compute"}
+        pairs_s = base[mode].parts["compute"] - fixed[mode] / 0.25
+        assert pairs_s > 0
+        assert slow[mode].parts["compute"] == pytest.approx(base[mode].parts["compute"] + pairs_s)
+    c = choose(GRAF, Hosts.of([100 * MBIT] * 8, 0.25, kernel_cpu_s=2 * k.kernel_cpu_s))
+    assert "pair work at 2.00x the fit's CPU time" in c.reason
+    assert "pair work" not in choose(GRAF, hosts(100)).reason
+    with pytest.raises(InputError, match="kernel_cpu_s"):
+        Hosts.of([1e6], 1.0, kernel_cpu_s=0.0)
+
+
+def test_a_mode_runs_without_probes_only_within_the_tolerance_at_every_rate():
+    """rate_free_choice: graf on 8 hosts of 0.25 cores is gather within 1% of balanced (balanced is ahead at
+    1 Mbit/s only); asked for the strict fastest, the links would be timed; 100k turns on the rate."""
+    def at(n):
+        return lambda r: Hosts.of([r] * 8, 0.25, gather_cores=0.25)
+
+    mode, worst, (least, most) = costmodel.rate_free_choice(GRAF, at(GRAF.n))
+    assert mode == "gather" and 1.0 < worst <= costmodel.CLEAR_WITHIN and least < most
+    per_rate = [choose(GRAF, at(GRAF.n)(r)) for r in costmodel.CLEAR_RATES_BYTES_S]
+    assert per_rate[0].mode == "balanced" and {c.mode for c in per_rate[1:]} == {"gather"}
+    assert worst == pytest.approx(per_rate[0].predicted_s["gather"] / per_rate[0].predicted_s["balanced"], rel=1e-3)
+    assert costmodel.rate_free_choice(GRAF, at(GRAF.n), within=1.0) is None
+    assert costmodel.rate_free_choice(BIG, at(BIG.n)) is None
+    # one mode to pick from: nothing to measure, even where it is predicted unavailable (1 Mbit/s for 100k)
+    assert costmodel.rate_free_choice(BIG, at(BIG.n), modes=("balanced",))[:2] == ("balanced", 1.0)
 
 
 def test_the_modes_to_pick_from_can_be_narrowed():
@@ -118,11 +161,13 @@ def test_the_constants_are_the_ones_the_fit_script_fits_and_every_pick_is_near_t
         assert getattr(fitted, f.name) == pytest.approx(getattr(FITTED, f.name), rel=2e-3, abs=1e-12), f.name
     assert fit.report(rows, FITTED)  # every pick within 10% of the best measured mode
     out = capsys.readouterr().out
-    assert "| graf (21691) | 8 | 100 | balanced 7.9 s | balanced |" in out
-    # the 100k rows are predicted within 10%
+    assert "| graf (21691) | 8 | 100 | gather 2.7 s | gather |" in out
+    assert "| generated 100186 | 8 | 100 | balanced 12.1 s | balanced |" in out
+    # every row is predicted within 20% (0.84-1.18x on these rows; relative residuals: the centralized pass costs
+    # 1.26e-11 CPU-s per pair-dimension on graf and 1.45e-11 at 100k, one constant between them)
     for r in rows:
-        if r["n"] > 50000 and r["mode"] in fit.MODES:
-            assert fit.predicted(r, FITTED).seconds == pytest.approx(r["seconds"], rel=0.10)
+        if r["mode"] in fit.MODES:
+            assert fit.predicted(r, FITTED).seconds == pytest.approx(r["seconds"], rel=0.20), r
 
 
 def test_modes_gather_and_auto_run_only_in_the_runtime():

@@ -113,29 +113,36 @@ def test_an_auto_agent_takes_the_mode_the_coordinator_names(data):
 
 
 # ---------------------------------------------------------------------- jobs
-def test_dqm_run_mode_auto_picks_records_and_matches_centralized(tmp_path):
+def test_dqm_run_mode_auto_picks_records_and_matches_the_mode_it_ran(tmp_path):
+    from dqm.core.pairs import pair_cpu_s_here
     from dqm.synthetic import sift_like
 
     ds = sift_like(n_images=6, n_points=700, clutter_per_image=80, noise=0.3, seed=5)
     X, ids = ds.descriptors, ds.image_ids
-    # a job whose best mode turns on the link rate in the cost model (3 agents on this host): the links are timed
-    host = measure.host_cores()
-    picks = {costmodel.choose(costmodel.JobShape(n=len(X), agents=3, dim=128),
-                              costmodel.Hosts.of([r] * 3, host / 3, gather_cores=host), gather_from_all=False).mode
-             for r in costmodel.CLEAR_RATES_BYTES_S}
-    assert len(picks) > 1, picks
+    # on one host gather wins at every link rate (one process matches on every core, where the agents would
+    # share them), so auto picks it without probes; between balanced and lean the answer turns on the link
+    # rate in the cost model (3 agents on this host, its measured pair rate): the links are timed
+    host, kernel = measure.host_cores(), pair_cpu_s_here(128, np.uint8)
+
+    def picks(modes):
+        return {costmodel.choose(costmodel.JobShape(n=len(X), agents=3, dim=128),
+                                 costmodel.Hosts.of([r] * 3, host / 3, gather_cores=host, kernel_cpu_s=kernel),
+                                 modes=modes).mode for r in costmodel.CLEAR_RATES_BYTES_S}
+
+    assert picks(costmodel.AUTO_MODES) == {"gather"}
+    assert len(picks(("balanced", "lean"))) > 1
     features = tmp_path / "f.npz"
     io.save_features(features, io.FeatureSet(X, ids))
     report, out = tmp_path / "r.json", tmp_path / "c.npz"
-    p = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "3", "--mode", "auto", "--features",
-                        str(features), "--job", "auto-cli", "--report", str(report), "--out", str(out)],
-                       capture_output=True, text=True, timeout=180)
+    p = subprocess.run([sys.executable, "-m", "dqm", "run", "--agents", "3", "--mode", "auto", "--auto-modes",
+                        "balanced,lean", "--features", str(features), "--job", "auto-cli", "--report", str(report),
+                        "--out", str(out)], capture_output=True, text=True, timeout=180)
     assert p.returncode == 0, p.stderr[-2000:]
     rep = json.loads(report.read_text())
     auto = rep["auto"]
     assert set(auto["rates_bytes_s"]) == {"0", "1", "2"} and all(r > 0 for r in auto["rates_bytes_s"].values())
     assert auto["picked"] == rep["mode"] and auto["picked"] in costmodel.AUTO_MODES
-    assert set(auto["predicted_s"]) == set(costmodel.AUTO_MODES) and auto["reason"].startswith(auto["picked"])
+    assert set(auto["predicted_s"]) == {"balanced", "lean"} and auto["reason"].startswith(auto["picked"])
     assert auto["probe_bytes"] > 0 and "probe" not in rep["kinds"]  # probes are not the job's traffic
     assert rep["epochs"] == 1 and rep["agent_exit_codes"] == [0, 0, 0]
     line = next(ln for ln in p.stdout.splitlines() if ln.startswith("--mode auto picked"))
@@ -143,7 +150,7 @@ def test_dqm_run_mode_auto_picks_records_and_matches_centralized(tmp_path):
     assert f"({auto['picked']} mode" in p.stdout
     labels = np.asarray(rep["labels"])
     np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
-    np.testing.assert_array_equal(labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
+    np.testing.assert_array_equal(labels, simulate(X, ids, DQMConfig(agents=3, mode=rep["mode"])).labels)
     np.testing.assert_array_equal(io.load_clusters(out)["labels"], labels)
 
 
@@ -158,6 +165,8 @@ def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
     # one mode to pick from: the links cannot change the answer, so nothing was timed
     assert rep["auto"]["rates_bytes_s"] == {} and rep["auto"]["probe_s"] == 0 and rep["auto"]["probe_bytes"] == 0
     assert "without timing the links" in rep["auto"]["reason"]
+    # the coordinator timed this host's all-pairs kernel, and the pick says how it scaled the pair work
+    assert rep["auto"]["kernel_cpu_s"] > 0 and "x the fit's CPU time" in rep["auto"]["reason"]
     sim = simulate(X, ids, cfg.but(mode="balanced"))
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
     # the same messages as the balanced job, one start included (its parameters say mode auto, and go
@@ -170,10 +179,11 @@ def test_auto_runs_the_mode_it_picked_as_that_mode_runs(data):
     assert rep["epochs"] == 1
 
 
-def test_auto_skips_the_probes_only_where_every_link_rate_gives_one_mode():
-    """The cost model's pick at every rate of CLEAR_RATES_BYTES_S: graf's size on 8 hosts of 0.25 cores is
-    balanced at all of them; on 2 hosts of a core it turns on the rate (gather on fast links), so the links
-    are timed."""
+def test_auto_skips_the_probes_only_where_the_links_cannot_change_the_answer_much():
+    """The cost model at every rate of CLEAR_RATES_BYTES_S: graf's size on 8 hosts of 0.25 cores is gather
+    (within 1% of balanced at 1 Mbit/s, the fastest at every other rate) on a machine as fast as the fit's at
+    the pairs, balanced on one 3x slower; 100k features on the same hosts turn on the rate (balanced needs
+    10 Mbit/s), so the links are timed; a small job is gather at every rate."""
     from dqm.distributed.coordination import CoordinatorCore
 
     def core_ready(m: int, n: int) -> CoordinatorCore:
@@ -185,16 +195,21 @@ def test_auto_skips_the_probes_only_where_every_link_rate_gives_one_mode():
         assert core.phase == "probe"
         return core
 
-    clear = core_ready(8, 21691)
-    assert clear.decide_unmeasured(0.25, 0.25)
-    assert clear.phase == "running" and clear.cfg.mode == "balanced" and clear.auto["rates_bytes_s"] == {}
-    assert [fields for _, kind, fields in clear.take_outbox() if kind == "go"] == [{"mode": "balanced"}] * 8
-    unclear = core_ready(2, 21691)
-    assert not unclear.decide_unmeasured(1.0, 1.0) and unclear.phase == "probe" and unclear.auto is None
-    picks = {costmodel.choose(costmodel.JobShape(n=21691, agents=2, dim=128),
-                              costmodel.Hosts.of([r, r], 1.0, gather_cores=1.0), gather_from_all=False).mode
+    fit = costmodel.FITTED.kernel_cpu_s
+    for speed, mode, how in ((1.0, "gather", "within 1% of the fastest"), (3.0, "balanced", "the fastest")):
+        clear = core_ready(8, 21691)
+        assert clear.decide_unmeasured(0.25, 0.25, speed * fit)
+        assert clear.phase == "running" and clear.cfg.mode == mode and clear.auto["rates_bytes_s"] == {}
+        assert clear.auto["reason"].startswith(f"{mode} without timing the links: {how} at every link rate")
+        assert f"pair work at {speed:.2f}x the fit's CPU time" in clear.auto["reason"]
+        assert set(clear.auto["predicted_s"]) == {mode} and clear.auto["kernel_cpu_s"] == speed * fit
+        assert [fields for _, kind, fields in clear.take_outbox() if kind == "go"] == [{"mode": mode}] * 8
+    unclear = core_ready(8, 100186)
+    assert not unclear.decide_unmeasured(0.25, 0.25, fit) and unclear.phase == "probe" and unclear.auto is None
+    picks = {costmodel.choose(costmodel.JobShape(n=100186, agents=8, dim=128),
+                              costmodel.Hosts.of([r] * 8, 0.25, gather_cores=0.25, kernel_cpu_s=fit)).mode
              for r in costmodel.CLEAR_RATES_BYTES_S}
-    assert len(picks) > 1
+    assert picks == {"gather", "balanced"}
     # a small job: agent 0 gathers the others' features (they cross one link, its own none) at every rate
     small = core_ready(3, 1321)
     assert small.decide_unmeasured(0.66, 2.0) and small.cfg.mode == "gather"
