@@ -21,6 +21,7 @@ import warnings
 from typing import List, Optional
 
 from . import __version__, logging_config, signals
+from .blas_threads import with_blas_defaults
 from .commands import HelpFormatter
 
 #: command name -> the module that holds it (NAME, HELP, add_arguments, run)
@@ -166,6 +167,7 @@ interrupted_while_importing = False
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    with_blas_defaults(os.environ)  # before numpy loads OpenBLAS: its workers do not spin (dqm.blas_threads)
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
     signals.install_sigterm()
     signals.received = None

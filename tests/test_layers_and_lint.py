@@ -27,8 +27,8 @@ ABOVE = {
 }
 #: the support modules under every layer: they import none of the layers (the package's face, __init__, and the
 #: program, __main__ and cli, import them all)
-SUPPORT = ["io", "lazy_exports", "logging_config", "outputs", "progress", "signals", "synthetic", "validation",
-           "wording"]
+SUPPORT = ["blas_threads", "io", "lazy_exports", "logging_config", "outputs", "progress", "signals", "synthetic",
+           "validation", "wording"]
 for _name in SUPPORT:
     ABOVE[f"dqm/{_name}.py"] = ["dqm.core", "dqm.distributed", "dqm.runtime"] + APPLICATION + TOP
 
@@ -156,3 +156,32 @@ def test_every_runtime_module_logs_through_the_dqm_logger_tree():
     silent = [p.stem for p in sorted((ROOT / "dqm" / "runtime").glob("*.py"))
               if p.stem not in RUNTIME_WITHOUT_LOGGER and 'getLogger("dqm' not in p.read_text()]
     assert not silent, "runtime modules without a logger of the dqm tree: " + ", ".join(silent)
+
+
+def test_dqm_processes_start_with_openblas_workers_that_do_not_spin(tmp_path):
+    """The dqm command sets OPENBLAS_THREAD_TIMEOUT for itself before numpy loads, and the launcher for every
+    child; a value the caller's environment has is kept (dqm.blas_threads)."""
+    import os
+    import subprocess
+    import sys
+
+    from dqm.blas_threads import BLAS_ENV_DEFAULTS, with_blas_defaults
+    from dqm.runtime.launcher import Processes
+
+    assert with_blas_defaults({}) == BLAS_ENV_DEFAULTS
+    assert with_blas_defaults({"OPENBLAS_THREAD_TIMEOUT": "9"}) == {"OPENBLAS_THREAD_TIMEOUT": "9"}
+    # numpy is not loaded before main, which sets the variable first (--version then loads numpy for the kernel)
+    probe = ("import os, sys, dqm.cli as c\nbefore = 'numpy' in sys.modules\ntry:\n    c.main(['--version'])\n"
+             "except SystemExit:\n    pass\nprint(before, os.environ.get('OPENBLAS_THREAD_TIMEOUT'))")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=60)
+    assert out.stdout.split()[-2:] == ["False", "4"], out.stdout + out.stderr
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "OPENBLAS_THREAD_TIMEOUT": "9"},
+                         capture_output=True, text=True, timeout=60)
+    assert out.stdout.split()[-1] == "9"
+    (tmp_path / "envprobe.py").write_text("import os\nprint(os.environ.get('OPENBLAS_THREAD_TIMEOUT'))\n")
+    procs = Processes()
+    child = procs.start([], tmp_path / "c.log", env={**env, "PYTHONPATH": str(tmp_path)}, module="envprobe")
+    child.wait(timeout=60)
+    procs.stop_all()
+    assert "4" in (tmp_path / "c.log").read_text().split()

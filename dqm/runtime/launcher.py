@@ -28,6 +28,7 @@ from typing import Callable, Iterator, List, Optional, Sequence
 import numpy as np
 
 from .. import io
+from ..blas_threads import with_blas_defaults
 from ..distributed.config import DQMConfig, config_args
 from ..distributed.sources import split_features
 from ..wording import seconds
@@ -46,12 +47,6 @@ WORKDIR_PREFIX = "dqm-run-"
 #: measured on this 2-core host: an agent process spends about 1 CPU s starting (imports, zenoh session)
 #: and holds about 100 MB before its own features
 AGENT_START_CPU_S = 1.0
-#: environment every child starts with unless the caller's environment sets it: OpenBLAS's worker threads
-#: sleep at once after work instead of busy-waiting for about 2^28 cycles. The engine's tiles call BLAS
-#: single-threaded from their own worker threads, so the spin only burns CPU, and it starts at ``import numpy``:
-#: measured on 2 cores, 0.13-0.15 CPU-s per process start instead of 0.06-0.07, which in a host's CPU quota of
-#: a quarter core is 0.3 s of wall time per process (docs/runtime.md, "Start-up")
-CHILD_ENV_DEFAULTS = {"OPENBLAS_THREAD_TIMEOUT": "4"}
 AGENT_BASE_BYTES = 100 << 20
 #: agents per core beyond which ``dqm run`` warns that they only share the cores
 AGENTS_PER_CORE = 4
@@ -213,8 +208,7 @@ class Processes:
         process."""
         fh = open(log_path, "w")
         env = dict(os.environ if env is None else env)
-        for var, value in CHILD_ENV_DEFAULTS.items():
-            env.setdefault(var, value)
+        with_blas_defaults(env)  # OpenBLAS's workers do not spin (dqm.blas_threads)
         env[PARENT_ENV] = str(os.getpid())
         try:
             with signals_deferred():  # Ctrl-C / SIGTERM arrive once the child is started and known
