@@ -377,8 +377,7 @@ class CoordinatorCore:
             job = self.job_shape()
             choice = costmodel.choose(job, costmodel.Hosts.of([rates[p] for p in hosts], cores,
                                                               gather_cores=gather_cores, kernel_cpu_s=kernel_cpu_s),
-                                      started=True,
-                                      modes=self.requested.auto_choices)
+                                      started=True, modes=self.requested.auto_choices)
         except InputError as exc:
             self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
                                 "Give the job's mode explicitly (--mode balanced, lean or gather)."))
