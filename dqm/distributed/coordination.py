@@ -34,6 +34,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..wording import seconds
 from . import costmodel, protocol, sources
 from .config import RECOVERY, DQMConfig
 from .driver import start_fields
@@ -360,8 +361,8 @@ class CoordinatorCore:
                                                         costmodel.CLEAR_RATES_BYTES_S[-1]))
         how = "the fastest" if worst <= 1 + 1e-9 else f"within {100 * (worst - 1):.0f}% of the fastest"
         reason = (f"{mode} without timing the links: {how} at every link rate from {lo_s} to {hi_s} Mbit/s "
-                  f"(predicted {least:.1f} to {most:.1f} s; {job.n} features on {self.m} agents, cores per host "
-                  f"{cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
+                  f"(predicted {seconds(least)} to {seconds(most)}; {job.n} features on {self.m} agents, "
+                  f"cores per host {cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
         self._picked(mode, {}, {mode: round(most, 3)}, reason, 0.0, {}, cores, gather_cores, job.n, kernel_cpu_s)
         return True
 
