@@ -421,6 +421,7 @@ def kernel_pass(
     cols_from: Optional[int] = None,
     max_edges: Optional[int] = None,
     on_edges: Optional[Callable[[np.ndarray, np.ndarray], None]] = None,
+    undirected: bool = False,
 ) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
     """One pass over all pairs: approximate densities and candidate edges.
 
@@ -445,7 +446,10 @@ def kernel_pass(
     ``on_edges``, every tile's edges go to ``on_edges(child, cand)`` instead
     (in the same order on every run; a pair lies in one tile only), nothing is
     collected, and ``child`` and ``cand`` come back empty: memory O(n + one
-    tile's edges) whatever the radius.
+    tile's edges) whatever the radius. With ``undirected`` as well, ``on_edges``
+    gets every candidate pair once, as (lower index, higher index), instead of
+    both directions (a caller that needs each pair once, the balanced agents,
+    then does not sort every tile's edges to drop the mirror images).
 
     Returns ``(density_others, density_error, child, cand)``: the density
     without the self term (float32 accuracy), a bound on its absolute error,
@@ -504,7 +508,9 @@ def kernel_pass(
                 continue
             if on_edges is not None:
                 r, c = r.astype(np.int64) + a, c.astype(np.int64) + b
-                if dc is not None:
+                if undirected:  # a tile off the diagonal has each pair once; on it, in one or both directions
+                    r, c = (np.minimum(r, c), np.maximum(r, c)) if dc is not None else _pairs_once(r, c, n)
+                elif dc is not None:
                     r, c = np.concatenate([r, c]), np.concatenate([c, r])
                 on_edges(*within_limit(r, c))
                 continue
@@ -581,6 +587,12 @@ def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 2, k
     worker.join()
     best = min(times[1:])
     return max(best, 1e-9) / (n * (n - 1) / 2.0 * X.shape[1])
+
+
+def _pairs_once(r: np.ndarray, c: np.ndarray, n: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Directed edges among n rows as unordered pairs, each once: (lower, higher), sorted."""
+    key = np.unique(np.minimum(r, c) * n + np.maximum(r, c))
+    return key // n, key % n
 
 
 def term_error_factor(aug: Augmented) -> np.ndarray:

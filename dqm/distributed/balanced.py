@@ -368,12 +368,9 @@ class BalancedCore:
         budget = memory.resolve_budget(None)
         cap = max(0, budget - memory.base_bytes(n, aug.dim, pairs.default_threads())) // memory.BYTES_PER_EDGE
 
-        def tile_edges(cr: np.ndarray, cc: np.ndarray) -> None:
-            # one tile's pairs within reach: their exact kernel terms now, and only the
+        def tile_edges(i: np.ndarray, j: np.ndarray) -> None:
+            # one tile's pairs within reach, each once: their exact kernel terms now, and only the
             # parent candidates kept, so memory does not grow with the kernel's reach
-            lo, hi = np.minimum(cr, cc), np.maximum(cr, cc)
-            key = np.unique(lo * n + hi)
-            i, j = key // n, key % n
             d2 = pairs.exact_sq_distances(aug.exact, i, j)
             t_ij = np.where(active[i], exact.quadratic_terms(d2, w[i]), 0.0)  # i contributes to j
             t_ji = np.where(active[j], exact.quadratic_terms(d2, w[j]), 0.0)
@@ -396,7 +393,7 @@ class BalancedCore:
                     f"{memory.format_bytes(budget)}; use a smaller rho or more agents")
 
         pairs.kernel_pass(aug, zero, zero, "quadratic", ghosts.reach(sig, self.cfg.rho), rows_limit=cross,
-                          cols_from=cross, on_edges=tile_edges)
+                          cols_from=cross, on_edges=tile_edges, undirected=True)
 
     def _round_sums(self, inputs) -> Dict[int, Payload]:
         self.meet_own()  # no copies offered at all

@@ -138,6 +138,15 @@ def test_edges_handed_over_tile_by_tile_are_the_collected_ones(monkeypatch):
         r = np.concatenate([g[0] for g in got])
         c = np.concatenate([g[1] for g in got])
         assert sorted(zip(r.tolist(), c.tolist())) == sorted(zip(cr.tolist(), cc.tolist()))
+        # undirected: every pair of those edges once, lower index first, diagonal tiles (both directions) too
+        once = []
+        pairs.kernel_pass(aug, zero, zero, "quadratic", 1.3 * sig, rows_limit=limit, undirected=True,
+                          on_edges=lambda r, c, got=once: got.append((r, c)))
+        lo = np.concatenate([g[0] for g in once])
+        hi = np.concatenate([g[1] for g in once])
+        assert (lo < hi).all() and len(np.unique(lo * aug.n + hi)) == len(lo)
+        np.testing.assert_array_equal(np.sort(lo * aug.n + hi),
+                                      np.unique(np.minimum(cr, cc) * aug.n + np.maximum(cr, cc)))
 
 
 needs_vnni = pytest.mark.skipif(native.simd_level() < 3, reason="the CPU has no AVX-512 VNNI (integer distance kernel)")
