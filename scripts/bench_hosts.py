@@ -13,9 +13,10 @@ on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
   as one agent host;
 * gather-approx: the same with approximate QuickMatch (faiss);
 * lean, balanced: `dqm agent` on every host, the coordinator on host 0;
-* auto: the same processes with `--mode auto`: the coordinator times its link to every host, picks
-  gather (every agent's features to the coordinator, which matches them), lean or balanced with
-  dqm.distributed.costmodel, and runs it. Its rows say what it picked and its time over the best
+* auto: the same processes with `--mode auto`: the coordinator picks gather (every other agent's features to
+  agent 0, which matches them with its own), lean or balanced with dqm.distributed.costmodel at this
+  machine's measured pair rate, timing its link to every host only where the links can change the
+  answer, and runs it. Its rows say what it picked and its time over the best
   of gather, lean and balanced in the same run ("auto / best").
 
 Time to result: from starting the processes (Python start-up in the quota included, for every

@@ -541,21 +541,24 @@ def kernel_pass(
     return dens, err, child_a, cand_a
 
 
-#: rows of :func:`pair_cpu_s_here`'s generated block: three 1024-row tiles, 3-4 ms of CPU on AVX-512 VNNI
+#: rows of :func:`pair_cpu_s_here`'s generated block: three 1024-row tiles, 3-4 ms of CPU a pass on AVX-512 VNNI
 #: (uint8, 128 dimensions), 15-20 ms in portable C
 PROBE_ROWS = 2048
 
 
-def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 2, kernel: str = "quadratic") -> float:
+def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 4, kernel: str = "quadratic") -> float:
     """CPU-seconds per pair-dimension of :func:`kernel_pass` on one thread, measured here: the least of
     ``repeats`` passes (after one to warm up) over ``rows`` generated rows of ``dim`` elements of ``dtype``
     (uint8 or float32), on a thread of its own timed by that thread's CPU clock (a CPU quota's throttling and the
-    process's other threads do not count).
+    process's other threads do not count; the process's clock where BLAS cannot be made single-threaded in
+    one thread, whose workers would otherwise go uncounted).
 
     What the machine does with the same code: ``--mode auto``'s cost model scales its fitted compute by this
     over the value measured where it was fitted (:class:`dqm.distributed.costmodel.CostConstants`). Over
     all-pairs passes of 5,000 to 40,000 generated features, a full :func:`dqm.quickmatch` on one thread took
-    0.75-1.05x this per pair-dimension at every SIMD level of one machine (AVX-512 VNNI, AVX2, portable C)."""
+    0.75-1.05x this per pair-dimension at every SIMD level of one machine (AVX-512 VNNI, AVX2, portable C).
+    Four timed passes of 2048 rows (about 15 ms of CPU on AVX-512 VNNI): two gave values 20% apart on one
+    machine and day."""
     import time
 
     dt = np.dtype(dtype)
@@ -563,28 +566,35 @@ def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 2, k
         raise ValueError(f"pair_cpu_s_here times uint8 or float32 rows of dim >= 1, got {dt} x {dim}, {rows} rows")
     rng = np.random.default_rng(0)
     X = rng.integers(0, 256, size=(int(rows), int(dim)), dtype=np.uint8)
-    X = X if dt == np.uint8 else (X / np.float32(256)).astype(np.float32)
+    scale = 1.0 if dt == np.uint8 else 1.0 / 256
+    X = X if dt == np.uint8 else (X * np.float32(scale)).astype(np.float32)
     n = len(X)
     aug = Augmented(X)
-    w = np.full(n, 1e-6, np.float32)
+    w = np.full(n, 1e-6 / scale ** 2, np.float32)  # kernel arguments of order one for both types
     active = np.ones(n, np.float32)
     rad2 = np.full(n, -np.inf, np.float32)  # no edges: the pass's distances and kernel terms only
     fused = aug.integer_kernel
     starts = range(0, n, BLOCK)
     tiles = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for a in starts for b in starts if b >= a]
     times: List[float] = []
+    failed: List[BaseException] = []
 
     def run() -> None:  # in a thread of its own: its CPU clock counts this work only, its BLAS single-threaded
-        native.single_threaded_blas_in_this_thread()
-        for _ in range(max(1, int(repeats)) + 1):  # the first pass warms up (operands, pages): not counted
-            t = time.thread_time()
-            for a, a1, b, b1 in tiles:
-                pass_tile(aug, a, a1, b, b1, a == b, w, active, kernel, rad2, fused)
-            times.append(time.thread_time() - t)
+        try:
+            clock = time.thread_time if native.single_threaded_blas_in_this_thread() else time.process_time
+            for _ in range(max(1, int(repeats)) + 1):  # the first pass warms up (operands, pages): not counted
+                t = clock()
+                for a, a1, b, b1 in tiles:
+                    pass_tile(aug, a, a1, b, b1, a == b, w, active, kernel, rad2, fused)
+                times.append(clock() - t)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread, whatever it is
+            failed.append(exc)
 
     worker = threading.Thread(target=run, name="dqm-pair-probe")
     worker.start()
     worker.join()
+    if failed:
+        raise failed[0]
     best = min(times[1:])
     return max(best, 1e-9) / (n * (n - 1) / 2.0 * X.shape[1])
 

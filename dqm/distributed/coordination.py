@@ -359,7 +359,7 @@ class CoordinatorCore:
         mode, worst, (least, most) = found
         lo_s, hi_s = (costmodel.mbit_text(r) for r in (costmodel.CLEAR_RATES_BYTES_S[0],
                                                         costmodel.CLEAR_RATES_BYTES_S[-1]))
-        how = "the fastest" if worst <= 1 + 1e-9 else f"within {100 * (worst - 1):.0f}% of the fastest"
+        how = "the fastest" if worst <= 1 + 1e-9 else f"within {100 * (worst - 1):.1f}% of the fastest"
         reason = (f"{mode} without timing the links: {how} at every link rate from {lo_s} to {hi_s} Mbit/s "
                   f"(predicted {seconds(least)} to {seconds(most)}; {job.n} features on {self.m} agents, "
                   f"cores per host {cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")

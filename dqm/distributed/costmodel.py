@@ -33,12 +33,12 @@ the fit machine's measurement ``kernel_cpu_s`` (:meth:`Hosts.pair_cpu_s`): the f
 mispredicted the centralized pass 3x on a machine faster than the fit's, and picked balanced where gather
 was faster.
 
-``start`` is the processes' start-up: ``run_start_cpu_s / c_0`` for a job of ``dqm run`` /
-``dqm coordinator`` (host 0 holds agent 0, which gathers in gather mode, and the coordinator),
-``(gather_start_cpu_s + gather_skew_cpu_s) / c_g`` for the stand-alone gathering of
+``start`` is the processes' start-up, as the benchmark ran each mode: ``run_start_cpu_s / c_0`` for lean and
+balanced, jobs of ``dqm run`` / ``dqm coordinator`` (host 0 holds agent 0 and the coordinator);
+``(gather_start_cpu_s + gather_skew_cpu_s) / c_g`` for gather, the stand-alone gathering of
 ``dqm.runtime.gather`` (its own start-up, and its wait for the last source to start); 0 when the
 processes are already running (``started=True``: the coordinator's case, whose start-up is paid
-whatever it picks).
+whatever it picks, gather inside ``dqm run`` included).
 
 **Balanced is unavailable** when one link's share of its bytes (``b * raw / M``) takes longer than
 ``starve_s`` at the slowest measured rate: its processes then wait behind seconds of bulk traffic, and

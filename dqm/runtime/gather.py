@@ -2,9 +2,9 @@
 
 Two users share the gather of :mod:`dqm.distributed.gathering` (the payload, the parts, the match):
 the stand-alone baseline that the distributed modes must beat on
-real links (``scripts/bench_hosts.py``, the command lines below) and the coordinator of a ``dqm run``
-job in ``--mode gather`` (or ``auto`` when it picks gather), whose agents send the same ``gather``
-messages on their own keys to the coordinator (:mod:`dqm.runtime.coordinator`, :mod:`dqm.runtime.agent`).
+real links (``scripts/bench_hosts.py``, the command lines below) and agent 0 of a ``dqm run`` job in
+``--mode gather`` (or ``auto`` when it picks gather), to which the other agents send the same ``gather``
+messages (:class:`dqm.distributed.gathering.GatherDriver`).
 
 * :func:`gather_payload`: one source's ``gather`` payload (sent in parts of at most 1 MiB by
   :func:`dqm.distributed.protocol.data_messages`, merged by :func:`dqm.distributed.protocol.merge_parts`);

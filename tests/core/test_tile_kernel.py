@@ -184,6 +184,14 @@ def test_own_by_batch_pass_meets_exactly_the_cross_pairs(monkeypatch, fused):
         kept = d[r, c] < radius[r]  # the pass's edges are a superset; the ones that matter are all there
         assert within.sum() > 0
         np.testing.assert_array_equal(np.sort(r[kept] * n + c[kept]), np.flatnonzero(within))
+        # undirected (the balanced agents' call): each of those pairs once, lower index first
+        once = []
+        pairs.kernel_pass(aug, zero, zero, "quadratic", radius, rows_limit=cut, cols_from=cut, undirected=True,
+                          on_edges=lambda r, c, got=once: got.append((r, c)))
+        lo = np.concatenate([g[0] for g in once])
+        hi = np.concatenate([g[1] for g in once])
+        assert (lo < cut).all() and (hi >= cut).all(), cut
+        np.testing.assert_array_equal(np.sort(lo * n + hi), np.unique(np.minimum(r, c) * n + np.maximum(r, c)))
 
 
 @needs_vnni
@@ -468,3 +476,12 @@ def test_the_pair_rate_probe_measures_the_pass_it_names(levels, dtype):
         assert 0.33 < per_pair_dim / rate < 3.0, (level, per_pair_dim, rate)
     with pytest.raises(ValueError, match="uint8 or float32"):
         pairs.pair_cpu_s_here(128, np.int16)
+
+
+def test_the_pair_rate_probe_says_what_failed_in_its_thread(monkeypatch):
+    def broken(*args, **kwargs):
+        raise MemoryError("no room for a tile")
+
+    monkeypatch.setattr(pairs, "pass_tile", broken)
+    with pytest.raises(MemoryError, match="no room for a tile"):
+        pairs.pair_cpu_s_here(128, np.uint8)

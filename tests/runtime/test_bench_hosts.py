@@ -94,21 +94,28 @@ def test_auto_picks_without_probes_where_the_size_decides_and_gives_its_clusters
 
 def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
     import dqm
-    from dqm.core.pairs import pair_cpu_s_here
     from dqm.distributed import costmodel
 
     a, big = runs["auto-big"], runs["big"]
-    kernel = pair_cpu_s_here(128, np.uint8)
-    # the job's answer turns on the rate: no mode is within 10% of the fastest at every rate
-    assert costmodel.rate_free_choice(costmodel.JobShape(n=len(big.descriptors), agents=2, dim=128),
-                                      lambda r: costmodel.Hosts.of([r, r], 1.0, gather_cores=BIG_GATHER_CORES,
-                                                                   kernel_cpu_s=kernel)) is None
+    job = costmodel.JobShape(n=len(big.descriptors), agents=2, dim=128)
+
+    def hosts(rates):
+        return costmodel.Hosts.of(rates, 1.0, gather_cores=BIG_GATHER_CORES, kernel_cpu_s=a.detail["kernel_cpu_s"])
+
+    # agent 0's host gives a gathering match a tenth of a core: at this job's size, with the pair rate the
+    # coordinator measured (on this machine: the links are timed), no mode is within 10% of the fastest at every rate
+    clear = costmodel.rate_free_choice(job, lambda r: hosts([r, r]))
     assert a.detail["picked"] in ("gather", "balanced", "lean")
     ref = dqm.quickmatch(big.descriptors, big.image_ids, kernel="quadratic").labels
     assert np.array_equal(a.ids, np.arange(len(big.descriptors)))
     assert evaluation.comembership_scores(a.labels, ref).f1 >= (0.99 if a.detail["picked"] == "lean" else 1.0)
-    # the links are capped at 100 Mbit/s: the probes see about that
-    assert all(50 < r < 200 for r in a.detail["rates_mbit"].values()), a.detail["rates_mbit"]
+    if clear is not None:  # a machine whose pair rate puts one mode ahead at every rate: no probes
+        assert a.detail["picked"] == clear[0] and a.detail["probe_s"] == 0 and a.detail["rates_mbit"] == {}
+        return
+    # the links are capped at 100 Mbit/s: the probes see about that, and the pick is the model's at those rates
+    rates = a.detail["rates_mbit"]
+    assert all(50 < r < 200 for r in rates.values()), rates
+    assert costmodel.choose(job, hosts([rates["0"] * 1e6 / 8, rates["1"] * 1e6 / 8])).mode == a.detail["picked"]
     assert 0 < a.detail["probe_s"] < 5 and a.detail["job_s"] >= a.detail["probe_s"]
 
 
