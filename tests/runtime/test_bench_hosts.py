@@ -100,7 +100,8 @@ def test_auto_measures_the_links_picks_a_mode_and_gives_its_clusters(runs):
     job = costmodel.JobShape(n=len(big.descriptors), agents=2, dim=128)
 
     def hosts(rates):
-        return costmodel.Hosts.of(rates, 1.0, gather_cores=BIG_GATHER_CORES, kernel_cpu_s=a.detail["kernel_cpu_s"])
+        return costmodel.Hosts.of(rates, 1.0, gather_cores=BIG_GATHER_CORES,
+                                  kernel_cpu_s=a.detail["coordinator_kernel_cpu_s"])
 
     # agent 0's host gives a gathering match a tenth of a core: at this job's size, with the pair rate the
     # coordinator measured (on this machine: the links are timed), no mode is within 10% of the fastest at every rate
