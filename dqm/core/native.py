@@ -802,7 +802,6 @@ def u8_kernel_runs(X: np.ndarray) -> bool:
     return _LIB is not None and X.dtype == np.uint8 and simd_level() >= 3 and len(X) > 0
 
 
-
 def pass_tile_u8(ops: U8Operands, a: int, a1: int, b: int, b1: int, w, s, kernel, rad2, dens_r, err_r,
                  dens_c=None, err_c=None, diag: Optional[bool] = None):
     """One tile of the all-pairs pass on :class:`U8Operands`, distances and kernel fused: as

@@ -303,13 +303,8 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     # no tile needs to hand over the entries near them
     minima_only = aug.exact_d2
     slack = None if minima_only else 2.0 * aug.d2_slack(np.arange(n))
-    tasks = []
     images = [img for img in range(n_images) if bounds[img + 1] - bounds[img] >= 2]
-    for img in images:
-        lo, hi = bounds[img], bounds[img + 1]
-        starts = list(range(lo, hi, BLOCK))
-        tasks += [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK), img) for i, a in enumerate(starts)
-                  for b in starts[i:]]
+    tasks = [tile + (img,) for img in images for tile in _block_pairs(bounds[img], bounds[img + 1])]
 
     def work(task):
         a, a1, b, b1, img = task
@@ -380,6 +375,14 @@ def search_rad2(aug: Augmented, radius: np.ndarray) -> np.ndarray:
     rad2[low] = np.nextafter(rad2[low], np.float32(np.inf))
     rad2[r <= 0] = -np.inf
     return rad2
+
+
+def _block_pairs(lo: int, hi: int, limit: Optional[int] = None) -> List[Tuple[int, int, int, int]]:
+    """The pairs of :data:`BLOCK`-row blocks of rows ``lo:hi``, each unordered pair once (a block with itself
+    included), as ``(a, a1, b, b1)``; with ``limit``, only those whose row block starts below it."""
+    starts = list(range(lo, hi, BLOCK))
+    return [(a, min(hi, a + BLOCK), b, min(hi, b + BLOCK)) for i, a in enumerate(starts)
+            if limit is None or a < limit for b in starts[i:]]
 
 
 def pass_tile(aug: Augmented, a: int, a1: int, b: int, b1: int, diag: bool, w: np.ndarray, s: np.ndarray,
@@ -468,9 +471,7 @@ def kernel_pass(
     cross = 0 if cols_from is None else int(cols_from)
     fused = aug.integer_kernel and use_native
     if cols_from is None:  # unordered block pairs, each once; diagonal blocks (a == b) use one direction
-        starts = list(range(0, n, BLOCK))
-        tasks = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for ia, a in enumerate(starts) if a < limit
-                 for b in starts[ia:]]
+        tasks = _block_pairs(0, n, limit)
     else:  # rows end at the limit and columns start at cross (the integer kernel's tiles at a multiple of 32):
         # only the own-by-batch rectangle, whatever the sizes (own rows in the columns' first 31: edges filtered)
         c0 = cross - cross % 32 if fused else cross
@@ -574,8 +575,7 @@ def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 4, k
     active = np.ones(n, np.float32)
     rad2 = np.full(n, -np.inf, np.float32)  # no edges: the pass's distances and kernel terms only
     fused = aug.integer_kernel
-    starts = range(0, n, BLOCK)
-    tiles = [(a, min(n, a + BLOCK), b, min(n, b + BLOCK)) for a in starts for b in starts if b >= a]
+    tiles = _block_pairs(0, n)
     times: List[float] = []
     failed: List[BaseException] = []
 
