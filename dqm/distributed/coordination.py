@@ -116,6 +116,9 @@ class CoordinatorCore:
         self.catalog_parts: Dict[int, Dict[int, dict]] = defaultdict(dict)
         #: auto: the report's ``auto`` block once the mode is picked
         self.auto: Optional[dict] = None
+        #: --mode auto, when the links are timed: (rate, mode) where every link at least ``rate`` fast settles the
+        #: pick (:func:`costmodel.settled_above`), or None; set by :meth:`decide_unmeasured`
+        self.settled: Optional[Tuple[float, str]] = None
         #: the CLUSTERS arrays once the job is done (with ``catalog``)
         self.clusters: Optional[sources.AssembledClusters] = None
         self.outbox: List[Outgoing] = []
@@ -347,11 +350,17 @@ class CoordinatorCore:
         from ..validation import InputError
 
         hosts = self.hosts()
+
+        def at(r: float) -> costmodel.Hosts:
+            return costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores, kernel_cpu_s=kernel_cpu_s)
+
+        self.settled = None
         try:
             job = self.job_shape()
-            found = costmodel.rate_free_choice(
-                job, lambda r: costmodel.Hosts.of([r] * len(hosts), cores, gather_cores=gather_cores,
-                                                  kernel_cpu_s=kernel_cpu_s), modes=self.requested.auto_choices)
+            found = costmodel.rate_free_choice(job, at, modes=self.requested.auto_choices)
+            if found is None:
+                above = costmodel.settled_above(job, at, modes=self.requested.auto_choices)
+                self.settled = None if above is None else above[:2]
         except InputError:
             return False  # the measuring path says what is wrong
         if found is None:
@@ -366,11 +375,20 @@ class CoordinatorCore:
         self._picked(mode, {}, {mode: round(most, 3)}, reason, 0.0, {}, cores, gather_cores, job.n, kernel_cpu_s)
         return True
 
+    @property
+    def enough_rate(self) -> Optional[float]:
+        """--mode auto: a probe reading (bytes/s) at which a link needs no finer timing (:attr:`settled` times
+        :data:`costmodel.SETTLED_MARGIN`), or None."""
+        return None if self.settled is None else self.settled[0] * costmodel.SETTLED_MARGIN
+
     def decide(self, rates: Dict[int, float], cores: float, gather_cores: float, probe_s: float,
-               pairs: Optional[Dict[int, list]] = None, kernel_cpu_s: Optional[float] = None) -> None:
+               pairs: Optional[Dict[int, list]] = None, kernel_cpu_s: Optional[float] = None,
+               at_least: Sequence[int] = ()) -> None:
         """``--mode auto``: pick the mode from the measured rates (bytes/s to each hosting process) and pair
         rate (``kernel_cpu_s``, as in :meth:`decide_unmeasured`) with the cost model, and run it (``go`` names
-        it: the processes make its drivers in this epoch)."""
+        it: the processes make its drivers in this epoch). ``at_least``: the processes whose rate is only a
+        lower bound (a probe pair read at least :attr:`enough_rate`). When every link is at least that fast
+        the pick is :attr:`settled`'s mode."""
         from ..validation import InputError
 
         hosts = self.hosts()
@@ -382,16 +400,25 @@ class CoordinatorCore:
         except InputError as exc:
             self.fail(JobFailed(f"--mode auto cannot pick a mode: {exc}", None, "probe",
                                 "Give the job's mode explicitly (--mode balanced, lean or gather)."))
-        self._picked(choice.mode, rates, choice.predicted_s, choice.reason, probe_s, pairs or {}, cores,
-                     gather_cores, job.n, kernel_cpu_s)
+        mode, reason = choice.mode, choice.reason
+        enough = self.enough_rate
+        if enough is not None and all(rates[p] >= enough for p in hosts):
+            floor, mode = self.settled
+            reason = (f"{mode}: every link measured at least {costmodel.mbit_text(enough)} Mbit/s, and {mode} is "
+                      f"predicted within {100 * (costmodel.CLEAR_WITHIN - 1):.0f}% of the fastest at every rate from "
+                      f"{costmodel.mbit_text(floor)} Mbit/s up ({job.n} features on {self.m} agents, cores per host "
+                      f"{cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
+        self._picked(mode, rates, choice.predicted_s, reason, probe_s, pairs or {}, cores,
+                     gather_cores, job.n, kernel_cpu_s, at_least)
 
     def _picked(self, mode: str, rates: Dict[int, float], predicted_s: Dict[str, Optional[float]], reason: str,
                 probe_s: float, pairs: Dict[int, list], cores: float, gather_cores: float, n: int,
-                kernel_cpu_s: Optional[float]) -> None:
+                kernel_cpu_s: Optional[float], at_least: Sequence[int] = ()) -> None:
         hosts = self.hosts()
         self.cfg = self.requested.but(mode=mode)
         self.auto = {
             "rates_bytes_s": {str(p): round(rates[p], 1) for p in hosts if p in rates},
+            "rates_at_least": [str(p) for p in hosts if p in at_least],
             "picked": mode, "predicted_s": predicted_s, "reason": reason,
             "probe_s": probe_s,
             "probe_pairs": {str(p): [list(x) for x in pairs.get(p, [])] for p in hosts if p in pairs},

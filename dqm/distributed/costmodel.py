@@ -73,6 +73,9 @@ CLEAR_WITHIN = 1.10
 #: measured pair rate in a small CPU quota varies 20-40% (on graf's 8 quarter-core hosts gather and balanced
 #: trade places at 1.2x the fit machine's rate), and the links are what a team of robots has least of
 NEAR_WITHIN = 1.10
+#: where the pick is settled above some rate of :data:`CLEAR_RATES_BYTES_S` (:func:`settled_above`), a link that
+#: one probe pair shows at least this many times faster than that rate needs no finer measurement
+SETTLED_MARGIN = 2.0
 
 
 @dataclass(frozen=True)
@@ -391,14 +394,15 @@ def _fewest_bytes(modes: Sequence[str], preds: Dict[str, Prediction]) -> str:
 
 
 def rate_free_choice(job: JobShape, hosts_at: Callable[[float], Hosts], constants: CostConstants = FITTED, *,
-                     modes: Sequence[str] = AUTO_MODES, within: float = CLEAR_WITHIN
+                     modes: Sequence[str] = AUTO_MODES, within: float = CLEAR_WITHIN,
+                     rates: Sequence[float] = CLEAR_RATES_BYTES_S
                      ) -> Optional[Tuple[str, float, Tuple[float, float]]]:
     """The mode to run without timing the links, if there is one: of the available modes of ``modes`` whose predicted
-    time (processes started) is at most ``within`` times the fastest's at every rate ``r`` of
-    :data:`CLEAR_RATES_BYTES_S` (``hosts_at(r)``: the hosts with their links at ``r``), the one that moves the
+    time (processes started) is at most ``within`` times the fastest's at every rate ``r`` of ``rates`` (default
+    :data:`CLEAR_RATES_BYTES_S`; ``hosts_at(r)``: the hosts with their links at ``r``), the one that moves the
     fewest bytes (ties: :data:`AUTO_MODES` order). Returns ``(mode, worst ratio, (least, most) predicted seconds)``, or
     None when the answer turns on the links (then they are timed)."""
-    preds = [predict(job, hosts_at(r), constants, started=True) for r in CLEAR_RATES_BYTES_S]
+    preds = [predict(job, hosts_at(r), constants, started=True) for r in rates]
     candidates = [m for m in AUTO_MODES if m in modes]
     worst: Dict[str, float] = {}
     for mode in candidates:
@@ -413,3 +417,21 @@ def rate_free_choice(job: JobShape, hosts_at: Callable[[float], Hosts], constant
     best = _fewest_bytes(near, preds[0])  # the bytes do not depend on the rate
     seconds = [p[best].seconds for p in preds]
     return best, worst[best], (min(seconds), max(seconds))
+
+
+def settled_above(job: JobShape, hosts_at: Callable[[float], Hosts], constants: CostConstants = FITTED, *,
+                  modes: Sequence[str] = AUTO_MODES, within: float = CLEAR_WITHIN
+                  ) -> Optional[Tuple[float, str, float]]:
+    """Where the answer turns on the links only below some rate: the least rate ``floor`` of
+    :data:`CLEAR_RATES_BYTES_S` such that :func:`rate_free_choice` over the rates from ``floor`` up finds a
+    mode. Returns ``(floor, mode, worst ratio)``, or None when no rate settles it (10 Gbit/s alone does not). Links
+    known to be at least ``floor`` fast need no finer timing (the coordinator's probes stop at
+    :data:`SETTLED_MARGIN` times it)."""
+    grid = list(CLEAR_RATES_BYTES_S)
+    found = None
+    for k in range(len(grid) - 1, -1, -1):  # the settled range only grows downwards until it breaks
+        here = rate_free_choice(job, hosts_at, constants, modes=modes, within=within, rates=grid[k:])
+        if here is None or (found is not None and here[0] != found[1]):
+            break
+        found = (grid[k], here[0], here[1])
+    return found

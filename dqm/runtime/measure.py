@@ -75,6 +75,8 @@ class LinkRate:
     seconds: float
     bytes_sent: int
     pairs: Tuple[Tuple[int, float], ...] = ()
+    #: ``bytes_s`` is only a lower bound: a pair read at least the ``enough_bytes_s`` asked for
+    at_least: bool = False
 
 
 def probe_answer(nbytes: int, received: float) -> np.ndarray:
@@ -119,8 +121,15 @@ def filler(nbytes: int) -> np.ndarray:
 
 def measure_link(process: int, send_pair: Callable[[int, int, int, int], None],
                  await_reply: Callable[[int, float], float], tokens, clock: Callable[[], float],
-                 start_bytes: int = START_PROBE_BYTES) -> LinkRate:
+                 start_bytes: int = START_PROBE_BYTES, enough_bytes_s: Optional[float] = None) -> LinkRate:
     """Measure the rate to ``process`` with probe pairs (module doc).
+
+    ``enough_bytes_s``: a rate at which the caller needs no finer reading (where the mode is settled above some
+    rate). Each pair also gives a lower bound of the sustained rate: its two probes (``2 size`` bytes) have
+    crossed the link between the first put and the second answer's arrival (``clock``), so the rate is at least
+    ``(2 size - burst) / elapsed``, and at least ``size / elapsed`` for any burst up to one probe's size
+    (latency and the process's reaction only lower it). A pair whose bound reaches ``enough_bytes_s`` ends
+    the measurement with that bound (``at_least``), however short the gap between its answers.
 
     ``send_pair(process, token_a, token_b, nbytes)`` puts two probes of ``nbytes`` filler bytes back to
     back (both encoded before the first put: the link must not wait for the second);
@@ -133,12 +142,18 @@ def measure_link(process: int, send_pair: Callable[[int, int, int, int], None],
     pairs = []
     for rounds in range(1, MAX_ROUNDS + 1):
         a, b = next(tokens), next(tokens)
+        t_sent = clock()
         send_pair(process, a, b, size)
         sent += 2 * size
         ta = await_reply(a, PROBE_TIMEOUT_S)
         tb = await_reply(b, PROBE_TIMEOUT_S)
+        bound = size / max(clock() - t_sent, 1e-6)
         spread = max(tb - ta, 1e-6)
         pairs.append((size, round(spread, 6)))
+        if enough_bytes_s is not None and bound >= enough_bytes_s:
+            LOG.debug("link to process %d: at least %.3g MB/s from %d probe pairs (last %d bytes)", process,
+                      bound / 1e6, rounds, size)
+            return LinkRate(process, bound, size, rounds, clock() - t0, sent, tuple(pairs), at_least=True)
         if spread >= MIN_SPREAD_S or size >= MAX_PROBE_BYTES or rounds == MAX_ROUNDS:
             LOG.debug("link to process %d: %.3g MB/s from %d probe pairs (last %d bytes)", process,
                       size / spread / 1e6, rounds, size)
@@ -155,7 +170,10 @@ def power_of_two(nbytes: float) -> int:
 
 
 def next_start_bytes(rate: LinkRate) -> int:
-    """The first probe size for the next process: what the last one needed (a power of two)."""
+    """The first probe size for the next process: what the last one needed (a power of two; a lower bound
+    needed the size it was read with)."""
+    if rate.at_least:
+        return rate.probe_bytes
     return int(min(MAX_PROBE_BYTES, max(START_PROBE_BYTES, power_of_two(rate.bytes_s * TARGET_SPREAD_S))))
 
 

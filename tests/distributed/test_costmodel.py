@@ -129,6 +129,23 @@ def test_a_mode_runs_without_probes_only_within_the_tolerance_at_every_rate():
     assert costmodel.rate_free_choice(BIG, at(BIG.n), modes=("balanced",))[:2] == ("balanced", 1.0)
 
 
+def test_the_rate_above_which_the_pick_is_settled():
+    """settled_above: 100k on 8 hosts of 0.25 cores is balanced within 10% of the fastest at every rate from some
+    rate of the grid up, not from the one below; graf is settled from the lowest rate (no probes at all)."""
+    def at(r):
+        return Hosts.of([r] * 8, 0.25, gather_cores=0.25)
+
+    floor, mode, worst = costmodel.settled_above(BIG, at)
+    grid = list(costmodel.CLEAR_RATES_BYTES_S)
+    k = grid.index(floor)
+    assert mode == "balanced" and 0 < k < len(grid) - 1 and worst <= costmodel.CLEAR_WITHIN
+    assert costmodel.rate_free_choice(BIG, at, rates=grid[k:])[0] == "balanced"
+    below = costmodel.rate_free_choice(BIG, at, rates=grid[k - 1:])
+    assert below is None or below[0] != "balanced"
+    assert all(choose(BIG, at(r)).mode == "balanced" for r in grid[k:])
+    assert costmodel.settled_above(GRAF, at)[:2] == (grid[0], costmodel.rate_free_choice(GRAF, at)[0])
+
+
 def test_the_modes_to_pick_from_can_be_narrowed():
     assert choose(BIG, hosts(100), modes=("gather", "lean")).mode == "gather"
     only = choose(BIG, hosts(1), modes=("balanced",))  # asked for balanced alone: answered, with the warning

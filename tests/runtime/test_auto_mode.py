@@ -77,6 +77,38 @@ def test_probe_pairs_measure_the_sustained_rate_past_the_burst(mbit):
     assert total < 2.5, total  # a second or two for 8 processes, even at 10 Mbit/s
 
 
+@pytest.mark.parametrize("mbit", [10, 100, 1000])
+def test_a_probe_pair_past_the_burst_settles_a_link_known_fast_enough(mbit):
+    """With enough_bytes_s (20 Mbit/s here), a link whose first pair's lower bound (a probe's size over the time to
+    the second answer) reaches it is left at that bound after one pair; a slower one is measured as before."""
+    rate = mbit * MBIT
+    burst = max(96 * 1024, rate / 250)
+
+    def probe_all(enough):
+        link, tokens = TokenBucketLink(rate, burst), count(1)
+        start, out = measure.START_PROBE_BYTES, []
+        for p in range(8):
+            out.append(measure.measure_link(p, link.send_pair, link.await_reply, tokens, link.clock, start, enough))
+            start = measure.next_start_bytes(out[-1])
+        return out
+
+    settled, full = probe_all(20 * MBIT), probe_all(None)
+    for r in settled:
+        if mbit > 20:
+            assert r.at_least and r.rounds == 1 and r.bytes_s >= 20 * MBIT, r
+            if burst <= r.probe_bytes:  # a lower bound (a larger burst carries a whole pair at once)
+                assert r.bytes_s <= rate
+        else:
+            assert not r.at_least and r.bytes_s == pytest.approx(rate, rel=0.05)
+    # asked for less than the link has, the slow link too ends after one pair, at a bound under its rate
+    link = TokenBucketLink(rate, burst)
+    low = measure.measure_link(0, link.send_pair, link.await_reply, count(1), link.clock, measure.START_PROBE_BYTES,
+                               0.2 * min(rate, 20 * MBIT))
+    assert low.at_least and low.rounds == 1 and (low.bytes_s <= rate or burst > low.probe_bytes)
+    if mbit > 20:
+        assert sum(r.seconds for r in settled) < 0.5 * sum(r.seconds for r in full)
+
+
 def test_cgroup_quota_is_read_along_the_path(tmp_path):
     v1 = tmp_path / "cpu"
     (v1 / "a" / "b").mkdir(parents=True)
@@ -225,6 +257,25 @@ def test_auto_skips_the_probes_only_where_the_links_cannot_change_the_answer_muc
     # a small job: agent 0 gathers the others' features (they cross one link, its own none) at every rate
     small = core_ready(3, 1321)
     assert small.decide_unmeasured(0.66, 2.0) and small.cfg.mode == "gather"
+    assert clear.settled is None and small.settled is None  # nothing to settle: no probes at all
+
+    # 100k: settled above some rate; links that one pair shows at least SETTLED_MARGIN x that fast need no finer
+    # timing, and the pick is the settled mode
+    floor, mode = unclear.settled
+    assert mode == "balanced" and unclear.enough_rate == floor * costmodel.SETTLED_MARGIN
+    fast = {p: unclear.enough_rate * (1 + p) for p in range(8)}
+    unclear.decide(fast, 0.25, 0.25, 0.3, kernel_cpu_s=fit, at_least=range(8))
+    assert unclear.cfg.mode == "balanced" and unclear.auto["rates_at_least"] == [str(p) for p in range(8)]
+    assert unclear.auto["reason"].startswith(f"balanced: every link measured at least "
+                                             f"{costmodel.mbit_text(unclear.enough_rate)} Mbit/s")
+    # one link below it (measured in full): the model's pick at the rates read, as before
+    slow = core_ready(8, 100186)
+    assert not slow.decide_unmeasured(0.25, 0.25, fit)
+    rates = {**fast, 3: 1 * MBIT}
+    slow.decide(rates, 0.25, 0.25, 0.3, kernel_cpu_s=fit, at_least=[p for p in range(8) if p != 3])
+    want = costmodel.choose(slow.job_shape(), costmodel.Hosts.of([rates[p] for p in range(8)], 0.25, gather_cores=0.25,
+                                                                  kernel_cpu_s=fit))
+    assert slow.cfg.mode == want.mode and slow.auto["reason"] == want.reason
 
 
 @pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
