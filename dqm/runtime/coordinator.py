@@ -271,11 +271,14 @@ class Coordinator:
         rates: Dict[int, measure.LinkRate] = {}
         start = measure.START_PROBE_BYTES
         hosts = self.core.hosts()
+        enough = self.core.enough_rate  # where the pick is settled above some rate, a lower bound does
         for p in hosts:
-            rates[p] = measure.measure_link(p, self._probe_pair, self._probe_answer, tokens, time.monotonic, start)
+            rates[p] = measure.measure_link(p, self._probe_pair, self._probe_answer, tokens, time.monotonic, start,
+                                            enough)
             start = measure.next_start_bytes(rates[p])
         self._drive(self.core.decide, {p: rates[p].bytes_s for p in hosts}, self.host_cores or own, own,
-                    time.monotonic() - t0, {p: rates[p].pairs for p in hosts}, kernel)
+                    time.monotonic() - t0, {p: rates[p].pairs for p in hosts}, kernel,
+                    [p for p in hosts if rates[p].at_least])
         self.announce(auto_summary(self.core.auto))
 
     def run(self, tcp_port: Optional[int] = None) -> dict:

@@ -66,7 +66,7 @@ STAMP_BYTES = 8
 class LinkRate:
     """One process's measured link: ``bytes_s`` (bytes per second), the probe size of the pair that
     measured it, the pairs sent, the seconds the measurement took, the filler bytes sent, and every
-    pair's (size, gap between its answers in seconds)."""
+    pair's (size, gap between its answers, time from its first put to its second answer) in seconds."""
 
     process: int
     bytes_s: float
@@ -149,7 +149,7 @@ def measure_link(process: int, send_pair: Callable[[int, int, int, int], None],
         tb = await_reply(b, PROBE_TIMEOUT_S)
         bound = size / max(clock() - t_sent, 1e-6)
         spread = max(tb - ta, 1e-6)
-        pairs.append((size, round(spread, 6)))
+        pairs.append((size, round(spread, 6), round(size / bound, 6)))
         if enough_bytes_s is not None and bound >= enough_bytes_s:
             LOG.debug("link to process %d: at least %.3g MB/s from %d probe pairs (last %d bytes)", process,
                       bound / 1e6, rounds, size)

@@ -419,6 +419,7 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                 detail.update(picked=rep["auto"]["picked"], probe_s=rep["auto"]["probe_s"],
                               rates_mbit={p: r * 8 / 1e6 for p, r in rep["auto"]["rates_bytes_s"].items()},
                               predicted_s=rep["auto"]["predicted_s"], probe_pairs=rep["auto"]["probe_pairs"],
+                              rates_at_least=rep["auto"]["rates_at_least"],
                               coordinator_kernel_cpu_s=rep["auto"]["kernel_cpu_s"])
             return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]), detail)
         if mode not in ("gather", "gather-approx"):
