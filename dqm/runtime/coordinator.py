@@ -167,6 +167,7 @@ class Coordinator:
         now = time.monotonic()
         if now - self.t0 > self.job_timeout_s:
             slow = [a for a in range(self.m) if a not in core.stats]
+            self._log_state(slow)
             self.fail(JobFailed(f"the job did not finish within {seconds(self.job_timeout_s)}",
                                 slow[0] if slow else None,
                                 core.phase_of(slow[0]) if slow else "",
@@ -175,6 +176,15 @@ class Coordinator:
             slow = core.unready()
             self.fail(JobFailed(f"agent process {slow[0]} did not get ready within {seconds(self.phase_timeout_s)}",
                                 slow[0], core.phase, "Check that agent's log."))
+
+    def _log_state(self, slow: List[int]) -> None:
+        """What the coordinator holds when the job runs out of time: whose results and statistics are missing,
+        the agents' last states and the messages it refused (so that a lost message can be told from a slow agent)."""
+        rejected, duplicates, _ = self.bus.meter.counters()
+        missing = [a for a in range(self.m) if a not in self.core.results]
+        log.warning("at the job timeout: results missing from agents %s, statistics from %s; last states %s; "
+                    "messages refused here %s, duplicates %d", missing, slow,
+                    {a: self.core.states.get(a, "?") for a in slow}, rejected or "none", duplicates)
 
     def _step(self) -> None:
         self._poll()

@@ -233,3 +233,20 @@ def test_a_failed_run_prints_a_paragraph_and_no_traceback(tmp_path):
     assert "Traceback" not in out + err
     assert "dqm run: The distributed job failed: 1 agent processes were lost" in err
     assert job_processes("fail-test") == []
+
+
+def test_a_job_out_of_time_says_what_the_coordinator_is_missing(data, tmp_path):
+    """The job timeout names the slow agent and logs what the coordinator holds: whose results and statistics
+    are missing, their last states and the messages it refused (a lost message told from a slow agent)."""
+    X, ids = data
+    cfg = DQMConfig(agents=2, seed=1, job="out-of-time")
+    marker = tmp_path / "paused"
+    # held past the job's 4 s, then it goes on and hears the abort
+    env = dict(os.environ, DQM_FAULT_PAUSE="1:wait_ghost", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="5")
+    th, started, outcome = start_held_job(X, ids, cfg, marker, env, timeout_s=4, keep_logs=True)
+    th.join(timeout=60)
+    assert "error" in outcome and "did not finish within 4 s" in str(outcome["error"])
+    log = (started["workdir"] / "coordinator.log").read_text()
+    line = next(ln for ln in log.splitlines() if "at the job timeout" in ln)
+    assert "results missing from agents [0, 1]" in line or "results missing from agents [1]" in line
+    assert "1: 'wait_ghost'" in line and "messages refused here none" in line
