@@ -12,9 +12,7 @@ on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
   centralized QuickMatch (quadratic kernel, the same clusters as balanced) in the same CPU quota
   as one agent host;
 * gather-approx: the same with approximate QuickMatch (faiss);
-* lean, balanced: `dqm agent` on every host, the coordinator on host 0, in agent 0's process (`dqm coordinator
-  --with-agent 0`, so that host 0 starts one process as the gathering host does; `--coordinator apart`: a
-  process of its own);
+* lean, balanced: `dqm agent` on every host, the coordinator on host 0;
 * auto: the same processes with `--mode auto`: the coordinator picks gather (every other agent's features to
   agent 0, which matches them with its own), lean or balanced with dqm.distributed.costmodel at this
   machine's measured pair rate, timing its link to every host only where the links can change the
@@ -87,8 +85,7 @@ def _canonical(labels: np.ndarray) -> np.ndarray:
     return order[inv]
 
 
-def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save,
-          with_agent: bool = True) -> list:
+def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save) -> list:
     """Run every mode at every rate on M emulated hosts; appends to ``rows`` and calls ``save()`` after each
     run (a long benchmark keeps what it measured). A mode that fails is a row with its ``error``."""
     workdir.mkdir(parents=True, exist_ok=True)
@@ -108,11 +105,9 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
                 for mode in modes:
                     t = time.perf_counter()
                     row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                           "mode": mode, "kernel_cpu_s": kernel,
-                           "coordinator": "with agent 0" if with_agent else "apart"}
+                           "mode": mode, "kernel_cpu_s": kernel}
                     try:
-                        r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s,
-                                         coordinator_with_agent=with_agent)
+                        r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
                     except RuntimeError as exc:  # JobFailure included: the row says why
                         row.update(error=str(exc).split("\n")[0], seconds=time.perf_counter() - t)
                         log(f"{name} M={m} {rate:g} Mbit/s {mode}: FAILED after {row['seconds']:.1f} s: "
@@ -212,8 +207,6 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--figure", help="write the figure (PNG) here")
     ap.add_argument("--keep", help="keep the work folder (files, logs) here")
-    ap.add_argument("--coordinator", choices=("with-agent", "apart"), default="with-agent",
-                    help="lean, balanced, auto: the coordinator in agent 0's process (default) or a process of its own")
     ap.add_argument("--table-from", nargs="+", metavar="JSON",
                     help="print the table (and --figure) of earlier runs' --json files instead of running")
     args = ap.parse_args(argv)
@@ -246,8 +239,7 @@ def main(argv=None) -> int:
                 for m in [int(a) for a in args.agents.split(",") if a]:
                     bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
                           lambda text: print(text, file=sys.stderr, flush=True), rows,
-                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)),
-                          args.coordinator == "with-agent")
+                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)))
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2

@@ -16,7 +16,7 @@ import argparse
 from .. import outputs
 from ..distributed.config import DEFAULT_SEED
 from ..runtime.limits import COORDINATOR, add_limits, limits_from
-from .runtime_options import add_algorithm, add_peer_features, add_tls, config_from, peers_from, tls_from
+from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"
@@ -42,13 +42,6 @@ def add_arguments(p) -> None:
     p.add_argument("--gather-cores", type=float, metavar="CORES",
                    help="--mode auto: the cores agent 0's host gives a gather, once the other agents have sent "
                         "their features (default: this host's, its CPU quota included)")
-    p.add_argument("--with-agent", type=int, metavar="ID",
-                   help="serve agent ID in this process too, from the FEATURES files given after the options: one "
-                        "process fewer on this host (its start-up CPU saved), but the agent is lost with the "
-                        "coordinator; not with TLS identities (each process has its own)")
-    p.add_argument("features", nargs="*", metavar="FEATURES",
-                   help="with --with-agent: that agent's FEATURES.npz file(s)")
-    add_peer_features(p)
     p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
     add_limits(p, COORDINATOR)
     add_algorithm(p)
@@ -78,31 +71,8 @@ def run(args) -> int:
         if value is not None and not value > 0:
             raise InputError(f"{option} must be positive, got {value}")
     cfg = config_from(args, args.agents, args.seed).validated(runtime=True)
-    tls = tls_from(args, listen=False)
-    with_agent = _with_agent(args, tls)
     try:
-        return main_coordinator(cfg, args.connect, args.out, tls, args.tcp_port, limits,
-                                args.progress_fd, clusters, args.host_cores, args.gather_cores, with_agent)
+        return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port, limits,
+                                args.progress_fd, clusters, args.host_cores, args.gather_cores)
     except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None
-
-
-def _with_agent(args, tls):
-    """--with-agent's agent (:class:`dqm.runtime.coordinator.HostedAgent`), or None; one line for what does not fit."""
-    from ..runtime.coordinator import HostedAgent
-    from ..validation import InputError
-
-    peers = peers_from(args, args.agents)
-    if args.with_agent is None:
-        if args.features or peers:
-            what = "FEATURES files" if args.features else "--peer-features"
-            raise InputError(f"{what} given to the coordinator without --with-agent ID (the agent that reads them)")
-        return None
-    if not 0 <= args.with_agent < args.agents:
-        raise InputError(f"--with-agent must be in 0..{args.agents - 1}, got {args.with_agent}")
-    if not args.features:
-        raise InputError(f"--with-agent {args.with_agent} needs that agent's FEATURES file(s) after the options")
-    if tls is not None:
-        raise InputError("--with-agent cannot be used with --tls-* or --user: the agent needs an identity of its own; "
-                         "start it as a dqm agent process")
-    return HostedAgent(args.with_agent, list(args.features), peers)

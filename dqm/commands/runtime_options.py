@@ -36,25 +36,6 @@ def config_from(args, agents: int, seed: int = 0) -> DQMConfig:
     return DQMConfig(agents=agents, seed=seed, **{f.name: getattr(args, f.name) for f in algorithm_fields()})
 
 
-def add_peer_features(p) -> None:
-    p.add_argument("--peer-features", action="append", metavar="AGENT=FILE[,FILE...]",
-                   help="where another agent's FEATURES files can be read, so that this process can take over "
-                        "that agent's images and cell if its process is lost (repeat per agent; across hosts: "
-                        "shared storage)")
-
-
-def peers_from(args, agents: int) -> dict:
-    """``--peer-features`` as {agent: [files]}; one line for a malformed one or an agent outside 0..M-1."""
-    from ..runtime.agent import parse_peer_features
-    from ..validation import InputError
-
-    peers = parse_peer_features(args.peer_features)
-    bad = [a for a in peers if not 0 <= a < agents]
-    if bad:
-        raise InputError(f"--peer-features names agent {bad[0]}, outside 0..{agents - 1}")
-    return peers
-
-
 def add_tls(p, router: bool = False) -> None:
     g = p.add_argument_group("identity: mutual TLS (use tls/HOST:PORT endpoints) and/or a username")
     g.add_argument("--tls-ca", help="root CA certificate (PEM)")

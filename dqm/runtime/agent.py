@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import threading
 import time
 from typing import Callable, Dict, List, Optional
 
@@ -25,14 +24,14 @@ from ..distributed.driver import JobAborted
 from ..distributed.hosting import ProcessHost, Refused
 from ..distributed.ledger import COORDINATOR
 from ..logging_config import tag_lines
-from .bus import Bus, check_job_free, open_client, zenoh_message
+from .bus import Bus, check_job_free, open_client
 from .limits import RuntimeLimits
 from .measure import host_cores, probe_answer
 
 log = logging.getLogger("dqm.runtime")
 
 __all__ = ["AgentHost", "CoordinatorLost", "JobAborted", "Refused", "RouterLost",
-           "AgentThread", "fault_pause_from_env", "main_agent", "parse_peer_features", "serve_agent"]
+           "fault_pause_from_env", "main_agent", "parse_peer_features"]
 
 
 def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
@@ -116,12 +115,9 @@ class AgentHost:
                 "probe", self.host.cfg.job, self.home, epoch=msg["epoch"], token=msg["token"], reply=0,
                 data=probe_answer(msg["reply"], msg["_t"])))
 
-    def run(self, stop: Optional[threading.Event] = None) -> None:
-        """Serve the job until this process's part is done (or ``stop`` is set: :class:`AgentThread`)."""
+    def run(self) -> None:
         host = self.host
         while not host.done:
-            if stop is not None and stop.is_set():
-                raise JobAborted("stopped by its process (the coordinator beside it ended)")
             item = self.bus.receive(timeout=0.05)
             if item is not None:
                 dst, msg = item
@@ -177,28 +173,14 @@ def main_agent(me: int, cfg: DQMConfig, endpoint: str, paths, tls: Optional[dict
     signals.install_sigterm(force=True)
     watch_parent()
     keys.check_job(cfg.job)
-    tag_lines(f"agent {me}")
-    own = sources.load_agent_features(paths, me)
-    return serve_agent(me, cfg, endpoint, paths, own, tls, limits, peers)
-
-
-def serve_agent(me: int, cfg: DQMConfig, endpoint: str, paths, own: sources.AgentFeatures,
-                tls: Optional[dict] = None, limits: Optional[RuntimeLimits] = None,
-                peers: Optional[Dict[int, List[str]]] = None, stop: Optional[threading.Event] = None) -> int:
-    """Agent ``me`` with its loaded features ``own``: connect, serve the job, close; returns the exit code
-    (:data:`EXIT_OK` ...). The process's set-up (signals, the parent watch, log tags) is the caller's.
-    ``stop``: ends the agent (exit :data:`EXIT_FAILED`) when set, for :class:`AgentThread`."""
     files = dict(peers or {})
     files[me] = list(paths)
+    tag_lines(f"agent {me}")
+    own = sources.load_agent_features(paths, me)
     limits = limits or RuntimeLimits()
-
-    def check_stop() -> None:
-        if stop is not None and stop.is_set():
-            raise JobAborted("stopped by its process (the coordinator beside it ended)")
-
-    session = open_client(endpoint, tls, deadline_s=limits.connect_timeout_s, lease_ms=limits.lease_ms,
-                          check_stop=check_stop)
+    session = open_client(endpoint, tls, deadline_s=limits.connect_timeout_s, lease_ms=limits.lease_ms)
     check_job_free(session, keys.alive_agent(cfg.job, me), f"agent {me}", cfg.job, endpoint)
+    host = None
     bus = None
     try:
         bus = Bus(session, cfg.job, me, cfg.agents, max_bytes=limits.max_message_bytes)
@@ -206,7 +188,7 @@ def serve_agent(me: int, cfg: DQMConfig, endpoint: str, paths, own: sources.Agen
         host = AgentHost(me, cfg, bus, files, phase_timeout_s=limits.phase_timeout_s, own=own,
                          on_state=fault_pause_from_env())
         log.info("connected to the router at %s; waiting for the coordinator of job %r", endpoint, cfg.job)
-        host.run(stop)
+        host.run()
         return EXIT_OK
     except Refused as exc:
         log.error("refused: %s", exc)
@@ -221,7 +203,7 @@ def serve_agent(me: int, cfg: DQMConfig, endpoint: str, paths, own: sources.Agen
     except (JobAborted, TimeoutError) as exc:
         log.error("error: %s", exc)
         return EXIT_FAILED
-    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated (the main thread's only)
+    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM as signals.Terminated
         log.warning("%s, leaving", signals.word(exc))
         return signals.exit_code(exc)
     finally:
@@ -229,37 +211,3 @@ def serve_agent(me: int, cfg: DQMConfig, endpoint: str, paths, own: sources.Agen
             bus.close()
         else:
             session.close()
-
-
-class AgentThread:
-    """Agent ``me`` served on a thread of another dqm process (``dqm coordinator --with-agent``: one process
-    fewer on the coordinator's host, so one interpreter's start-up fewer in its CPU): :func:`serve_agent` with
-    a zenoh session of its own, as if it were a process of its own. ``exit_code`` once it has ended (an
-    unexpected error is logged in one line and counts as :data:`EXIT_FAILED`)."""
-
-    def __init__(self, me: int, cfg: DQMConfig, endpoint: str, paths, own: sources.AgentFeatures,
-                 limits: Optional[RuntimeLimits] = None, peers: Optional[Dict[int, List[str]]] = None):
-        self.me = me
-        self.exit_code: Optional[int] = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name=f"agent {me}",
-                                        args=(me, cfg, endpoint, paths, own, None, limits, peers, self._stop))
-
-    def _serve(self, *args) -> None:
-        try:
-            self.exit_code = serve_agent(*args)
-        except BaseException as exc:  # noqa: BLE001 - a thread's end: the process goes on and reports the code
-            log.error("error: agent %d (a thread of this process) ended: %s", self.me, zenoh_message(exc))
-            self.exit_code = EXIT_FAILED
-
-    def start(self) -> "AgentThread":
-        self._thread.start()
-        return self
-
-    def join(self, timeout_s: float) -> Optional[int]:
-        """Wait up to ``timeout_s`` for the agent to end by itself, then stop it; its exit code."""
-        self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            self._stop.set()
-            self._thread.join()
-        return self.exit_code

@@ -18,7 +18,6 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional
 
@@ -386,30 +385,15 @@ def clusters_params(cfg: DQMConfig) -> dict:
             "partition": cfg.partition, "rho": cfg.rho, "kernel": cfg.kernel, "parent": "any"}
 
 
-@dataclass(frozen=True)
-class HostedAgent:
-    """An agent the coordinator's process serves too (``dqm coordinator --with-agent``): its index, its
-    FEATURES files and the other agents' (``--peer-features``, for taking over a lost one)."""
-
-    agent: int
-    paths: List[str]
-    peers: Dict[int, List[str]] = field(default_factory=dict)
-
-
-#: how long the coordinator's process waits, once the coordinator is done, for the agent it serves to leave
-AGENT_JOIN_S = 5.0
-
-
 def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict] = None,
                      tcp_port: Optional[int] = None, limits: Optional[RuntimeLimits] = None,
                      progress_fd: Optional[int] = None, clusters: Optional[str] = None,
-                     host_cores: Optional[float] = None, gather_cores: Optional[float] = None,
-                     with_agent: Optional[HostedAgent] = None) -> int:
+                     host_cores: Optional[float] = None, gather_cores: Optional[float] = None) -> int:
     """Entry point of ``dqm coordinator``: returns the process exit code. ``out``: the report JSON;
     ``limits``: timeouts, lease, ``max_lost``, recovery (None: the defaults); ``clusters``: the CLUSTERS file
     to write (the agents then send their catalogs); ``host_cores``, ``gather_cores``: --mode auto's cores per
-    agent host and at this host (None: this host's); ``with_agent``: an agent this process serves too, on a
-    thread with a session of its own (``--with-agent``; without TLS identities)."""
+    agent host and at this host (None: this host's)."""
+    from .console import JobView
     from .lifeline import watch_parent
 
     signals.install_sigterm(force=True)
@@ -417,32 +401,6 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
     tag_lines("coordinator")
     keys.check_job(cfg.job)
     limits = limits or RuntimeLimits()
-    agent = None
-    if with_agent is not None:  # its files read first: a bad one is refused before anything starts
-        from .agent import AgentThread
-
-        own = sources.load_agent_features(with_agent.paths, with_agent.agent)
-        # started at once: its session opens while the coordinator's does
-        agent = AgentThread(with_agent.agent, cfg, endpoint, with_agent.paths, own, limits, with_agent.peers).start()
-    code = None
-    try:
-        code = _coordinate(cfg, endpoint, out, tls, tcp_port, limits, progress_fd, clusters, host_cores,
-                           gather_cores)
-        return code
-    finally:
-        if agent is not None:  # done: it has its finish and leaves; failed: it has its abort (or is stopped)
-            agent_code = agent.join(AGENT_JOIN_S if code == EXIT_OK else 1.0)
-            if code == EXIT_OK and agent_code:  # (a failed job has said why)
-                log.warning("agent %d (served by this process) ended with exit code %d", with_agent.agent,
-                            agent_code)
-
-
-def _coordinate(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict], tcp_port: Optional[int],
-                limits: RuntimeLimits, progress_fd: Optional[int], clusters: Optional[str],
-                host_cores: Optional[float], gather_cores: Optional[float]) -> int:
-    """:func:`main_coordinator` once the process is set up."""
-    from .console import JobView
-
     session = open_client(endpoint, tls, deadline_s=limits.connect_timeout_s, lease_ms=limits.lease_ms)
     check_job_free(session, keys.alive_coordinator(cfg.job), "the coordinator", cfg.job, endpoint)
     view = JobView.for_fd(progress_fd, cfg.agents)

@@ -341,7 +341,7 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
               client_args: Callable[[int], List[str]] = lambda a: [], env=None,
               limits: Optional[RuntimeLimits] = None, tag: str = "", clusters: Optional[Path] = None,
               threads_per_agent: Optional[int] = 1, pass_fds: Sequence[int] = (), host_cores: Optional[float] = None,
-              gather_cores: Optional[float] = None, with_agent: Optional[int] = None) -> Job:
+              gather_cores: Optional[float] = None) -> Job:
     """Start the agents and the coordinator of one job (the router is already running): the one start
     path of ``dqm run`` (:func:`run_job`), the multi-host demo and the tests.
 
@@ -353,9 +353,6 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     worker threads of each agent unless ``env`` says otherwise (None: all cores); the coordinator
     keeps ``env``'s (it computes only in a gather job, once the agents have sent everything).
     ``host_cores``, ``gather_cores``: the coordinator's --host-cores and --gather-cores (--mode auto).
-    ``with_agent``: the agent the coordinator's process serves too (``dqm coordinator --with-agent``; it must be
-    on the coordinator's host, and its ``client_args`` are not used); ``Job.agents`` then holds the
-    coordinator's process in that agent's place.
     """
     limits = START_LIMITS if limits is None else limits
     coordinator_env = dict(os.environ if env is None else env)
@@ -363,23 +360,22 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     if threads_per_agent is not None:
         for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             env.setdefault(var, str(threads_per_agent))
-    agents: List[Optional[subprocess.Popen]] = [
-        None if a == with_agent else
-        procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
-                     limits_arg(limits), *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])],
-                    workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
-        for a in range(cfg.agents)]
+    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
+                           limits_arg(limits),
+                           *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])],
+                          workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
+              for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
     # the work folder is the launcher's: a report of an earlier job there (the same mode at another link rate of
-    # scripts/bench_hosts.py) is not this job's, and the coordinator refuses to overwrite it
+    # scripts/bench_hosts.py) is not this job's, and the coordinator refuses to overwrite it; nor is an earlier
+    # job's failure (a coordinator that dies without one would otherwise be reported with that job's reason)
     report_path.unlink(missing_ok=True)
-    served = ([] if with_agent is None else
-              ["--with-agent", str(with_agent), *peer_args(list(files), with_agent), str(files[with_agent])])
+    failure_path(str(report_path)).unlink(missing_ok=True)
     coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, limits,
                                            None if clusters is None else str(clusters), host_cores, gather_cores),
-                         *client_args(-1), *served],
+                         *client_args(-1)],
                         workdir / f"{tag}coordinator.log", coordinator_env, prefix=prefix(-1), pass_fds=pass_fds)
-    return Job(cfg, workdir, [coord if p is None else p for p in agents], coord, report_path, time.monotonic())
+    return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
 
 
 def finish_job(job: Job, timeout_s: float = 120.0) -> dict:

@@ -392,15 +392,12 @@ def _by_id(ids, labels) -> tuple:
 
 
 def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
-                 timeout_s: float = 600.0, gather_cores: Optional[float] = None,
-                 coordinator_with_agent: bool = True) -> HostRun:
+                 timeout_s: float = 600.0, gather_cores: Optional[float] = None) -> HostRun:
     """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
     router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
     agent per host); the coordinator, or the gathering host, is host 0 (``auto``: told that every host has
     the hosts' CPU quota, which it cannot read inside a namespace, and that agent 0's host gives a gathering
-    match ``gather_cores``, by default the same). ``coordinator_with_agent``: the coordinator's process
-    serves agent 0 too (``dqm coordinator --with-agent 0``: host 0 starts one process, as the gathering host
-    does), else they are two processes."""
+    match ``gather_cores``, by default the same)."""
     m = cfg.agents
     connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
     procs = Processes()
@@ -411,8 +408,7 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                             connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)),
                             limits=START_LIMITS.but(job_timeout_s=timeout_s),
                             tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores,
-                            gather_cores=nss.cpu_cores if gather_cores is None else gather_cores,
-                            with_agent=0 if coordinator_with_agent else None)
+                            gather_cores=nss.cpu_cores if gather_cores is None else gather_cores)
             rep = finish_job(job, timeout_s + 15)
             detail: Dict[str, object] = {"job_s": rep["time_run_s"]}
             if "auto" in rep:

@@ -132,23 +132,6 @@ def test_tls_files_are_checked_before_connecting(tmp_path, capsys):
     assert time.monotonic() - t0 < 5  # no connection retries
 
 
-def test_a_coordinator_serving_an_agent_checks_its_options_before_connecting(tmp_path, capsys):
-    f = tmp_path / "a0.npz"
-    io.save_features(f, io.FeatureSet(np.zeros((4, 8), np.uint8), np.array([0, 0, 1, 1])))
-    base = ["coordinator", "--agents", "2", "--connect", "tcp/127.0.0.1:1", "--no-clusters"]
-    one_line(capsys, base + [str(f)], "FEATURES files given to the coordinator without --with-agent")
-    one_line(capsys, base + ["--peer-features", f"1={f}"], "--peer-features given to the coordinator without")
-    one_line(capsys, base + ["--with-agent", "0"], "--with-agent 0 needs that agent's FEATURES file(s)")
-    one_line(capsys, base + ["--with-agent", "2", str(f)], "--with-agent must be in 0..1, got 2")
-    one_line(capsys, base + ["--with-agent", "0", "--peer-features", f"5={f}", str(f)],
-             "--peer-features names agent 5, outside 0..1")
-    pw = tmp_path / "pw"
-    pw.write_text("secret\n")
-    one_line(capsys, base + ["--with-agent", "0", "--user", "u", "--password-file", str(pw), str(f)],
-             "--with-agent cannot be used with --tls-* or --user")
-    one_line(capsys, base + ["--with-agent", "0", str(tmp_path / "missing.npz")], "missing.npz")
-
-
 def test_router_errors_carry_no_rust_source_paths(capsys):
     import socket
     import subprocess

@@ -79,30 +79,6 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
-def test_a_coordinator_serving_an_agent_ends_it_when_the_job_fails(tmp_path):
-    """dqm coordinator --with-agent: the agent on its thread gets the abort and the process exits at once."""
-    from dqm.runtime.launcher import Processes, free_port, write_agent_files
-    from dqm.runtime.multihost import start_router
-
-    X = np.random.default_rng(0).integers(0, 255, size=(40, 128)).astype(np.uint8)
-    files = write_agent_files(X, np.repeat([0, 1, 2, 3], 10), 2, tmp_path)
-    port = free_port()
-    procs = Processes()
-    try:
-        start_router(procs, [f"tcp/127.0.0.1:{port}"], tmp_path, ("127.0.0.1", port))
-        t0 = time.monotonic()
-        p = subprocess.run([sys.executable, "-m", "dqm", "coordinator", "--agents", "2", "--connect",
-                            f"tcp/127.0.0.1:{port}", "--no-clusters", "--ready-timeout", "2", "--max-lost", "0",
-                            "--with-agent", "0", str(files[0])], capture_output=True, text=True, timeout=60)
-    finally:
-        procs.stop_all()
-    assert p.returncode == 3, p.stderr
-    assert "agent processes (1) did not appear within the ready timeout" in p.stderr  # agent 0 did: its thread
-    assert "the coordinator aborted the job" in p.stderr  # what agent 0's thread heard
-    assert "Traceback" not in p.stderr
-    assert time.monotonic() - t0 < 20
-
-
 def _inject(endpoint, job, agents, dim, ready, marker=None):
     """A foreign client that sends hostile messages to every agent's inbox (then deletes ``marker``: the
     paused agent goes on)."""
