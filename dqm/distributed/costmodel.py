@@ -402,7 +402,12 @@ def rate_free_choice(job: JobShape, hosts_at: Callable[[float], Hosts], constant
     :data:`CLEAR_RATES_BYTES_S`; ``hosts_at(r)``: the hosts with their links at ``r``), the one that moves the
     fewest bytes (ties: :data:`AUTO_MODES` order). Returns ``(mode, worst ratio, (least, most) predicted seconds)``, or
     None when the answer turns on the links (then they are timed)."""
-    preds = [predict(job, hosts_at(r), constants, started=True) for r in rates]
+    return _free_of_rates([predict(job, hosts_at(r), constants, started=True) for r in rates], modes, within)
+
+
+def _free_of_rates(preds: Sequence[Dict[str, Prediction]], modes: Sequence[str], within: float
+                   ) -> Optional[Tuple[str, float, Tuple[float, float]]]:
+    """:func:`rate_free_choice` on the predictions at each of its rates."""
     candidates = [m for m in AUTO_MODES if m in modes]
     worst: Dict[str, float] = {}
     for mode in candidates:
@@ -428,9 +433,10 @@ def settled_above(job: JobShape, hosts_at: Callable[[float], Hosts], constants: 
     known to be at least ``floor`` fast need no finer timing (the coordinator's probes stop at
     :data:`SETTLED_MARGIN` times it)."""
     grid = list(CLEAR_RATES_BYTES_S)
+    preds = [predict(job, hosts_at(r), constants, started=True) for r in grid]  # once per rate
     found = None
     for k in range(len(grid) - 1, -1, -1):  # the settled range only grows downwards until it breaks
-        here = rate_free_choice(job, hosts_at, constants, modes=modes, within=within, rates=grid[k:])
+        here = _free_of_rates(preds[k:], modes, within)
         if here is None or (found is not None and here[0] != found[1]):
             break
         found = (grid[k], here[0], here[1])

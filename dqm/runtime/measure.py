@@ -74,7 +74,7 @@ class LinkRate:
     rounds: int
     seconds: float
     bytes_sent: int
-    pairs: Tuple[Tuple[int, float], ...] = ()
+    pairs: Tuple[Tuple[int, float, float], ...] = ()
     #: ``bytes_s`` is only a lower bound: a pair read at least the ``enough_bytes_s`` asked for
     at_least: bool = False
 
@@ -147,9 +147,10 @@ def measure_link(process: int, send_pair: Callable[[int, int, int, int], None],
         sent += 2 * size
         ta = await_reply(a, PROBE_TIMEOUT_S)
         tb = await_reply(b, PROBE_TIMEOUT_S)
-        bound = size / max(clock() - t_sent, 1e-6)
+        elapsed = max(clock() - t_sent, 1e-6)
+        bound = size / elapsed
         spread = max(tb - ta, 1e-6)
-        pairs.append((size, round(spread, 6), round(size / bound, 6)))
+        pairs.append((size, round(spread, 6), round(elapsed, 6)))
         if enough_bytes_s is not None and bound >= enough_bytes_s:
             LOG.debug("link to process %d: at least %.3g MB/s from %d probe pairs (last %d bytes)", process,
                       bound / 1e6, rounds, size)
