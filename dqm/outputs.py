@@ -156,19 +156,21 @@ def existing(folder: Path, writes: Optional[Sequence[str]] = None) -> list:
 
 
 @contextmanager
-def atomic_output(path) -> Iterator[str]:
+def atomic_output(path, mode: int | None = None) -> Iterator[str]:
     """A temporary file beside ``path`` (same suffix), renamed to ``path`` when the block ends, removed if
-    it fails or is interrupted: no partial output. The result gets the permissions of any new file
-    (0666 minus the umask; ``mkstemp`` makes 0600)."""
+    it fails or is interrupted: no partial output. The result gets ``mode``, or the permissions of any new
+    file (0666 minus the umask; ``mkstemp`` makes 0600)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
     os.close(fd)
     try:
         yield tmp
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
+        if mode is None:
+            mask = os.umask(0)
+            os.umask(mask)
+            mode = 0o666 & ~mask
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

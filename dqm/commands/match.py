@@ -11,6 +11,7 @@ clusters, but worse SfM cameras: docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
     dqm match database.db --out clusters.npz --image-dir images/   # COLMAP's features
+    dqm match database.db --into-database  # matches + verified geometries into it, for COLMAP's mapper
     dqm match 'photos/*.jpg' --out clusters.npz --preset paper
     dqm match photos/ --out clusters.npz --max-features 2000 --tracks-csv tracks.csv
     dqm match big.npz --out clusters.npz --exact            # exact at any size
@@ -46,10 +47,15 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="INPUT",
                    help="FEATURES.npz file(s), a COLMAP database.db, or image folders / globs / files (or none, "
                         "with --image-list)")
-    p.add_argument("--out", required=True, help="CLUSTERS.npz to write")
+    p.add_argument("--out", default=None, help="CLUSTERS.npz to write (needed unless --into-database)")
     p.add_argument("--image-dir", default=None, metavar="DIR",
                    help="with a COLMAP database: the folder its image names are relative to (the CLUSTERS file "
                         "then names the image files, for plot and export)")
+    p.add_argument("--into-database", action="store_true",
+                   help="with a COLMAP database as INPUT: write the matches the clusters imply and COLMAP's verified "
+                        "two-view geometries of them into that database, as COLMAP's matchers do (its cameras and "
+                        "features stay), so COLMAP's mapper runs next; one that already holds matches is refused "
+                        "unless --overwrite (needs pycolmap)")
     add_cluster_options(p)
     add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
@@ -162,12 +168,29 @@ def load_input(args) -> io.FeatureSet:
     return fs
 
 
+def _target_database(args) -> Path | None:
+    """The COLMAP database that --into-database writes into (checked before any work), or None without it."""
+    if not args.into_database:
+        if args.out is None:
+            raise InputError("dqm match needs --out CLUSTERS.npz (or, with a COLMAP database as INPUT, "
+                             "--into-database)")
+        return None
+    from ..vision.colmap import check_matches_target, is_database
+
+    if len(args.inputs) != 1 or not is_database(args.inputs[0]) or getattr(args, "image_list", None):
+        given = " ".join(args.inputs) or "--image-list"
+        raise InputError(f"--into-database writes into the COLMAP database given as the only INPUT; got {given}")
+    return check_matches_target(args.inputs[0], overwrite=args.overwrite)
+
+
 def run(args) -> int:
     t0 = time.perf_counter()
-    outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
+    database = _target_database(args)
+    if args.out is not None:
+        outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
     if args.tracks_csv:
         outputs.check_file(args.tracks_csv, "--tracks-csv", (".csv",), overwrite=args.overwrite)
-        outputs.check_distinct(("--out", args.out), ("--tracks-csv", args.tracks_csv))
+        outputs.check_distinct(*((("--out", args.out),) if args.out else ()), ("--tracks-csv", args.tracks_csv))
     fs = load_input(args)
     n_images = len(np.unique(fs.image_ids))
     if len(fs) == 0:
@@ -175,11 +198,22 @@ def run(args) -> int:
     if n_images < 2:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
     result, extra = cluster(args, fs)
-    io.save_clusters(args.out, fs, result, extra)
+    if args.out is not None:
+        io.save_clusters(args.out, fs, result, extra)
     if args.tracks_csv:
         n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         print(f"wrote {n} tracks to {args.tracks_csv}")
-    print(f"wrote {args.out} ({time.perf_counter() - t0:.2f} s in all)")
+    if database is not None:
+        from ..vision.colmap import write_matches
+
+        s = write_matches(database, result.labels, fs.image_ids, overwrite=args.overwrite,
+                          num_threads=args.threads or -1)
+        print(f"wrote into {database}: {s.n_matches} matches in {s.n_image_pairs} image pairs, "
+              f"{s.n_verified_pairs} verified pairs (COLMAP's geometric verification)")
+        image_dir = str(args.image_dir) if args.image_dir else "IMAGE_DIR"
+        print(f"reconstruct: pycolmap.incremental_mapping({str(database)!r}, {image_dir!r}, OUTPUT_DIR)")
+    wrote = " and ".join(str(p) for p in (args.out, database) if p is not None)
+    print(f"wrote {wrote} ({time.perf_counter() - t0:.2f} s in all)")
     return 0
 
 

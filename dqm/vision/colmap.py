@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import posixpath
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,10 +96,10 @@ def local_indices(image_ids) -> np.ndarray:
 
 @dataclass
 class ExportSummary:
-    """What :func:`export_database` wrote."""
+    """What :func:`export_database` or :func:`write_matches` wrote."""
 
     database: Path
-    image_dir: Path
+    image_dir: Path | None
     n_images: int
     n_keypoints: int
     n_image_pairs: int
@@ -296,26 +297,118 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
                 if desc is not None:
                     db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
                         pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(desc[rows])))
-            n_matches = 0
-            for (a, b), m in pairs.items():
-                db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
-                n_matches += len(m)
+            n_matches = _write_cluster_matches(db, pairs, colmap_id, local)
         finally:
             db.close()
         summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
                                 n_cameras=len(cameras))
         if verify and pairs:
-            opts = pycolmap.GeometricVerifierOptions()
-            if hasattr(opts, "num_threads"):
-                opts.num_threads = num_threads
-            two_view = pycolmap.TwoViewGeometryOptions()
-            two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
-            pycolmap.geometric_verification(tmp, verifier_options=opts, two_view_geometry_options=two_view)
-            db = pycolmap.Database.open(tmp)
-            try:
-                summary.n_verified_pairs = int(db.num_verified_image_pairs())
-            finally:
-                db.close()
+            summary.n_verified_pairs = _verify(tmp, num_threads, seed)
+    return summary
+
+
+def _write_cluster_matches(db, pairs: dict, colmap_id, local: np.ndarray) -> int:
+    """Write every image pair's matches (:func:`cluster_pairs`; ``colmap_id[k]``: COLMAP's id of dqm image k,
+    ``local``: every feature's keypoint index in its image) into the open pycolmap database; the match count."""
+    n_matches = 0
+    for (a, b), m in pairs.items():
+        db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
+        n_matches += len(m)
+    return n_matches
+
+
+def _verify(path, num_threads: int, seed: int) -> int:
+    """COLMAP's geometric verification of the matches in the database file ``path`` (its RANSAC seeded, so the
+    same matches give the same geometries); the number of verified image pairs."""
+    pycolmap = require_pycolmap()
+    opts = pycolmap.GeometricVerifierOptions()
+    if hasattr(opts, "num_threads"):
+        opts.num_threads = num_threads
+    two_view = pycolmap.TwoViewGeometryOptions()
+    two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
+    pycolmap.geometric_verification(str(path), verifier_options=opts, two_view_geometry_options=two_view)
+    db = pycolmap.Database.open(str(path))
+    try:
+        return int(db.num_verified_image_pairs())
+    finally:
+        db.close()
+
+
+def _table_rows(database: Path, tables: Sequence[str]) -> dict[str, int] | None:
+    """The number of rows of each table (read-only), or None when the file is not an SQLite database holding them."""
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+        try:
+            return {t: int(con.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0]) for t in tables}
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None
+
+
+def check_matches_target(database, *, overwrite: bool = False, option: str = "--into-database") -> Path:
+    """Check, before any work, that matches can be written into the existing COLMAP database ``database``
+    (:func:`write_matches`): a COLMAP database (matches and two-view geometry tables), writable, in a writable
+    folder, and without matches or two-view geometries unless ``overwrite`` (they are then replaced). One
+    InputError line otherwise; ``option`` names the command's option in it."""
+    from ..outputs import check_file
+
+    database = Path(database)
+    if not database.is_file():
+        raise InputError(f"{option}: COLMAP database not found: {database}")
+    rows = _table_rows(database, ("images", "keypoints", "matches", "two_view_geometries"))
+    if rows is None:
+        raise InputError(f"{option}: {database} is not a COLMAP database (no matches or two_view_geometries table)")
+    if not overwrite and (rows["matches"] or rows["two_view_geometries"]):
+        raise InputError(f"{option}: {database} already holds {rows['matches']} image pairs' matches and "
+                         f"{rows['two_view_geometries']} two-view geometries; pass --overwrite to replace them")
+    require_pycolmap(what=f"{option}")
+    return check_file(database, option, overwrite=True)
+
+
+def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
+                  num_threads: int = -1, seed: int = 0) -> ExportSummary:
+    """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
+    database the features were read from (:func:`import_database`), as COLMAP's own matchers do: its cameras,
+    images, keypoints and descriptors stay as they are, so its mapper runs next.
+
+    ``labels`` and ``image_ids`` are in :func:`import_database`'s order (images by COLMAP image id, keypoints
+    in their rows' order). The database is checked first (:func:`check_matches_target`); existing matches
+    and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
+    renamed over it when complete, so a stop or an error leaves the old one untouched.
+    """
+    pycolmap = require_pycolmap()
+    database = check_matches_target(database, overwrite=overwrite)
+    ids = np.asarray(image_ids, np.int64)
+    labels = np.asarray(labels, np.int64)
+    if labels.shape != ids.shape:
+        raise InputError(f"labels ({len(labels)}) and image ids ({len(ids)}) must have one entry per feature")
+    pairs = cluster_pairs(labels, ids)
+    local = local_indices(ids)
+    mode = os.stat(database).st_mode & 0o7777
+    with atomic_output(database, mode=mode) as tmp:
+        shutil.copyfile(database, tmp)
+        db = pycolmap.Database.open(tmp)
+        try:
+            images = sorted(db.read_all_images(), key=lambda im: im.image_id)
+            found = [int(db.num_keypoints_for_image(im.image_id)) for im in images]
+            if len(ids) and not 0 <= ids.min() <= ids.max() < len(images) or \
+                    found != np.bincount(ids, minlength=len(images)).tolist():
+                raise InputError(f"{database}: its images' keypoints ({len(images)} images, {sum(found)} keypoints) "
+                                 f"are not the matched features' ({len(np.unique(ids))} images, {len(ids)} features); "
+                                 "was it changed since it was read?")
+            if overwrite:
+                db.clear_two_view_geometries()
+                db.clear_matches()
+            n_matches = _write_cluster_matches(db, pairs, [im.image_id for im in images], local)
+        finally:
+            db.close()
+        summary = ExportSummary(database, None, len(images), len(ids),
+                                len(pairs), n_matches, names=[im.name for im in images])
+        if verify and pairs:
+            summary.n_verified_pairs = _verify(tmp, num_threads, seed)
     return summary
 
 

@@ -303,19 +303,21 @@ def test_benchmark_script_small_real_run(tmp_path):
         (images / p.name).symlink_to(p.resolve())
     script = Path(__file__).resolve().parents[2] / "scripts" / "bench_quickmatch.py"
     p = subprocess.run([sys.executable, str(script), "--real", str(images), "--real-sift", "defaults",
-                        "--brute-images", "0", "--sizes", "", "--no-graf"], capture_output=True, text=True, timeout=300)
+                        "--brute-images", "0", "--sizes", "", "--no-graf", "--real-repeat", "1"],
+                       capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     (row,) = [line for line in p.stdout.splitlines() if line.startswith("| defaults |")]
-    cells = [c.strip() for c in row.split("|")[1:-1]]
+    cells = [c.strip().strip("*") for c in row.split("|")[1:-1]]
     n = int(cells[1].replace(",", ""))
     assert n > 5000  # two photos' COLMAP SIFT
-    colmap_s, ratio, exact_ratio = float(cells[2]), float(cells[5]), float(cells[7])
-    assert colmap_s > 0 and ratio > 0 and exact_ratio > 0
-    assert cells[3].endswith("(exact)")  # two photos' features are below the fast engine's size
-    assert float(cells[8]) == 1.0  # so the default is the exact answer
-    pass_rate, gemm_rate = float(cells[9]), float(cells[10])
+    colmap_s, into_s = float(cells[2]), float(cells[3])
+    assert colmap_s > 0 and float(cells[4]) == pytest.approx(into_s / colmap_s, rel=0.03, abs=0.01)
+    assert float(cells[7]) > 0 and float(cells[9]) == pytest.approx(float(cells[8]) / colmap_s, rel=0.03, abs=0.01)
+    assert cells[5].endswith("(exact)")  # two photos' features are below the fast engine's size
+    assert float(cells[10]) == 1.0  # so the default is the exact answer
+    pass_rate, gemm_rate = float(cells[11]), float(cells[12])
     assert pass_rate > 0 and gemm_rate > 0
-    assert float(cells[11]) == pytest.approx(pass_rate / gemm_rate, rel=0.05)  # rates printed as integers
+    assert float(cells[13]) == pytest.approx(pass_rate / gemm_rate, rel=0.05)  # rates printed as integers
     assert "dqm match --exact's labels identical to quickmatch's: True" in p.stdout
 
 

@@ -148,6 +148,12 @@ def stand_ins(tmp_path_factory):
     io.save_features(d / "big.npz", io.FeatureSet(big.descriptors, big.image_ids))
     (d / "docs").mkdir()
     shutil.copy(ROOT / "docs" / "evaluation.json", d / "docs" / "evaluation.json")
+    try:  # a database of COLMAP's own feature extraction (the lines that match in place)
+        import pycolmap
+    except ImportError:
+        pass
+    else:
+        pycolmap.extract_features(str(d / "database.db"), str(d / "images"))
     return d
 
 

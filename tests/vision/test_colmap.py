@@ -261,3 +261,70 @@ def test_match_reads_a_colmap_database_directly(scene, tmp_path, capsys):
     assert "--image-dir names the folder of a COLMAP database" in capsys.readouterr().err
     assert main(["match", str(db), "--out", str(tmp_path / "x.npz"), "--image-dir", str(tmp_path / "none")]) == 2
     assert "no such folder" in capsys.readouterr().err and not (tmp_path / "x.npz").exists()
+
+
+def _database_rows(path):
+    """Every table's rows of a COLMAP database, as stored (to tell which tables a write changed)."""
+    import sqlite3
+
+    con = sqlite3.connect(path)
+    try:
+        tables = [r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table' ORDER BY name")]
+        return {t: sorted(con.execute(f"SELECT * FROM {t}").fetchall()) for t in tables}
+    finally:
+        con.close()
+
+
+def test_match_into_database_writes_verified_matches_where_colmap_features_are(scene, tmp_path, capsys):
+    """Issue 37: `dqm match database.db --into-database` on a database of COLMAP's own feature extraction writes
+    the clusters' matches (every two members, at COLMAP's keypoint indices) and COLMAP's verified geometries into
+    it, leaves its cameras, images and features as they were (and its file mode), and COLMAP's mapper
+    registers every image from it; a second run is refused unless --overwrite, which gives the same tables;
+    a database is refused as a target before any work when it is not the only input."""
+    from dqm.cli import main
+
+    db = tmp_path / "colmap.db"
+    pycolmap.extract_features(str(db), str(scene["folder"]))
+    db.chmod(0o640)
+    before = _database_rows(db)
+    c = tmp_path / "c.npz"
+    assert main(["match", str(db), "--into-database", "--out", str(c), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    after = _database_rows(db)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz", "colmap.db"]  # no temporary left
+    assert db.stat().st_mode & 0o777 == 0o640
+    changed = {t for t in after if after[t] != before.get(t)}
+    assert changed == {"matches", "two_view_geometries"}
+    clusters = io.load_clusters(c)
+    labels, ids = clusters["labels"], clusters["image_ids"]
+    want = expected_pairs(labels, ids)
+    start = [int(np.flatnonzero(ids == k)[0]) for k in range(4)]
+    d = pycolmap.Database.open(str(db))
+    try:
+        images = sorted(d.read_all_images(), key=lambda im: im.image_id)
+        for (a, b), pairs in want.items():
+            m = d.read_matches(images[a].image_id, images[b].image_id)
+            assert {(int(x) + start[a], int(y) + start[b]) for x, y in m} == pairs, (a, b)
+        assert d.num_matched_image_pairs() == len(want)
+        verified = d.num_verified_image_pairs()
+    finally:
+        d.close()
+    assert verified == len(want) and f"{sum(map(len, want.values()))} matches in {len(want)} image pairs" in out
+    assert f"{verified} verified pairs" in out
+    recs = pycolmap.incremental_mapping(str(db), str(scene["folder"]), str(tmp_path / "sparse"))
+    assert max(r.num_reg_images() for r in recs.values()) == 4
+    assert main(["match", str(db), "--into-database", "--quiet"]) == 2
+    assert "already holds" in capsys.readouterr().err and _database_rows(db) == after
+    assert main(["match", str(db), "--into-database", "--quiet", "--overwrite"]) == 0
+    assert _database_rows(db) == after  # the same matches and geometries again (RANSAC seeded)
+    capsys.readouterr()
+    f = tmp_path / "f.npz"
+    assert main(["import", "colmap", str(db), "--out", str(f)]) == 0
+    for argv, message in ((["match", str(f), "--into-database"], "the only INPUT"),
+                          (["match", str(db), str(f), "--into-database"], "the only INPUT"),
+                          (["match", str(db)], "needs --out"),
+                          (["match", str(tmp_path / "none.db"), "--into-database"], "not found")):
+        capsys.readouterr()
+        assert main(argv + ["--quiet"]) == 2, argv
+        got = capsys.readouterr()
+        assert message in got.err and "Traceback" not in got.err and "QuickMatch" not in got.out, argv
