@@ -564,7 +564,7 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
                       max_candidates=inverted_lists.MAX_CANDIDATES)
     stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
     # the lists' k-means does not need sigma: it runs beside sigma's pass (the same centroids)
-    with inverted_lists.centroids_meanwhile(aug.left, inverted_lists.n_lists(n), seed, threads) as centroids:
+    with inverted_lists.centroids_meanwhile(aug, inverted_lists.n_lists(n), seed, threads) as centroids:
         groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
         t = time.perf_counter()
         lists = centroids()

@@ -43,7 +43,7 @@ import contextlib
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator, Optional, Tuple
+from typing import Callable, Iterator, Optional, Tuple, Union
 
 import numpy as np
 
@@ -72,26 +72,39 @@ def n_lists(n: int) -> int:
     return int(2 ** int(np.round(np.log2(target))))
 
 
-def _nearest_centroids(left: np.ndarray, centroids: np.ndarray, t: int, n_threads: Optional[int] = 1) -> np.ndarray:
+#: the rows of the left operand: the array itself, or an :class:`~dqm.core.pairs.Augmented` that makes them
+#: block by block (:meth:`~dqm.core.pairs.Augmented.left_rows`)
+LeftRows = Union[np.ndarray, pairs.Augmented]
+
+
+def _rows_of(left: LeftRows, rows) -> np.ndarray:
+    """Rows ``rows`` (a slice or indices) of the left operand, C-contiguous."""
+    if isinstance(left, pairs.Augmented):
+        return left.left_rows(rows)
+    return np.ascontiguousarray(left[rows])
+
+
+def _nearest_centroids(left: LeftRows, centroids: np.ndarray, t: int, n_threads: Optional[int] = 1) -> np.ndarray:
     """Indices of the ``t`` nearest centroids of every row of ``left`` (augmented operand rows
-    ``[x, |x|^2, 1]``), nearest first (ties: the lower index); computed in blocks of rows, ``n_threads``
-    blocks at a time."""
+    ``[x, |x|^2, 1]``, or an Augmented that makes them), nearest first (ties: the lower index); computed in
+    blocks of rows, ``n_threads`` blocks at a time."""
     dim = centroids.shape[1]
     right = np.empty((len(centroids), dim + 2), dtype=np.float32)
     right[:, :dim] = -2.0 * centroids
     right[:, dim] = 1.0
     right[:, dim + 1] = (centroids.astype(np.float64) ** 2).sum(axis=1)
-    out = np.empty((len(left), t), dtype=np.int32)
+    n = left.n if isinstance(left, pairs.Augmented) else len(left)
+    out = np.empty((n, t), dtype=np.int32)
 
     def block(s: int) -> None:
-        d = left[s:s + 4096] @ right.T
+        d = _rows_of(left, slice(s, s + 4096)) @ right.T
         if t == 1:
             out[s:s + len(d), 0] = d.argmin(axis=1)
             return
         out[s:s + len(d)] = native.smallest(d, t)
 
     with pairs.tile_pool(n_threads) as run:
-        for _ in run(block, range(0, len(left), 4096)):
+        for _ in run(block, range(0, n, 4096)):
             pass
     return out
 
@@ -164,17 +177,18 @@ def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def kmeans(left: np.ndarray, k: int, seed: int = 0, n_threads: Optional[int] = 1,
+def kmeans(left: LeftRows, k: int, seed: int = 0, n_threads: Optional[int] = 1,
            stop: Optional[threading.Event] = None) -> np.ndarray:
-    """``k`` centroids of the rows of the augmented operand ``left`` (Lloyd's iterations on a seeded
-    sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
+    """``k`` centroids of the rows of the augmented operand ``left`` (or of an Augmented's; Lloyd's iterations
+    on a seeded sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
     operand's centred coordinates. Sums are float64 whatever the thread count: deterministic.
     ``stop`` (set by another thread): give up before the next iteration (:class:`Stopped`)."""
-    dim = left.shape[1] - 2
+    aug = isinstance(left, pairs.Augmented)
+    dim = left.dim if aug else left.shape[1] - 2
     rng = np.random.default_rng(seed)
-    n = len(left)
+    n = left.n if aug else len(left)
     sample = np.sort(rng.choice(n, size=min(n, TRAIN_PER_LIST * k), replace=False))
-    S = np.ascontiguousarray(left[sample])
+    S = _rows_of(left, sample)
     centroids = S[np.sort(rng.choice(len(S), size=k, replace=False)), :dim].copy()
     for _ in range(KMEANS_ITERATIONS):
         if stop is not None and stop.is_set():
@@ -194,7 +208,7 @@ class Stopped(Exception):
 
 
 @contextlib.contextmanager
-def centroids_meanwhile(left: np.ndarray, k: int, seed: int = 0,
+def centroids_meanwhile(left: LeftRows, k: int, seed: int = 0,
                         n_threads: Optional[int] = None) -> Iterator[Callable[[], np.ndarray]]:
     """:func:`kmeans` on a thread of its own while the caller computes something else (the fast engine's
     sigma, which does not need the lists): the k-means is mostly one core's work, so the two together fill
@@ -239,15 +253,14 @@ def scan(
     not take a child's places.
     """
     n = aug.n
-    left = aug.left
     k = n_lists(n) if lists is None else int(lists)
     t = int(min(max(1, n_probe), k))
     t0 = time.perf_counter()
     if centroids is None:
-        centroids = kmeans(left, k, seed, n_threads)
+        centroids = kmeans(aug, k, seed, n_threads)
     elif len(centroids) != k:
         raise ValueError(f"scan: {len(centroids)} centroids for {k} lists")
-    near = _nearest_centroids(left, centroids, t, n_threads)
+    near = _nearest_centroids(aug, centroids, t, n_threads)
     time_lists = time.perf_counter() - t0
     own = near[:, 0].astype(np.int64)
     # members of each list, in feature order; probing rows of each list: its members first (their own
@@ -261,31 +274,40 @@ def scan(
     count = _scanned_lists(counts, near, (t * n) / k)
     scans = np.arange(t - 1)[None, :] < count[:, None]  # the first count[i] of feature i's other nearest lists
     probe_list = near[:, 1:][scans]
-    probe_row = np.repeat(np.arange(n), count)
+    probe_row = np.repeat(np.arange(n, dtype=np.int32), count)  # int32 index arrays: n * probes entries each
     order = _by_list(probe_list, k)
     pbounds = _list_bounds(probe_list, k)
+    del probe_list
     # everything in list order: a list's members are one slice of the operands (no gather per tile)
     perm = by_list
-    where = np.empty(n, dtype=np.int64)
-    where[perm] = np.arange(n)
+    where = np.empty(n, dtype=np.int32)
+    where[perm] = np.arange(n, dtype=np.int32)
     # the rows' distances to a list: the integer (VNNI) kernel on uint8 descriptors where the CPU has it
     # (exact, as the float32 GEMM's on such data), else one float32 GEMM
     u8 = native.U8Operands(aug.exact[perm]) if aug.integer_kernel else None
-    Lp, Rp = (None, None) if u8 is not None else (left[perm], aug.right[perm])
+    Lp, Rp = (None, None) if u8 is not None else (aug.left[perm], aug.right[perm])
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)
     rad2p = pairs.search_rad2(aug, radius)[perm]
     bits = _scan_bits(near, scans, k)[perm]
     listp = own[perm].astype(np.int32)
     probers = where[probe_row[order]]
-    tasks = []
+    del probe_row, order, where
+    tasks = []  # (list, its columns lo..hi, first of its probing rows, how many): the rows made by the task
     for b in range(k):
         lo, hi = int(bounds[b]), int(bounds[b + 1])
         if hi == lo:
             continue
-        rows = np.concatenate([np.arange(lo, hi), probers[pbounds[b]:pbounds[b + 1]]])
-        for r0 in range(0, len(rows), ROWS):
-            tasks.append((b, lo, hi, rows[r0:r0 + ROWS], r0))
+        for r0 in range(0, hi - lo + int(pbounds[b + 1] - pbounds[b]), ROWS):
+            tasks.append((b, lo, hi, r0))
+
+    def task_rows(b: int, lo: int, hi: int, r0: int) -> np.ndarray:
+        """Rows r0 .. r0 + ROWS of list b's probing rows (int64): its members lo..hi, then the features that
+        probe it."""
+        own = np.arange(lo + r0, min(hi, lo + r0 + ROWS), dtype=np.int64)
+        p0 = int(pbounds[b]) + max(0, r0 - (hi - lo))
+        p1 = min(int(pbounds[b + 1]), int(pbounds[b]) + r0 + ROWS - (hi - lo))
+        return np.concatenate([own, probers[p0:max(p0, p1)].astype(np.int64)])
 
     held = NearestCandidates(n, max_candidates, None if image_index is None else image_index[perm])
     limit = held.limit  # read by the workers as they tighten it: any value read is a valid radius
@@ -295,7 +317,8 @@ def scan(
         scanner = native.U8Scan(u8, wp, sp, kernel, rad2p, limit, listp, bits)
 
     def work(task):
-        b, lo, hi, rows, r0 = task
+        b, lo, hi, r0 = task
+        rows = task_rows(b, lo, hi, r0)
         n_own = max(0, min(hi - lo - r0, len(rows)))
         if u8 is not None:
             if not hasattr(workspace, "scan"):

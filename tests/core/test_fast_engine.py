@@ -272,3 +272,33 @@ def test_the_lists_k_means_beside_sigma_gives_the_same_centroids_and_stops_when_
     with pytest.raises(ValueError, match="centroids for"):
         inverted_lists.scan(aug, np.ones(len(X)), np.ones(len(X)), "gaussian", np.ones(len(X)), lists=32,
                             centroids=got)
+
+
+def test_the_fast_engine_makes_the_left_operand_a_block_at_a_time(scene):
+    """On integer descriptors the k-means and the nearest lists take the float32 left operand's rows block by
+    block (Augmented.left_rows: the same values as the whole operand's rows) and the scan on the integer kernel
+    never makes the whole operand (n x (dim + 2) float32); the centroids and lists are those of the whole
+    operand. Float descriptors keep their operand made up front."""
+    from dqm.core import pairs
+
+    X, ids, _ = scene
+    aug = pairs.Augmented(X)
+    assert aug.exact_d2 and aug._operands[0] is None  # integer rows: the operand is made on first use
+    whole = pairs.Augmented(X).left
+    rows = np.array([5, 0, len(X) - 1, 5])
+    np.testing.assert_array_equal(aug.left_rows(rows), whole[rows])
+    np.testing.assert_array_equal(aug.left_rows(slice(7, 4103)), whole[7:4103])
+    centroids = inverted_lists.kmeans(aug, 64, 3)
+    np.testing.assert_array_equal(centroids, inverted_lists.kmeans(whole, 64, 3))
+    np.testing.assert_array_equal(inverted_lists._nearest_centroids(aug, centroids, 4, 2),
+                                  inverted_lists._nearest_centroids(whole, centroids, 4, 2))
+    assert aug._operands[0] is None
+    exact = dqm.quickmatch(X, ids)
+    w, active = dqm.core.clustering.kernel_weights(exact.sigma, "gaussian", 0.25)
+    _, cr, cc, _ = inverted_lists.scan(aug, w, active, "gaussian", 0.9 * exact.sigma, lists=64,
+                                       centroids=centroids)
+    assert len(cr) and (aug._operands[0] is None) == aug.integer_kernel  # the GEMM path takes whole rows
+    Xf = X.astype(np.float32) / 7
+    f = pairs.Augmented(Xf)
+    assert f._operands[0] is not None
+    np.testing.assert_array_equal(f.left_rows(rows), f.left[rows])
