@@ -293,7 +293,7 @@ def scan(
     listp = own[perm].astype(np.int32)
     probers = where[probe_row[order]]
     del probe_row, order, where
-    tasks = []  # (list, its columns lo..hi, first of its probing rows, how many): the rows made by the task
+    tasks = []  # (list, its columns lo..hi, first of its probing rows): each task makes its rows (task_rows)
     for b in range(k):
         lo, hi = int(bounds[b]), int(bounds[b + 1])
         if hi == lo:
