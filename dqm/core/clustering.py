@@ -561,7 +561,7 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
     aug = pairs.Augmented(X)
     memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
                       itemsize=X.dtype.itemsize if aug.exact_d2 else None, held=held,
-                      max_candidates=inverted_lists.MAX_CANDIDATES)
+                      max_candidates=inverted_lists.MAX_CANDIDATES, integer_kernel=aug.integer_kernel)
     stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
     # the lists' k-means does not need sigma: it runs beside sigma's pass (the same centroids)
     with inverted_lists.centroids_meanwhile(aug, inverted_lists.n_lists(n), seed, threads) as centroids:

@@ -353,6 +353,36 @@ def test_a_budget_holds_the_measured_peak_of_the_whole_process(tmp_path):
     assert peak <= budget, (peak / 2 ** 20, budget / 2 ** 20)
 
 
+FAST_PEAK_SCRIPT = """
+import sys
+import dqm
+from dqm.core import inverted_lists, memory, pairs
+from dqm.synthetic import sized
+
+ds = sized(int(sys.argv[1]), seed=0)
+X, ids = ds.descriptors, ds.image_ids
+held = memory.process_bytes()
+need = memory.check_fast(len(X), X.shape[1], inverted_lists.DEFAULT_PROBES, inverted_lists.n_lists(len(X)), 2,
+                         1 << 50, itemsize=1, integer_kernel=pairs.Augmented(X).integer_kernel)
+r = dqm.quickmatch(X, ids, max_memory=held + need, n_threads=2, engine="fast")
+print(held + need, memory.peak_bytes(), held, need, memory.base_bytes(len(X), X.shape[1], 2, itemsize=1))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the peak resident memory from /proc")
+def test_the_fast_engines_estimate_bounds_its_measured_peak(tmp_path):
+    """Issue 37: a fresh process runs the fast engine on 60k generated uint8 features with a budget of what it
+    holds plus the engine's own estimate (memory.check_fast, on the path this machine runs: the integer kernel
+    or the float32 GEMM); the estimate lets it run and its peak (VmHWM) stays under that budget, measured. The
+    estimate is above the exact engine's base arrays (the fast engine keeps its candidates besides)."""
+    p = subprocess.run([sys.executable, "-c", FAST_PEAK_SCRIPT, "60000"], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    budget, peak, held, need, base = (float(v) for v in p.stdout.split())
+    assert held > 20 << 20 and need > base
+    assert peak <= budget, (peak / 2 ** 20, budget / 2 ** 20)
+
+
 def test_benchmark_script_small_budgets_run():
     """The small version of scripts/bench_quickmatch.py --budgets (the full one: 100k, 300k, 1M features)."""
     from pathlib import Path
