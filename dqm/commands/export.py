@@ -7,12 +7,14 @@
     dqm export hloc clusters.npz --matches out/matches.h5 --pairs out/pairs.txt --features out/features.h5
     # then hloc: reconstruction.main(sfm_dir, IMAGE_DIR, pairs, features, matches)
 
-COLMAP: the database gets the cameras (one per image by default, COLMAP's SIMPLE_RADIAL model
+COLMAP, --database: a new database gets the cameras (one per image by default, COLMAP's SIMPLE_RADIAL model
 unless --camera-model; --single-camera / --single-camera-per-folder share one, as COLMAP's
 ImageReader.single_camera / single_camera_per_folder; EXIF focal length when the image has one,
 otherwise COLMAP's default 1.2 x the larger side, or --camera-params for all), the keypoints,
 the matches the clusters imply for every image pair (every two members of a cluster) and
 two-view geometries verified by COLMAP itself, so incremental mapping runs with no further step.
+--into-database instead writes the matches and geometries into the existing database the clusters
+were matched from (dqm match database.db), as COLMAP's matchers do: its cameras and features stay.
 
 hloc: matches.h5 in hloc's match_features layout (a group per image pair, matches0 and
 matching_scores0), pairs.txt (one "name0 name1" line per image pair with a match) and, with
@@ -38,8 +40,8 @@ NAME = "export"
 HELP = "export clusters as a COLMAP database or hloc matches / pairs / features files, and tracks"
 
 #: the options that only one format takes (dest name -> format)
-_ONLY_FOR = {"database": "colmap", "no_verify": "colmap", "camera_model": "colmap", "camera_params": "colmap",
-             "single_camera": "colmap", "single_camera_per_folder": "colmap",
+_ONLY_FOR = {"database": "colmap", "into_database": "colmap", "no_verify": "colmap", "camera_model": "colmap",
+             "camera_params": "colmap", "single_camera": "colmap", "single_camera_per_folder": "colmap",
              "matches": "hloc", "pairs": "hloc", "features": "hloc"}
 
 
@@ -53,6 +55,11 @@ def add_arguments(p) -> None:
     outputs.add_overwrite_option(p)
     g = p.add_argument_group("colmap")
     g.add_argument("--database", default=None, metavar="DB", help="COLMAP database (.db) to create")
+    g.add_argument("--into-database", default=None, metavar="DB",
+                   help="instead of creating one: write the matches and COLMAP-verified geometries into this "
+                        "existing COLMAP database, the one the clusters were matched from (dqm match DB), as COLMAP's "
+                        "matchers do; its cameras and features stay (the camera options do not apply); refused if it "
+                        "already holds matches, unless --overwrite")
     g.add_argument("--no-verify", action="store_true",
                    help="write matches only, no two-view geometries (run COLMAP's verification yourself)")
     g.add_argument("--camera-model", default=None, metavar="MODEL",
@@ -84,8 +91,17 @@ def _check_options(args) -> None:
         if fmt != args.format and value not in (None, False):
             option = "--" + dest.replace("_", "-")
             raise InputError(f"{option} is an option of dqm export {fmt}, not of dqm export {args.format}")
-    required = ("database",) if args.format == "colmap" else ("matches", "pairs")
-    for dest in required:
+    if args.format == "colmap":
+        if (args.database is None) == (args.into_database is None):
+            raise InputError("dqm export colmap needs one of --database (a new database) or --into-database (the "
+                             "existing one the clusters were matched from)")
+        camera = [o for o in ("camera_model", "camera_params", "single_camera", "single_camera_per_folder")
+                  if getattr(args, o) not in (None, False)]
+        if args.into_database is not None and camera:
+            raise InputError(f"--{camera[0].replace('_', '-')} makes the cameras of a new database; --into-database "
+                             "keeps the database's own cameras")
+        return
+    for dest in ("matches", "pairs"):
         if getattr(args, dest) is None:
             raise InputError(f"dqm export {args.format} needs --{dest}")
 
@@ -115,7 +131,8 @@ def run(args) -> int:
         n = io.save_tracks_csv(args.tracks, c["labels"], c["image_ids"], c.get("keypoints"), c["image_names"])
         print(f"wrote {n} tracks to {args.tracks}")
     if args.format == "colmap":
-        print(f"reconstruct: pycolmap.incremental_mapping({str(args.database)!r}, {str(image_dir)!r}, OUTPUT_DIR)")
+        database = args.database if args.database is not None else args.into_database
+        print(f"reconstruct: pycolmap.incremental_mapping({str(database)!r}, {str(image_dir)!r}, OUTPUT_DIR)")
     else:
         features = args.features or "FEATURES_H5"
         print(f"reconstruct: hloc.reconstruction.main(Path(SFM_DIR), Path({str(image_dir)!r}), "
@@ -127,6 +144,8 @@ def _run_colmap(args, t0: float):
     from ..vision import colmap
 
     colmap.require_pycolmap(what="dqm export colmap")
+    if args.into_database is not None:
+        return _run_colmap_into(args, t0)
     mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, args.camera_params)
     db = outputs.check_file(args.database, "--database", (".db", ".sqlite", ".sqlite3"), overwrite=args.overwrite)
@@ -142,6 +161,23 @@ def _run_colmap(args, t0: float):
           + ("" if args.no_verify else f", {s.n_verified_pairs} verified pairs")
           + f" ({time.perf_counter() - t0:.1f} s)")
     return c, s.image_dir
+
+
+def _run_colmap_into(args, t0: float):
+    """--into-database: the clusters' matches and COLMAP's verified geometries into the database they were
+    matched from (:func:`dqm.vision.colmap.write_matches`)."""
+    from ..vision import colmap
+
+    db = colmap.check_matches_target(args.into_database, overwrite=args.overwrite)
+    if args.tracks:
+        outputs.check_distinct(("--into-database", db), ("--tracks", args.tracks))
+    c = _load(args, ("image_names", "image_ids"))
+    s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
+                             names=[str(n) for n in c["image_names"]])
+    verified = "" if args.no_verify else f", {s.n_verified_pairs} verified pairs"
+    print(f"wrote into {db}: {s.n_matches} matches in {s.n_image_pairs} image pairs{verified} "
+          f"({time.perf_counter() - t0:.1f} s)")
+    return c, args.image_dir or "IMAGE_DIR"
 
 
 def _run_hloc(args, t0: float):

@@ -369,14 +369,16 @@ def check_matches_target(database, *, overwrite: bool = False, option: str = "--
 
 
 def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
-                  num_threads: int = -1, seed: int = 0) -> ExportSummary:
+                  num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None) -> ExportSummary:
     """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
     database the features were read from (:func:`import_database`), as COLMAP's own matchers do: its cameras,
     images, keypoints and descriptors stay as they are, so its mapper runs next.
 
     ``labels`` and ``image_ids`` are in :func:`import_database`'s order (images by COLMAP image id, keypoints
-    in their rows' order). The database is checked first (:func:`check_matches_target`); existing matches
-    and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
+    in their rows' order); ``names`` (optional): the features' image names in that order, each the database's
+    name of its image or a path ending in it, checked with the keypoint counts (clusters matched from
+    another database are refused). The database is checked first (:func:`check_matches_target`); existing
+    matches and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
     renamed over it when complete, so a stop or an error leaves the old one untouched.
     """
     pycolmap = require_pycolmap()
@@ -399,6 +401,11 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
                 raise InputError(f"{database}: its images' keypoints ({len(images)} images, {sum(found)} keypoints) "
                                  f"are not the matched features' ({len(np.unique(ids))} images, {len(ids)} features); "
                                  "was it changed since it was read?")
+            for k, im in enumerate(images if names is not None else ()):
+                given = str(names[k]).replace(os.sep, "/") if k < len(names) else "(none)"
+                if given != im.name and not given.endswith("/" + im.name):
+                    raise InputError(f"{database}: its image {k + 1} is {im.name}, the clusters' image {k + 1} is "
+                                     f"{given}: the clusters were not matched from this database")
             if overwrite:
                 db.clear_two_view_geometries()
                 db.clear_matches()

@@ -124,7 +124,7 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
         (["colmap", f, "--database", str(db), "--camera-params", "1,2"], "SIMPLE_RADIAL has 4 parameters"),
         (["colmap", f, "--database", str(db), "--matches", str(tmp_path / "m.h5")],
          "--matches is an option of dqm export hloc, not of dqm export colmap"),
-        (["colmap", f], "dqm export colmap needs --database"),
+        (["colmap", f], "dqm export colmap needs one of --database"),
         (["hloc", f, "--matches", str(tmp_path / "m.h5")], "dqm export hloc needs --pairs"),
         (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--single-camera"],
          "--single-camera is an option of dqm export colmap"),
