@@ -445,6 +445,30 @@ def photo_folder(folders, work):
     return joined
 
 
+def alternated_matching(db, work, repeat):
+    """Medians of ``repeat`` runs each of COLMAP's exhaustive matcher and ``dqm match --into-database`` on fresh
+    copies (under ``work``) of the features' database ``db``, each side going first every other time (on some
+    VMs the run right after the other's is the slower). Returns (COLMAP s, dqm s)."""
+    import shutil
+
+    import pycolmap
+
+    Path(work).mkdir(parents=True, exist_ok=True)
+    times = {"colmap": [], "dqm": []}
+    for k in range(repeat):
+        for side in (("colmap", "dqm") if k % 2 == 0 else ("dqm", "colmap")):
+            copy = Path(work) / f"{side}-{k}.db"
+            shutil.copy(db, copy)
+            if side == "dqm":
+                times[side].append(timed([sys.executable, "-m", "dqm", "match", str(copy), "--into-database",
+                                          "--quiet"]))
+                continue
+            t = time.perf_counter()
+            pycolmap.match_exhaustive(str(copy))
+            times[side].append(time.perf_counter() - t)
+    return float(np.median(times["colmap"])), float(np.median(times["dqm"]))
+
+
 def real_section(folders, rows, brute_images, rates=True, repeat=4):
     """dqm's matching into COLMAP's database (its default engine; medians of ``repeat`` runs alternated with
     COLMAP's matcher on the same COLMAP features, each going first every other time; then once --exact) and
@@ -468,19 +492,7 @@ def real_section(folders, rows, brute_images, rates=True, repeat=4):
     dqm_cli = [sys.executable, "-m", "dqm"]
     for mf in rows:
         db = colmap_database(images, work, mf)
-        t_colmap, t_into = [], []
-        for k in range(repeat):  # the same matching into fresh copies of the features' database, in the order
-            cm, into = work / f"colmap-{mf}-{k}.db", work / f"into-{mf}-{k}.db"  # COLMAP-dqm, dqm-COLMAP, ...
-            shutil.copy(db, cm)
-            shutil.copy(db, into)
-            for first in ((True, False) if k % 2 == 0 else (False, True)):
-                if first:
-                    t = time.perf_counter()
-                    pycolmap.match_exhaustive(str(cm))
-                    t_colmap.append(time.perf_counter() - t)
-                else:
-                    t_into.append(timed(dqm_cli + ["match", str(into), "--into-database", "--quiet"]))
-        t_colmap, t_into = float(np.median(t_colmap)), float(np.median(t_into))
+        t_colmap, t_into = alternated_matching(db, work / mf, repeat)
         default, exact, exported = work / f"c-{mf}.npz", work / f"x-{mf}.npz", work / f"e-{mf}.db"
         t_match = timed(dqm_cli + ["match", str(db), "--image-dir", str(images), "--out", str(default), "--quiet"])
         t_exp = timed(dqm_cli + ["export", "colmap", str(default), "--database", str(exported)])

@@ -77,6 +77,13 @@ def n_lists(n: int) -> int:
 LeftRows = Union[np.ndarray, pairs.Augmented]
 
 
+def _size_of(left: LeftRows) -> Tuple[int, int]:
+    """``(rows, descriptor dimension)`` of the left operand (its columns less the two augmented ones)."""
+    if isinstance(left, pairs.Augmented):
+        return left.n, left.dim
+    return len(left), left.shape[1] - 2
+
+
 def _rows_of(left: LeftRows, rows) -> np.ndarray:
     """Rows ``rows`` (a slice or indices) of the left operand, C-contiguous."""
     if isinstance(left, pairs.Augmented):
@@ -93,7 +100,7 @@ def _nearest_centroids(left: LeftRows, centroids: np.ndarray, t: int, n_threads:
     right[:, :dim] = -2.0 * centroids
     right[:, dim] = 1.0
     right[:, dim + 1] = (centroids.astype(np.float64) ** 2).sum(axis=1)
-    n = left.n if isinstance(left, pairs.Augmented) else len(left)
+    n = _size_of(left)[0]
     out = np.empty((n, t), dtype=np.int32)
 
     def block(s: int) -> None:
@@ -183,10 +190,8 @@ def kmeans(left: LeftRows, k: int, seed: int = 0, n_threads: Optional[int] = 1,
     on a seeded sample, k-means++-free: seeds are sample rows). Returns float32 (k, dim) centroids in the
     operand's centred coordinates. Sums are float64 whatever the thread count: deterministic.
     ``stop`` (set by another thread): give up before the next iteration (:class:`Stopped`)."""
-    aug = isinstance(left, pairs.Augmented)
-    dim = left.dim if aug else left.shape[1] - 2
+    n, dim = _size_of(left)
     rng = np.random.default_rng(seed)
-    n = left.n if aug else len(left)
     sample = np.sort(rng.choice(n, size=min(n, TRAIN_PER_LIST * k), replace=False))
     S = _rows_of(left, sample)
     centroids = S[np.sort(rng.choice(len(S), size=k, replace=False)), :dim].copy()

@@ -375,8 +375,8 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     images, keypoints and descriptors stay as they are, so its mapper runs next.
 
     ``labels`` and ``image_ids`` are in :func:`import_database`'s order (images by COLMAP image id, keypoints
-    in their rows' order); ``names`` (optional): the features' image names in that order, each the database's
-    name of its image or a path ending in it, checked with the keypoint counts (clusters matched from
+    in their rows' order); ``names`` (optional): the images' names in that order (one per image), each the
+    database's name of its image or a path ending in it, checked with the keypoint counts (clusters matched from
     another database are refused). The database is checked first (:func:`check_matches_target`); existing
     matches and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
     renamed over it when complete, so a stop or an error leaves the old one untouched.
@@ -396,7 +396,7 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
         try:
             images = sorted(db.read_all_images(), key=lambda im: im.image_id)
             found = [int(db.num_keypoints_for_image(im.image_id)) for im in images]
-            if len(ids) and not 0 <= ids.min() <= ids.max() < len(images) or \
+            if (len(ids) and not 0 <= ids.min() <= ids.max() < len(images)) or \
                     found != np.bincount(ids, minlength=len(images)).tolist():
                 raise InputError(f"{database}: its images' keypoints ({len(images)} images, {sum(found)} keypoints) "
                                  f"are not the matched features' ({len(np.unique(ids))} images, {len(ids)} features); "
