@@ -368,6 +368,40 @@ def check_matches_target(database, *, overwrite: bool = False, option: str = "--
     return check_file(database, option, overwrite=True)
 
 
+def _images_keypoints(database: Path) -> list | None:
+    """``(image_id, name, keypoints)`` of every image in image-id order, read-only from the database's SQLite tables
+    (0 keypoints where an image has none), or None where they are not laid out as COLMAP's."""
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+        try:
+            return [(int(i), str(name), int(rows or 0)) for i, name, rows in con.execute(
+                "SELECT images.image_id, images.name, keypoints.rows FROM images LEFT JOIN keypoints "
+                "ON keypoints.image_id = images.image_id ORDER BY images.image_id")]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None
+
+
+def _check_images(database: Path, images: list, ids: np.ndarray, names: Sequence[str] | None) -> None:
+    """Refuse (InputError) a database whose images (``(image_id, name, keypoints)`` in image-id order) are not those
+    the features ``ids`` (dqm image ids, in that order) were read from: other keypoint counts or, with ``names``,
+    other image names."""
+    found = [k for _, _, k in images]
+    if (len(ids) and not 0 <= ids.min() <= ids.max() < len(images)) or \
+            found != np.bincount(ids, minlength=len(images)).tolist():
+        raise InputError(f"{database}: its images' keypoints ({len(images)} images, {sum(found)} keypoints) "
+                         f"are not the matched features' ({len(np.unique(ids))} images, {len(ids)} features); "
+                         "was it changed since it was read?")
+    for k, (_, name, _) in enumerate(images if names is not None else ()):
+        given = str(names[k]).replace(os.sep, "/") if k < len(names) else "(none)"
+        if given != name and not given.endswith("/" + name):
+            raise InputError(f"{database}: its image {k + 1} is {name}, the clusters' image {k + 1} is "
+                             f"{given}: the clusters were not matched from this database")
+
+
 def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
                   num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None) -> ExportSummary:
     """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
@@ -387,6 +421,9 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     labels = np.asarray(labels, np.int64)
     if labels.shape != ids.shape:
         raise InputError(f"labels ({len(labels)}) and image ids ({len(ids)}) must have one entry per feature")
+    listed = _images_keypoints(database)
+    if listed is not None:  # checked before the database is copied (else on the copy, as pycolmap reads it)
+        _check_images(database, listed, ids, names)
     pairs = cluster_pairs(labels, ids)
     local = local_indices(ids)
     mode = os.stat(database).st_mode & 0o7777
@@ -395,17 +432,9 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
         db = pycolmap.Database.open(tmp)
         try:
             images = sorted(db.read_all_images(), key=lambda im: im.image_id)
-            found = [int(db.num_keypoints_for_image(im.image_id)) for im in images]
-            if (len(ids) and not 0 <= ids.min() <= ids.max() < len(images)) or \
-                    found != np.bincount(ids, minlength=len(images)).tolist():
-                raise InputError(f"{database}: its images' keypoints ({len(images)} images, {sum(found)} keypoints) "
-                                 f"are not the matched features' ({len(np.unique(ids))} images, {len(ids)} features); "
-                                 "was it changed since it was read?")
-            for k, im in enumerate(images if names is not None else ()):
-                given = str(names[k]).replace(os.sep, "/") if k < len(names) else "(none)"
-                if given != im.name and not given.endswith("/" + im.name):
-                    raise InputError(f"{database}: its image {k + 1} is {im.name}, the clusters' image {k + 1} is "
-                                     f"{given}: the clusters were not matched from this database")
+            if listed is None:
+                _check_images(database, [(im.image_id, im.name, int(db.num_keypoints_for_image(im.image_id)))
+                                         for im in images], ids, names)
             if overwrite:
                 db.clear_two_view_geometries()
                 db.clear_matches()

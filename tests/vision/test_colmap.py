@@ -330,11 +330,11 @@ def test_match_into_database_writes_verified_matches_where_colmap_features_are(s
         assert message in got.err and "Traceback" not in got.err and "QuickMatch" not in got.out, argv
 
 
-def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path, capsys):
+def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path, capsys, monkeypatch):
     """`dqm export colmap CLUSTERS --into-database DB` writes what `dqm match DB --into-database` writes (the same
     tables, byte for byte) from a CLUSTERS file matched from DB; a database whose images are not the clusters'
-    (other names, same keypoints) is refused and left as it was, as are the camera options (its cameras stay) and
-    a missing or doubled target."""
+    (other names, same keypoints; or another image's keypoints) is refused before it is copied and left as it
+    was, as are the camera options (its cameras stay) and a missing or doubled target."""
     import shutil
     import sqlite3
 
@@ -342,7 +342,7 @@ def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path
 
     db = tmp_path / "colmap.db"
     pycolmap.extract_features(str(db), str(scene["folder"]))
-    for name in ("other.db", "renamed.db"):
+    for name in ("other.db", "renamed.db", "fewer.db"):
         shutil.copy(db, tmp_path / name)
     c = tmp_path / "c.npz"
     assert main(["match", str(db), "--out", str(c), "--quiet", "--image-dir", str(scene["folder"])]) == 0
@@ -350,13 +350,19 @@ def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path
     assert "verified pairs" in capsys.readouterr().out
     assert main(["match", str(db), "--into-database", "--quiet"]) == 0
     assert _database_rows(tmp_path / "other.db") == _database_rows(db)
-    con = sqlite3.connect(tmp_path / "renamed.db")
-    con.execute("UPDATE images SET name = 'x' || name")
-    con.commit()
-    con.close()
+    for name, change in (("renamed.db", "UPDATE images SET name = 'x' || name"),
+                         ("fewer.db", "DELETE FROM keypoints WHERE image_id = (SELECT MAX(image_id) FROM images)")):
+        con = sqlite3.connect(tmp_path / name)
+        con.execute(change)
+        con.commit()
+        con.close()
     before = _database_rows(tmp_path / "renamed.db")
+    fewer = _database_rows(tmp_path / "fewer.db")
+    copied = []
+    monkeypatch.setattr(shutil, "copyfile", lambda *a, **k: copied.append(a))  # a refused database is not copied
     capsys.readouterr()
     for argv, message in (([str(c), "--into-database", str(tmp_path / "renamed.db")], "were not matched from this"),
+                          ([str(c), "--into-database", str(tmp_path / "fewer.db")], "are not the matched features'"),
                           ([str(c), "--into-database", str(tmp_path / "renamed.db"), "--camera-model", "PINHOLE"],
                            "keeps the database's own cameras"),
                           ([str(c), "--into-database", str(db), "--database", str(tmp_path / "n.db")], "one of"),
@@ -364,5 +370,7 @@ def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path
         assert main(["export", "colmap"] + argv) == 2, argv
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, (argv, err)
+    assert copied == []
     assert _database_rows(tmp_path / "renamed.db") == before and not (tmp_path / "n.db").exists()
+    assert _database_rows(tmp_path / "fewer.db") == fewer
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temporary left
