@@ -355,6 +355,7 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     ``host_cores``, ``gather_cores``: the coordinator's --host-cores and --gather-cores (--mode auto).
     """
     limits = START_LIMITS if limits is None else limits
+    started = time.monotonic()  # the job's clock starts before its first process, as a gathering's does
     coordinator_env = dict(os.environ if env is None else env)
     env = dict(coordinator_env)
     if threads_per_agent is not None:
@@ -375,7 +376,7 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
                                            None if clusters is None else str(clusters), host_cores, gather_cores),
                          *client_args(-1)],
                         workdir / f"{tag}coordinator.log", coordinator_env, prefix=prefix(-1), pass_fds=pass_fds)
-    return Job(cfg, workdir, agents, coord, report_path, time.monotonic())
+    return Job(cfg, workdir, agents, coord, report_path, started)
 
 
 def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
@@ -385,6 +386,7 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
         rc = job.coordinator.wait(timeout=max(1.0, timeout_s - (time.monotonic() - job.started)))
     except subprocess.TimeoutExpired:
         rc = None
+    coordinator_s = time.monotonic() - job.started
     deadline = time.monotonic() + 10.0  # for all of them together: hundreds of agents, one wait
     for p in job.agents:
         try:
@@ -398,6 +400,7 @@ def finish_job(job: Job, timeout_s: float = 120.0) -> dict:
     report["agent_exit_codes"] = [p.returncode for p in job.agents]
     report["workdir"] = str(job.workdir)
     report["wall_s"] = time.monotonic() - job.started
+    report["coordinator_s"] = coordinator_s  # its result written and the process gone; agents may still be ending
     LOG.info("job %s finished in %.2f s (coordinator exit %s, agents %s)", job.cfg.job, report["wall_s"], rc,
              report["agent_exit_codes"])
     return report
@@ -464,7 +467,7 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, limits: Optional[RuntimeLimi
             on_started({"router": router, "agents": job.agents, "coordinator": job.coordinator, "workdir": wd,
                         "port": port})
         report = finish_job(job, limits.job_timeout_s + 15)
-        del report["wall_s"]
+        del report["wall_s"], report["coordinator_s"]
         return report
     finally:
         if tty is not None:

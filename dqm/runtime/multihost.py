@@ -370,9 +370,10 @@ HOST_MODES = ("gather", "gather-approx", "lean", "balanced", "auto")
 
 @dataclass
 class HostRun:
-    """One mode's run on emulated hosts: time to result (processes started to labels), bytes moved,
-    the labels ordered by feature id, and timings (``job_s``, ``gather_s``, ``match_s``; auto: also
-    ``picked``, the mode it picked, and ``probe_s``)."""
+    """One mode's run on emulated hosts: time to result (from starting the processes to the exit of the one
+    that writes the labels: the coordinator, or the gathering host's process), bytes moved, the labels ordered
+    by feature id, and timings (``job_s``, ``gather_s``, ``match_s``; lean, balanced, auto: also
+    ``all_exited_s``, until the last agent's exit; auto: ``picked``, the mode it picked, and ``probe_s``)."""
 
     mode: str
     seconds: float
@@ -410,14 +411,16 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                             tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores,
                             gather_cores=nss.cpu_cores if gather_cores is None else gather_cores)
             rep = finish_job(job, timeout_s + 15)
-            detail: Dict[str, object] = {"job_s": rep["time_run_s"]}
+            # the agents' exits after the coordinator's are not waited for, as a gathering's senders are not
+            detail: Dict[str, object] = {"job_s": rep["time_run_s"], "all_exited_s": rep["wall_s"]}
             if "auto" in rep:
                 detail.update(picked=rep["auto"]["picked"], probe_s=rep["auto"]["probe_s"],
                               rates_mbit={p: r * 8 / 1e6 for p, r in rep["auto"]["rates_bytes_s"].items()},
                               predicted_s=rep["auto"]["predicted_s"], probe_pairs=rep["auto"]["probe_pairs"],
                               rates_at_least=rep["auto"]["rates_at_least"],
                               coordinator_kernel_cpu_s=rep["auto"]["kernel_cpu_s"])
-            return HostRun(mode, rep["wall_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]), detail)
+            return HostRun(mode, rep["coordinator_s"], int(rep["total_bytes"]), *_by_id(rep["ids"], rep["labels"]),
+                           detail)
         if mode not in ("gather", "gather-approx"):
             raise ValueError(f"unknown mode {mode!r}; one of {', '.join(HOST_MODES)}")
         out = workdir / f"{tag}result.json"
