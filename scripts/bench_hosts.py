@@ -21,8 +21,9 @@ on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
 
 Time to result: from starting the processes (Python start-up in the quota included, for every
 mode) to the exit of the process that writes the labels (dqm run's coordinator, the gathering host's
-process; the other processes' exits after it are not waited for, in any mode). Reported with the bytes moved and the speed-up over gather at each rate; every
-row's labels are compared with gather's (identical, or co-membership F1 for lean and approx).
+process; the other processes' exits after it are not waited for, in any mode). Reported with the
+bytes moved and the speed-up over gather at each rate; every row's labels are compared with gather's
+(identical, or co-membership F1 for lean and approx).
 
     sudo .venv/bin/python scripts/bench_hosts.py --data graf --agents 2,4,8 --rates 1000,100,10
     sudo .venv/bin/python scripts/bench_hosts.py --data 100000 --agents 8 --json docs/bench_hosts.json
