@@ -132,6 +132,31 @@ def join_negative_values(parser: argparse.ArgumentParser, argv: List[str]) -> Li
     return out
 
 
+def parse_command(argv: List[str], option: str) -> argparse.Namespace:
+    """``argv`` (a ``dqm`` command line without the program name) parsed as ``dqm`` parses it, for a command that
+    runs another (``dqm coordinator --also-agent``): InputError naming ``option``, with argparse's message, where
+    it does not parse."""
+    from contextlib import redirect_stderr
+    from io import StringIO
+
+    from .validation import InputError
+
+    parser = build_parser(only=command_named(argv))
+    argv = join_negative_values(parser, argv)
+    said = StringIO()
+    try:
+        with redirect_stderr(said):
+            args = parser.parse_args(argv)
+    except SystemExit:
+        lines = [line for line in said.getvalue().splitlines() if line.strip()]
+        raise InputError(f"{option}: {lines[-1] if lines else 'not a dqm command line'}") from None
+    sub = _command_parser(parser, getattr(args, "command", None))
+    clash = contradiction(sub, argv) if sub is not None else None
+    if clash or not getattr(args, "_run", None):
+        raise InputError(f"{option}: {clash or 'not a dqm command line'}")
+    return args
+
+
 def contradiction(sub: argparse.ArgumentParser, argv: List[str]) -> Optional[str]:
     """The first two flags of ``argv`` that contradict each other (``--guided --no-guided``, ``--quiet
     --verbose``), as a message; None when there are none."""

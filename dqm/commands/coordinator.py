@@ -42,6 +42,12 @@ def add_arguments(p) -> None:
     p.add_argument("--gather-cores", type=float, metavar="CORES",
                    help="--mode auto: the cores agent 0's host gives a gather, once the other agents have sent "
                         "their features (default: this host's, its CPU quota included)")
+    p.add_argument("--also-agent", metavar="'AGENT OPTIONS'",
+                   help="also run `dqm agent AGENT OPTIONS` (one shell-quoted string) on this host, in a process "
+                        "forked from this one once its imports are done: the coordinator's host starts one "
+                        "Python interpreter instead of two (docs/runtime.md, Start-up)")
+    p.add_argument("--also-agent-log", metavar="PATH",
+                   help="where the --also-agent process writes its output (default: where this one does)")
     p.add_argument("--progress-fd", type=int, help=argparse.SUPPRESS)
     add_limits(p, COORDINATOR)
     add_algorithm(p)
@@ -71,8 +77,45 @@ def run(args) -> int:
         if value is not None and not value > 0:
             raise InputError(f"{option} must be positive, got {value}")
     cfg = config_from(args, args.agents, args.seed).validated(runtime=True)
+    agent = also_agent(args.also_agent, args.also_agent_log)
     try:
         return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port, limits,
                                 args.progress_fd, clusters, args.host_cores, args.gather_cores)
     except (RouterUnreachable, JobIdInUse, AccessDenied) as exc:
         raise InputError(str(exc)) from None
+    finally:
+        if agent is not None:
+            import logging
+
+            from ..runtime.lifeline import reap
+
+            code = reap(agent, AGENT_EXIT_WAIT_S)
+            if code:
+                logging.getLogger("dqm.runtime").warning("the --also-agent process exited with code %d", code)
+
+
+#: how long the coordinator waits for its --also-agent process to exit (it has left the job by then)
+AGENT_EXIT_WAIT_S = 2.0
+
+
+def also_agent(options, log_path):
+    """Start ``dqm agent OPTIONS`` forked from this process (--also-agent): its options checked here first (a bad
+    one is this command's error, before any work), the agent's modules imported here, so that the child starts
+    with them. Returns its pid, or None without --also-agent."""
+    if not options:
+        return None
+    import shlex
+
+    from ..cli import main, parse_command
+    from ..runtime import agent  # noqa: F401 - imported once, before the fork
+    from ..runtime.lifeline import fork_call
+    from ..validation import InputError
+
+    try:
+        argv = ["agent", *shlex.split(options)]
+    except ValueError as exc:
+        raise InputError(f"--also-agent: {exc}") from None
+    parse_command(argv, "--also-agent")
+    if log_path:
+        outputs.check_file(log_path, "--also-agent-log", overwrite=True)
+    return fork_call(lambda: main(argv), log_path)

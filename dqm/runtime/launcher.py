@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shlex
 import shutil
 import signal
 import socket
@@ -324,6 +325,21 @@ def job_outcome(rc: Optional[int], report_path: Path, workdir: Path) -> dict:
                      f"The processes' logs end with:\n{logs}", rc, logs=logs)
 
 
+class ForkedAgent:
+    """Stands for an agent forked from the coordinator's process (:func:`start_job`'s ``agent0_in_coordinator``)
+    where a launched agent's :class:`subprocess.Popen` would be: the coordinator reaps it, so its exit code is
+    not known here (None), and it ends with the coordinator."""
+
+    pid = None
+    returncode = None
+
+    def poll(self) -> None:
+        return None
+
+    def wait(self, timeout: Optional[float] = None) -> None:
+        return None
+
+
 @dataclass
 class Job:
     """The processes of one started job (the router runs apart)."""
@@ -341,7 +357,7 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
               client_args: Callable[[int], List[str]] = lambda a: [], env=None,
               limits: Optional[RuntimeLimits] = None, tag: str = "", clusters: Optional[Path] = None,
               threads_per_agent: Optional[int] = 1, pass_fds: Sequence[int] = (), host_cores: Optional[float] = None,
-              gather_cores: Optional[float] = None) -> Job:
+              gather_cores: Optional[float] = None, agent0_in_coordinator: bool = False) -> Job:
     """Start the agents and the coordinator of one job (the router is already running): the one start
     path of ``dqm run`` (:func:`run_job`), the multi-host demo and the tests.
 
@@ -353,6 +369,10 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     worker threads of each agent unless ``env`` says otherwise (None: all cores); the coordinator
     keeps ``env``'s (it computes only in a gather job, once the agents have sent everything).
     ``host_cores``, ``gather_cores``: the coordinator's --host-cores and --gather-cores (--mode auto).
+    ``agent0_in_coordinator``: agent 0 runs on the coordinator's host, forked from the coordinator's process
+    (``dqm coordinator --also-agent``: one interpreter to start there, not two); it then has the coordinator's
+    command prefix, endpoint and environment (refused where its own differ), and ``Job.agents[0]`` is a
+    :class:`ForkedAgent`.
     """
     limits = START_LIMITS if limits is None else limits
     started = time.monotonic()  # the job's clock starts before its first process, as a gathering's does
@@ -361,10 +381,18 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     if threads_per_agent is not None:
         for var in ("DQM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
             env.setdefault(var, str(threads_per_agent))
-    agents = [procs.start(["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a),
-                           limits_arg(limits),
-                           *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])],
-                          workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
+    def agent_args(a: int) -> List[str]:
+        return ["agent", "--id", str(a), "--agents", str(cfg.agents), "--connect", connect(a), limits_arg(limits),
+                *config_args(cfg), *client_args(a), *peer_args(list(files), a), str(files[a])]
+
+    forked: List[str] = []
+    if agent0_in_coordinator:
+        if (prefix(0), connect(0)) != (prefix(-1), connect(-1)) or env != coordinator_env:
+            raise ValueError("agent 0 runs in the coordinator's process only with its command prefix, endpoint and "
+                             "environment")
+        forked = ["--also-agent", shlex.join(agent_args(0)[1:]), "--also-agent-log", str(workdir / f"{tag}agent0.log")]
+    agents = [ForkedAgent() if a == 0 and forked else
+              procs.start(agent_args(a), workdir / f"{tag}agent{a}.log", env, prefix=prefix(a))
               for a in range(cfg.agents)]
     report_path = workdir / f"{tag}report.json"
     # the work folder is the launcher's: a report of an earlier job there (the same mode at another link rate of
@@ -374,7 +402,7 @@ def start_job(procs: Processes, cfg: DQMConfig, files: Sequence[Path], workdir: 
     failure_path(str(report_path)).unlink(missing_ok=True)
     coord = procs.start([*coordinator_args(cfg, connect(-1), report_path, limits,
                                            None if clusters is None else str(clusters), host_cores, gather_cores),
-                         *client_args(-1)],
+                         *client_args(-1), *forked],
                         workdir / f"{tag}coordinator.log", coordinator_env, prefix=prefix(-1), pass_fds=pass_fds)
     return Job(cfg, workdir, agents, coord, report_path, started)
 

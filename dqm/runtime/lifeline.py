@@ -15,10 +15,11 @@ import ctypes
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator, List
+from typing import Callable, Iterator, List, Optional
 
 LOG = logging.getLogger("dqm.runtime")
 
@@ -59,6 +60,64 @@ def child_preexec(parent_pid: int):
         if os.getppid() != parent_pid:  # the parent died before the signal was armed
             os._exit(1)
     return arm
+
+
+def fork_call(run: Callable[[], int], log_path: Optional[str] = None) -> int:
+    """Call ``run()`` in a child forked from this process, which exits with what it returns; returns its pid.
+
+    The child has this process's imports already done (no interpreter to start), writes its output to
+    ``log_path`` (else where this process writes), runs in a session of its own and dies with this process
+    (the parent-death signal, and ``DQM_PARENT_PID`` for :func:`watch_parent`), as a launcher's children do.
+    Fork before this process starts threads that the child would need or opens network sessions: a child has
+    only the thread that forked it. Nothing the parent registered to run at exit runs in the child."""
+    parent = os.getpid()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    with signals_deferred():  # a signal between the fork and the child's set-up: delivered once it is set up
+        pid = os.fork()
+        if pid:
+            return pid
+        code = 1
+        try:
+            os.setsid()
+            os.environ[PARENT_ENV] = str(parent)
+            if log_path:
+                fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+                os.dup2(fd, 1)
+                os.dup2(fd, 2)
+                os.close(fd)
+            child_preexec(parent)()  # unblocks the signals, arms the parent-death signal
+            code = int(run() or 0)
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        except BaseException as exc:  # noqa: BLE001 - the child must not return into the parent's code
+            try:
+                print(f"dqm: the forked process failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            except BaseException:  # noqa: BLE001
+                pass
+        finally:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            finally:
+                os._exit(code)
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def reap(pid: int, wait_s: float) -> Optional[int]:
+    """The exit code of child ``pid`` once it has exited, waiting at most ``wait_s``; None if it still runs
+    (it then dies with this process)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            done, status = os.waitpid(pid, os.WNOHANG)
+        except ChildProcessError:
+            return None
+        if done:
+            return os.waitstatus_to_exitcode(status)
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.01)
 
 
 def launched_by(parent_pid: int) -> List[int]:

@@ -393,12 +393,14 @@ def _by_id(ids, labels) -> tuple:
 
 
 def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequence[Path], workdir: Path,
-                 timeout_s: float = 600.0, gather_cores: Optional[float] = None) -> HostRun:
+                 timeout_s: float = 600.0, gather_cores: Optional[float] = None, agent0_forked: bool = True) -> HostRun:
     """Run ``mode`` (:data:`HOST_MODES`) once on hosts that already exist, with a router listening in the
     router namespace on :data:`ROUTER_PORT`: source a's FEATURES file ``files[a]`` is on host a (one
-    agent per host); the coordinator, or the gathering host, is host 0 (``auto``: told that every host has
+    agent per host); the coordinator, or the gathering host, is host 0, where agent 0 runs forked from the
+    coordinator's process (``dqm coordinator --also-agent``: host 0 starts one interpreter, as a gathering host
+    does; ``auto``: told that every host has
     the hosts' CPU quota, which it cannot read inside a namespace, and that agent 0's host gives a gathering
-    match ``gather_cores``, by default the same)."""
+    match ``gather_cores``, by default the same). ``agent0_forked=False``: agent 0 is a process of its own there."""
     m = cfg.agents
     connect = lambda h: f"tcp/{nss.router_addr(max(h, 0))}:{ROUTER_PORT}"  # noqa: E731
     procs = Processes()
@@ -409,7 +411,8 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
                             connect=connect, prefix=lambda a: nss.host_prefix(max(a, 0)),
                             limits=START_LIMITS.but(job_timeout_s=timeout_s),
                             tag=tag, threads_per_agent=None, host_cores=nss.cpu_cores,
-                            gather_cores=nss.cpu_cores if gather_cores is None else gather_cores)
+                            gather_cores=nss.cpu_cores if gather_cores is None else gather_cores,
+                            agent0_in_coordinator=agent0_forked)
             rep = finish_job(job, timeout_s + 15)
             # the agents' exits after the coordinator's are not waited for, as a gathering's senders are not
             detail: Dict[str, object] = {"job_s": rep["time_run_s"], "all_exited_s": rep["wall_s"]}
