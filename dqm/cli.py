@@ -218,6 +218,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     warnings.showwarning = _one_line_warning
     logging_config.configure(verbosity(args))
     try:
+        args._main, args._parse = main, parse_command  # for a command that runs another (coordinator --also-agent)
         return int(args._run(args) or 0)
     except InputError as exc:
         print(f"dqm {args.command}: error: {exc}", file=sys.stderr)

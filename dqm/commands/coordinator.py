@@ -77,7 +77,7 @@ def run(args) -> int:
         if value is not None and not value > 0:
             raise InputError(f"{option} must be positive, got {value}")
     cfg = config_from(args, args.agents, args.seed).validated(runtime=True)
-    agent = also_agent(args.also_agent, args.also_agent_log)
+    agent = also_agent(args.also_agent, args.also_agent_log, args._main, args._parse)
     try:
         return main_coordinator(cfg, args.connect, args.out, tls_from(args, listen=False), args.tcp_port, limits,
                                 args.progress_fd, clusters, args.host_cores, args.gather_cores)
@@ -98,15 +98,15 @@ def run(args) -> int:
 AGENT_EXIT_WAIT_S = 2.0
 
 
-def also_agent(options, log_path):
-    """Start ``dqm agent OPTIONS`` forked from this process (--also-agent): its options checked here first (a bad
-    one is this command's error, before any work), the agent's modules imported here, so that the child starts
-    with them. Returns its pid, or None without --also-agent."""
+def also_agent(options, log_path, main, parse):
+    """Start ``dqm agent OPTIONS`` forked from this process (--also-agent): its options checked here first with
+    ``parse(argv, option)`` (dqm.cli.parse_command: a bad one is this command's error, before any work), the
+    agent's modules imported here, so that the child starts with them, and the child running ``main(argv)``
+    (dqm.cli.main). Returns its pid, or None without --also-agent."""
     if not options:
         return None
     import shlex
 
-    from ..cli import main, parse_command
     from ..runtime import agent  # noqa: F401 - imported once, before the fork
     from ..runtime.lifeline import fork_call
     from ..validation import InputError
@@ -115,7 +115,7 @@ def also_agent(options, log_path):
         argv = ["agent", *shlex.split(options)]
     except ValueError as exc:
         raise InputError(f"--also-agent: {exc}") from None
-    parse_command(argv, "--also-agent")
+    parse(argv, "--also-agent")
     if log_path:
         outputs.check_file(log_path, "--also-agent-log", overwrite=True)
     return fork_call(lambda: main(argv), log_path)
