@@ -29,7 +29,7 @@ from __future__ import annotations
 import os
 import posixpath
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -334,18 +334,27 @@ def _verify(path, num_threads: int, seed: int) -> int:
         db.close()
 
 
-def _table_rows(database: Path, tables: Sequence[str]) -> dict[str, int] | None:
-    """The number of rows of each table (read-only), or None when the file is not an SQLite database holding them."""
+def _read_only(database: Path, read: Callable):
+    """``read(connection)`` on the database's SQLite file opened read-only, or None where SQLite fails (not an
+    SQLite file, a table or column missing)."""
     import sqlite3
 
     try:
         con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
-        try:
-            return {t: int(con.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0]) for t in tables}
-        finally:
-            con.close()
     except sqlite3.Error:
         return None
+    try:
+        return read(con)
+    except sqlite3.Error:
+        return None
+    finally:
+        con.close()
+
+
+def _table_rows(database: Path, tables: Sequence[str]) -> dict[str, int] | None:
+    """The number of rows of each table (read-only), or None when the file is not an SQLite database holding them."""
+    return _read_only(database, lambda con: {t: int(con.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0])
+                                             for t in tables})
 
 
 def check_matches_target(database, *, overwrite: bool = False, option: str = "--into-database") -> Path:
@@ -371,18 +380,9 @@ def check_matches_target(database, *, overwrite: bool = False, option: str = "--
 def _images_keypoints(database: Path) -> list | None:
     """``(image_id, name, keypoints)`` of every image in image-id order, read-only from the database's SQLite tables
     (0 keypoints where an image has none), or None where they are not laid out as COLMAP's."""
-    import sqlite3
-
-    try:
-        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
-        try:
-            return [(int(i), str(name), int(rows or 0)) for i, name, rows in con.execute(
-                "SELECT images.image_id, images.name, keypoints.rows FROM images LEFT JOIN keypoints "
-                "ON keypoints.image_id = images.image_id ORDER BY images.image_id")]
-        finally:
-            con.close()
-    except sqlite3.Error:
-        return None
+    return _read_only(database, lambda con: [(int(i), str(name), int(rows or 0)) for i, name, rows in con.execute(
+        "SELECT images.image_id, images.name, keypoints.rows FROM images LEFT JOIN keypoints "
+        "ON keypoints.image_id = images.image_id ORDER BY images.image_id")])
 
 
 def _check_images(database: Path, images: list, ids: np.ndarray, names: Sequence[str] | None) -> None:
@@ -483,13 +483,7 @@ def _read_tables(database: Path) -> list | None:
     tables (read-only: COLMAP's layout of 3.x and 4.x, float32 keypoints, uint8 SIFT descriptors; an image
     without keypoints or descriptors has None). None where anything else is found: then pycolmap reads it.
     Without pycolmap's import (0.06 s and 60 MB at start-up)."""
-    import sqlite3
-
-    try:
-        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
-    except sqlite3.Error:
-        return None
-    try:
+    def read(con):
         cols = {t: {r[1] for r in con.execute(f"PRAGMA table_info({t})")}
                 for t in ("images", "keypoints", "descriptors")}
         blob_cols = {"image_id", "rows", "cols", "data"}
@@ -504,10 +498,12 @@ def _read_tables(database: Path) -> list | None:
             if typed and r[4] != _SIFT_TYPE:
                 return None
             descriptors[r[0]] = r[1:4]
-    except sqlite3.Error:
+        return images, keypoints, descriptors
+
+    tables = _read_only(database, read)
+    if tables is None:
         return None
-    finally:
-        con.close()
+    images, keypoints, descriptors = tables
     out = []
     for image_id, name in images:
         kp, desc = _blob(keypoints.get(image_id), np.float32), _blob(descriptors.get(image_id), np.uint8)
