@@ -18,7 +18,7 @@ import os
 import re
 import sys
 import warnings
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 from . import __version__, logging_config, signals
 from .blas_threads import with_blas_defaults
@@ -141,20 +141,25 @@ def parse_command(argv: List[str], option: str) -> argparse.Namespace:
 
     from .validation import InputError
 
-    parser = build_parser(only=command_named(argv))
-    argv = join_negative_values(parser, argv)
     said = StringIO()
     try:
         with redirect_stderr(said):
-            args = parser.parse_args(argv)
+            args, clash = _parsed(build_parser(only=command_named(argv)), argv)
     except SystemExit:
         lines = [line for line in said.getvalue().splitlines() if line.strip()]
         raise InputError(f"{option}: {lines[-1] if lines else 'not a dqm command line'}") from None
-    sub = _command_parser(parser, getattr(args, "command", None))
-    clash = contradiction(sub, argv) if sub is not None else None
     if clash or not getattr(args, "_run", None):
         raise InputError(f"{option}: {clash or 'not a dqm command line'}")
     return args
+
+
+def _parsed(parser: argparse.ArgumentParser, argv: List[str]) -> Tuple[argparse.Namespace, Optional[str]]:
+    """``argv`` parsed (argparse exits on what does not parse) and the first contradiction among its flags
+    (:func:`contradiction`), or None."""
+    argv = join_negative_values(parser, argv)
+    args = parser.parse_args(argv)
+    sub = _command_parser(parser, getattr(args, "command", None)) if getattr(args, "_run", None) else None
+    return args, (contradiction(sub, argv) if sub is not None else None)
 
 
 def contradiction(sub: argparse.ArgumentParser, argv: List[str]) -> Optional[str]:
@@ -205,13 +210,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         interrupted_while_importing = True
         print(f"dqm: {signals.word(exc)}", file=sys.stderr)
         return signals.exit_code(exc)
-    argv = join_negative_values(parser, argv)
-    args = parser.parse_args(argv)
+    args, clash = _parsed(parser, argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
-    sub = _command_parser(parser, args.command)
-    clash = contradiction(sub, argv) if sub is not None else None
     if clash:
         print(f"dqm {args.command}: error: {clash}", file=sys.stderr)
         return 2
