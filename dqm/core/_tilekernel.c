@@ -819,6 +819,34 @@ static void vnni8_block(const int8_t *A, int64_t lda, const uint8_t *Bg, int64_t
 }
 #endif
 
+/*
+ * The operands of dqm_gemm_d2_u8 for the rows X[idx[i]] (i < n; idx NULL: the first n rows) of uint8
+ * descriptors (dim bytes each, row stride ldx), packed in one pass without temporaries: rows as int8 x - 128
+ * (width = 4 nq bytes each, padding 0), columns in groups of 16 features (4 bytes of each feature per step q,
+ * 64 bytes a step; groups a multiple of 2, the features past n 0), na = |x|^2, nb = |x|^2 - 256 sum(x). The
+ * caller zeroes what lies past n (the padding rows of A, the columns past n, na and nb past n).
+ */
+void dqm_pack_u8(const uint8_t *X, int64_t ldx, const int64_t *idx, int64_t n, int64_t dim, int64_t nq,
+                 int8_t *rows, uint8_t *cols, int32_t *na, int32_t *nb)
+{
+    const int64_t width = 4 * nq;
+    for (int64_t i = 0; i < n; ++i) {
+        const uint8_t *x = X + (idx ? idx[i] : i) * ldx;
+        int8_t *r = rows + i * width;
+        uint8_t *c = cols + ((i / 16) * nq * 16 + i % 16) * 4;
+        int32_t sq = 0, sum = 0;
+        for (int64_t j = 0; j < width; ++j) {
+            const uint8_t v = j < dim ? x[j] : 0;
+            r[j] = j < dim ? (int8_t)(v ^ 0x80u) : 0;
+            c[(j / 4) * 64 + j % 4] = v;
+            sq += (int32_t)v * v;
+            sum += v;
+        }
+        na[i] = sq;
+        nb[i] = sq - 256 * sum;
+    }
+}
+
 int32_t dqm_gemm_d2_u8(const int8_t *A, int64_t lda, const int32_t *na, int64_t m,
                        const uint8_t *B, const int32_t *nb, int64_t k, int64_t nq,
                        float *G, int64_t ldg)

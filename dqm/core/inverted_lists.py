@@ -289,7 +289,7 @@ def scan(
     where[perm] = np.arange(n, dtype=np.int32)
     # the rows' distances to a list: the integer (VNNI) kernel on uint8 descriptors where the CPU has it
     # (exact, as the float32 GEMM's on such data), else one float32 GEMM
-    u8 = native.U8Operands(aug.exact[perm]) if aug.integer_kernel else None
+    u8 = native.U8Operands(aug.exact, perm) if aug.integer_kernel else None
     Lp, Rp = (None, None) if u8 is not None else (aug.left[perm], aug.right[perm])
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)

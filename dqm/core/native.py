@@ -76,6 +76,9 @@ def _load() -> Optional[ctypes.CDLL]:
                                        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
                                        f32, ctypes.c_int64]
         lib.dqm_gemm_d2_u8.restype = ctypes.c_int32
+        lib.dqm_pack_u8.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
+                                    ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+        lib.dqm_pack_u8.restype = None
         lib.dqm_pass_tile_u8.argtypes = [
             ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
             ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f32, f32, f32, f32, f32, ctypes.c_int32, f32, f32,
@@ -691,11 +694,31 @@ class U8Operands:
     a feature. Tiles start at multiples of 32 features.
     """
 
-    def __init__(self, X: np.ndarray):
-        n, dim = X.shape
+    def __init__(self, X: np.ndarray, rows: Optional[np.ndarray] = None):
+        """Pack ``X`` (uint8, (n, dim)), or its rows ``rows`` (indices) in that order."""
+        if rows is not None:
+            rows = np.ascontiguousarray(rows, np.int64)
+            if len(rows) and (rows.min() < 0 or rows.max() >= len(X)):
+                raise IndexError(f"U8Operands: rows outside the {len(X)} descriptors")
+        n, dim = (len(X) if rows is None else len(rows)), X.shape[1]
         self.n, self.nq = n, -(-dim // 4)
         width = 4 * self.nq
         groups = -(-n // 32) * 2
+        if _LIB is not None and X.dtype == np.uint8 and X.strides[1] == 1:
+            # one pass in C, the rows gathered on the way (numpy's way below: the gathered copy and three
+            # temporaries of the descriptors' size, one thread)
+            self.rows = np.empty((n + _VNNI_ROWS, width), np.int8)
+            self.rows[n:] = 0
+            self.cols = np.empty((groups, self.nq, 16, 4), np.uint8)
+            self.cols[n // 16:] = 0  # the group holding feature n and those after it (filled again up to n)
+            self.na = np.zeros(n + _VNNI_ROWS, np.int32)
+            self.nb = np.zeros(groups * 16, np.int32)
+            _LIB.dqm_pack_u8(X.ctypes.data, X.strides[0], None if rows is None else rows.ctypes.data, n, dim,
+                             self.nq, self.rows.ctypes.data, self.cols.ctypes.data, self.na.ctypes.data,
+                             self.nb.ctypes.data)
+            return
+        if rows is not None:
+            X = X[rows]
         self.rows = np.zeros((n + _VNNI_ROWS, width), np.int8)
         self.rows[:n, :dim] = (X ^ np.uint8(0x80)).view(np.int8)  # x - 128 in two's complement
         cols = np.zeros((groups * 16, width), np.uint8)

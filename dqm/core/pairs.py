@@ -229,7 +229,7 @@ class Augmented:
     def d2_rows(self, rows: np.ndarray) -> np.ndarray:
         """Exact float32 squared distances of the features ``rows`` to every feature, from the integer
         kernel (only where :attr:`u8` is set)."""
-        return native.U8Operands(self.exact[rows]).d2(0, len(rows), 0, self.n, cols=self.u8)
+        return native.U8Operands(self.exact, rows).d2(0, len(rows), 0, self.n, cols=self.u8)
 
     def d2_block(self, a: int, a1: int, b: int, b1: int) -> np.ndarray:
         """float32 squared distances of features ``a..a1`` to ``b..b1`` (within :attr:`gamma`'s bound;
@@ -334,7 +334,7 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
 
     def pack(img):
         lo, hi = bounds[img], bounds[img + 1]
-        return img, (lo, native.U8Operands(aug.exact[order[lo:hi]]))
+        return img, (lo, native.U8Operands(aug.exact, order[lo:hi]))
 
     best = np.full(n, np.inf)
     rows_l, cols_l, g_l = [], [], []

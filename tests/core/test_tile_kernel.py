@@ -208,6 +208,26 @@ def test_vnni_distances_are_exact_for_every_tile_shape():
         ops.d2(0, 5, 16, 40)
 
 
+@pytest.mark.skipif(native._LIB is None, reason="native kernel not built")
+def test_native_packing_is_numpys_packing_of_the_gathered_rows(monkeypatch):
+    """U8Operands packs in C, gathering the rows it is given (no copy of them first): the same bytes and norms
+    as numpy's packing of the gathered rows, for counts around the 16- and 32-feature groups, dimensions that
+    are no multiple of 4, a row stride that is no row's size, and no rows at all."""
+    rng = np.random.default_rng(3)
+    for n, dim in [(0, 128), (1, 128), (15, 3), (16, 64), (31, 130), (33, 128), (200, 129)]:
+        X = rng.integers(0, 256, size=(n + 9, dim + 2), dtype=np.uint8)[:, 1:dim + 1]  # strided rows
+        rows = rng.permutation(n + 9)[:n]
+        native_gathered, native_all = native.U8Operands(X, rows), native.U8Operands(X)
+        with monkeypatch.context() as m:
+            m.setattr(native, "_LIB", None)
+            by_numpy, all_by_numpy = native.U8Operands(X[rows]), native.U8Operands(np.ascontiguousarray(X))
+        for got, want in ((native_gathered, by_numpy), (native_all, all_by_numpy)):
+            for part in ("rows", "cols", "na", "nb"):
+                np.testing.assert_array_equal(getattr(got, part), getattr(want, part), err_msg=f"{n} {dim} {part}")
+    with pytest.raises(IndexError, match="outside"):
+        native.U8Operands(X, np.array([0, n + 9]))
+
+
 @needs_vnni
 @pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
 def test_fused_integer_pass_matches_the_float_pass(kernel, monkeypatch):
