@@ -916,6 +916,44 @@ int64_t dqm_pass_tile_u8(const int8_t *A, int64_t lda, const int32_t *na, int64_
 }
 
 /*
+ * Row and column minima of a tile of exact squared distances of uint8 descriptors (the sigma pass's tiles on
+ * the integer kernel): made (dqm_gemm_d2_u8) in strips of PASS_STRIP rows into the caller's scratch
+ * (PASS_STRIP x k floats, which stays in cache) and reduced at once, so the tile is never written out whole.
+ * diag != 0: rows and columns are the same features, the self pairs (r, r) left out (FLT_MAX where a row or
+ * column has no other entry). Operands as dqm_gemm_d2_u8 (A, na: the tile's first row; B, nb: its first
+ * column). Returns 0, -2 if k > MAX_ROW, -3 without AVX-512 VNNI.
+ */
+int32_t dqm_min_tile_u8(const int8_t *A, int64_t lda, const int32_t *na, int64_t m,
+                        const uint8_t *B, const int32_t *nb, int64_t k, int64_t nq, int32_t diag,
+                        float *scratch, float *rmin, float *cmin)
+{
+    if (k > MAX_ROW)
+        return -2;
+    resolve_simd();
+    for (int64_t c = 0; c < k; ++c)
+        cmin[c] = FLT_MAX;
+    for (int64_t r0 = 0; r0 < m; r0 += PASS_STRIP) {
+        int64_t rows = m - r0 < PASS_STRIP ? m - r0 : PASS_STRIP;
+        int32_t ok = dqm_gemm_d2_u8(A + r0 * lda, lda, na + r0, rows, B, nb, k, nq, scratch, k);
+        if (ok < 0)
+            return ok;
+        for (int64_t r = 0; r < rows; ++r) {
+            float *g = scratch + r * k;
+            if (diag && r0 + r < k)
+                g[r0 + r] = FLT_MAX;
+#ifdef DQM_HAVE_AVX2_PATH
+            if (simd_level >= 1) {
+                rmin[r0 + r] = minrow_avx2(g, k, cmin);
+                continue;
+            }
+#endif
+            rmin[r0 + r] = minrow_scalar(g, k, cmin);
+        }
+    }
+    return 0;
+}
+
+/*
  * Scan tile of the fast engine (dqm/core/inverted_lists.py). Columns are the
  * members of list `list`; rows are the features that scan it: its own n_own
  * members first (row r < n_own is column r + self_col), then features of

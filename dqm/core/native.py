@@ -79,6 +79,10 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_pack_u8.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
                                     ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
         lib.dqm_pack_u8.restype = None
+        lib.dqm_min_tile_u8.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64,
+                                        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
+                                        ctypes.c_int32, f32, f32, f32]
+        lib.dqm_min_tile_u8.restype = ctypes.c_int32
         lib.dqm_pass_tile_u8.argtypes = [
             ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
             ctypes.c_int64, ctypes.c_int64, ctypes.c_int32, f32, f32, f32, f32, f32, ctypes.c_int32, f32, f32,
@@ -739,6 +743,20 @@ class U8Operands:
         return (self.rows[a:].ctypes.data, self.rows.shape[1], self.na[a:].ctypes.data,
                 self.cols[b // 16:].ctypes.data, self.nb[b:].ctypes.data)
 
+    def minima(self, a: int, a1: int, b: int, b1: int, diag: bool,
+               scratch: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+        """Row and column minima of :meth:`d2` of rows ``a..a1`` and columns ``b..b1`` (float32; ``diag``: the
+        same features, the self pairs left out; FLT_MAX where nothing is left), without making the tile:
+        strips of rows in ``scratch`` (:func:`minima_scratch`, one per thread), reduced at once."""
+        if scratch is None:
+            scratch = minima_scratch()
+        rmin = np.empty(a1 - a, np.float32)
+        cmin = np.empty(b1 - b, np.float32)
+        A, lda, na, B, nb = self._args(a, b)
+        _check_code(_LIB.dqm_min_tile_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, int(diag), scratch, rmin,
+                                         cmin), b1 - b)
+        return rmin, cmin
+
     def d2(self, a: int, a1: int, b: int, b1: int, cols: Optional["U8Operands"] = None) -> np.ndarray:
         """Exact squared distances of rows ``a..a1`` to columns ``b..b1`` (float32); the columns
         are those of ``cols`` when given (packed from other descriptors of the same dimension)."""
@@ -748,6 +766,15 @@ class U8Operands:
             _, _, _, B, nb = cols._args(a, b)
         _check_code(_LIB.dqm_gemm_d2_u8(A, lda, na, a1 - a, B, nb, b1 - b, self.nq, G, b1 - b), b1 - b)
         return G
+
+
+#: rows of a strip of :meth:`U8Operands.minima` (PASS_STRIP of the C kernel)
+_MIN_STRIP = 64
+
+
+def minima_scratch() -> np.ndarray:
+    """A thread's scratch for :meth:`U8Operands.minima` (a strip of rows, 256 KiB)."""
+    return np.empty(_MIN_STRIP * MAX_ROW, np.float32)
 
 
 class U8Scan:

@@ -318,11 +318,19 @@ def nearest_same_image(aug: Augmented, image_index: np.ndarray, n_images: int,
     images = [img for img in range(n_images) if bounds[img + 1] - bounds[img] >= 2]
     tasks = [tile + (img,) for img in images for tile in _block_pairs(bounds[img], bounds[img + 1])]
 
+    nothing = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    scratch = threading.local()  # each thread's strip for the integer kernel's minima
+
     def work(task):
         a, a1, b, b1, img = task
         ra, rb = order[a:a1], order[b:b1]
         if img in packed:
             lo, ops = packed[img]
+            if minima_only:  # the minima straight from the kernel's strips: no tile made, read again
+                if not hasattr(scratch, "strip"):
+                    scratch.strip = native.minima_scratch()
+                rmin, cmin = ops.minima(a - lo, a1 - lo, b - lo, b1 - lo, a == b, scratch.strip)
+                return nothing + (ra, rmin, rb, cmin)
             G = ops.d2(a - lo, a1 - lo, b - lo, b1 - lo)
         else:
             G = aug.left[ra] @ aug.right[rb].T

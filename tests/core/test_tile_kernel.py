@@ -445,6 +445,32 @@ def test_sigma_of_integer_descriptors_from_tile_minima_matches_brute_force(level
             np.testing.assert_array_equal(got, ref)
 
 
+@needs_vnni
+def test_vnni_minima_are_the_minima_of_the_tile_without_making_it(monkeypatch):
+    """U8Operands.minima (sigma's tiles on the integer kernel: strips of 64 rows reduced at once) gives the row
+    and column minima of d2's tile, the self pairs left out on a diagonal tile (FLT_MAX where nothing is left);
+    and sigma over images of several blocks (off-diagonal and ragged tiles) is the brute-force nearest other
+    feature of the same image."""
+    rng = np.random.default_rng(4)
+    X = rng.integers(0, 256, size=(300, 130), dtype=np.uint8)
+    X[7] = X[150]  # a duplicate: a zero distance off the diagonal
+    ops = native.U8Operands(X)
+    big = np.finfo(np.float32).max
+    for a, a1, b, b1, diag in [(0, 300, 0, 300, True), (0, 300, 0, 300, False), (64, 130, 64, 130, True),
+                               (5, 17, 32, 33, False), (288, 300, 256, 300, False), (0, 1, 0, 1, True)]:
+        G = ops.d2(a, a1, b, b1)
+        if diag:
+            np.fill_diagonal(G, big)
+        rmin, cmin = ops.minima(a, a1, b, b1, diag)
+        np.testing.assert_array_equal(rmin, G.min(axis=1), err_msg=str((a, a1, b, b1)))
+        np.testing.assert_array_equal(cmin, G.min(axis=0), err_msg=str((a, a1, b, b1)))
+    monkeypatch.setattr(pairs, "BLOCK", 64)
+    img = rng.integers(0, 3, len(X))
+    D = np.sqrt(((X[:, None, :].astype(np.int64) - X[None, :, :]) ** 2).sum(-1))
+    D[(img[:, None] != img[None, :]) | np.eye(len(X), dtype=bool)] = np.inf
+    np.testing.assert_array_equal(pairs.nearest_same_image(pairs.Augmented(X), img, 3), D.min(axis=1))
+
+
 @needs_native
 def test_distinctiveness_tile_matches_numpy_with_slack_and_minima_only(levels):
     """nearest_sym natively at every SIMD level against its numpy twin: the minima, and with a slack every entry
