@@ -21,8 +21,8 @@ import warnings
 from typing import List, Optional, Tuple
 
 from . import __version__, logging_config, signals
-from .blas_threads import with_blas_defaults
 from .commands import HelpFormatter
+from .process_env import with_env_defaults
 
 #: command name -> the module that holds it (NAME, HELP, add_arguments, run)
 COMMANDS = {
@@ -197,7 +197,7 @@ interrupted_while_importing = False
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    with_blas_defaults(os.environ)  # before numpy loads OpenBLAS: its workers do not spin (dqm.blas_threads)
+    with_env_defaults(os.environ)  # before numpy loads: OpenBLAS's workers do not spin, no huge pages (dqm.process_env)
     # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
     signals.install_sigterm()
     signals.received = None

@@ -27,7 +27,7 @@ ABOVE = {
 }
 #: the support modules under every layer: they import none of the layers (the package's face, __init__, and the
 #: program, __main__ and cli, import them all)
-SUPPORT = ["blas_threads", "io", "lazy_exports", "logging_config", "outputs", "progress", "signals", "synthetic",
+SUPPORT = ["io", "lazy_exports", "logging_config", "outputs", "process_env", "progress", "signals", "synthetic",
            "validation", "wording"]
 for _name in SUPPORT:
     ABOVE[f"dqm/{_name}.py"] = ["dqm.core", "dqm.distributed", "dqm.runtime"] + APPLICATION + TOP
@@ -158,30 +158,34 @@ def test_every_runtime_module_logs_through_the_dqm_logger_tree():
     assert not silent, "runtime modules without a logger of the dqm tree: " + ", ".join(silent)
 
 
-def test_dqm_processes_start_with_openblas_workers_that_do_not_spin(tmp_path):
-    """The dqm command sets OPENBLAS_THREAD_TIMEOUT for itself before numpy loads, and the launcher for every
-    child; a value the caller's environment has is kept (dqm.blas_threads)."""
+def test_dqm_processes_start_with_their_environment_defaults(tmp_path):
+    """The dqm command sets OPENBLAS_THREAD_TIMEOUT and NUMPY_MADVISE_HUGEPAGE for itself before numpy loads (so
+    numpy makes no huge-page requests in it), and the launcher for every child; a value the caller's environment
+    has is kept (dqm.process_env)."""
     import os
     import subprocess
     import sys
 
-    from dqm.blas_threads import BLAS_ENV_DEFAULTS, with_blas_defaults
+    from dqm.process_env import ENV_DEFAULTS, with_env_defaults
     from dqm.runtime.launcher import Processes
 
-    assert with_blas_defaults({}) == BLAS_ENV_DEFAULTS
-    assert with_blas_defaults({"OPENBLAS_THREAD_TIMEOUT": "9"}) == {"OPENBLAS_THREAD_TIMEOUT": "9"}
-    # numpy is not loaded before main, which sets the variable first (--version then loads numpy for the kernel)
+    assert with_env_defaults({}) == ENV_DEFAULTS == {"OPENBLAS_THREAD_TIMEOUT": "4", "NUMPY_MADVISE_HUGEPAGE": "0"}
+    assert with_env_defaults({"OPENBLAS_THREAD_TIMEOUT": "9"}) == {**ENV_DEFAULTS, "OPENBLAS_THREAD_TIMEOUT": "9"}
+    # numpy is not loaded before main, which sets the variables first (--version then loads numpy for the kernel)
     probe = ("import os, sys, dqm.cli as c\nbefore = 'numpy' in sys.modules\ntry:\n    c.main(['--version'])\n"
-             "except SystemExit:\n    pass\nprint(before, os.environ.get('OPENBLAS_THREAD_TIMEOUT'))")
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+             "except SystemExit:\n    pass\nfrom numpy._core import multiarray as m\n"
+             "print(before, os.environ.get('OPENBLAS_THREAD_TIMEOUT'), m._get_madvise_hugepage())")
+    env = {k: v for k, v in os.environ.items() if k not in ENV_DEFAULTS}
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=60)
-    assert out.stdout.split()[-2:] == ["False", "4"], out.stdout + out.stderr
-    out = subprocess.run([sys.executable, "-c", probe], env={**env, "OPENBLAS_THREAD_TIMEOUT": "9"},
+    assert out.stdout.split()[-3:] == ["False", "4", "False"], out.stdout + out.stderr
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "OPENBLAS_THREAD_TIMEOUT": "9",
+                                                             "NUMPY_MADVISE_HUGEPAGE": "1"},
                          capture_output=True, text=True, timeout=60)
-    assert out.stdout.split()[-1] == "9"
-    (tmp_path / "envprobe.py").write_text("import os\nprint(os.environ.get('OPENBLAS_THREAD_TIMEOUT'))\n")
+    assert out.stdout.split()[-2:] == ["9", "True"]
+    (tmp_path / "envprobe.py").write_text("import os\nprint(os.environ.get('OPENBLAS_THREAD_TIMEOUT'), "
+                                          "os.environ.get('NUMPY_MADVISE_HUGEPAGE'))\n")
     procs = Processes()
     child = procs.start([], tmp_path / "c.log", env={**env, "PYTHONPATH": str(tmp_path)}, module="envprobe")
     child.wait(timeout=60)
     procs.stop_all()
-    assert "4" in (tmp_path / "c.log").read_text().split()
+    assert (tmp_path / "c.log").read_text().split()[-2:] == ["4", "0"]

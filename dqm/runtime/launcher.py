@@ -29,9 +29,9 @@ from typing import Callable, Iterator, List, Optional, Sequence
 import numpy as np
 
 from .. import io
-from ..blas_threads import with_blas_defaults
 from ..distributed.config import DQMConfig, config_args
 from ..distributed.sources import split_features
+from ..process_env import with_env_defaults
 from ..wording import seconds
 from .bus import LEASE_MS
 from .coordinator import failure_paragraph, failure_path
@@ -209,7 +209,7 @@ class Processes:
         process."""
         fh = open(log_path, "w")
         env = dict(os.environ if env is None else env)
-        with_blas_defaults(env)  # OpenBLAS's workers do not spin (dqm.blas_threads)
+        with_env_defaults(env)  # OpenBLAS's workers do not spin, numpy asks for no huge pages (dqm.process_env)
         env[PARENT_ENV] = str(os.getpid())
         try:
             with signals_deferred():  # Ctrl-C / SIGTERM arrive once the child is started and known
