@@ -514,6 +514,16 @@ static float minrow_avx2(const float *g, int64_t k, float *cmin)
 }
 #endif
 
+/* A row's minimum, lowering cmin column by column (the loops of the CPU's level). */
+static float minrow(const float *g, int64_t k, float *cmin)
+{
+#ifdef DQM_HAVE_AVX2_PATH
+    if (simd_level >= 1)
+        return minrow_avx2(g, k, cmin);
+#endif
+    return minrow_scalar(g, k, cmin);
+}
+
 /* Appends the columns c of row r with g[c] < FLT_MAX and (g[c] <= lr or g[c] <= climit[c]), in
    column order; vector compares skip the blocks with none. Returns the new count, -1 past cap. */
 static int64_t near_row(const float *g, int64_t k, float lr, const float *climit, int32_t r,
@@ -560,15 +570,8 @@ int64_t dqm_nearest_sym(const float *G, int64_t m, int64_t k, int64_t ldg,
     resolve_simd();
     for (int64_t c = 0; c < k; ++c)
         cmin[c] = FLT_MAX;
-    for (int64_t r = 0; r < m; ++r) {
-#ifdef DQM_HAVE_AVX2_PATH
-        if (simd_level >= 1) {
-            rmin[r] = minrow_avx2(G + r * ldg, k, cmin);
-            continue;
-        }
-#endif
-        rmin[r] = minrow_scalar(G + r * ldg, k, cmin);
-    }
+    for (int64_t r = 0; r < m; ++r)
+        rmin[r] = minrow(G + r * ldg, k, cmin);
     if (slack_r == NULL)
         return 0;
     float climit[MAX_ROW]; /* column limits once */
@@ -941,13 +944,7 @@ int32_t dqm_min_tile_u8(const int8_t *A, int64_t lda, const int32_t *na, int64_t
             float *g = scratch + r * k;
             if (diag && r0 + r < k)
                 g[r0 + r] = FLT_MAX;
-#ifdef DQM_HAVE_AVX2_PATH
-            if (simd_level >= 1) {
-                rmin[r0 + r] = minrow_avx2(g, k, cmin);
-                continue;
-            }
-#endif
-            rmin[r0 + r] = minrow_scalar(g, k, cmin);
+            rmin[r0 + r] = minrow(g, k, cmin);
         }
     }
     return 0;
