@@ -699,43 +699,28 @@ class U8Operands:
     """
 
     def __init__(self, X: np.ndarray, rows: Optional[np.ndarray] = None):
-        """Pack ``X`` (uint8, (n, dim)), or its rows ``rows`` (indices) in that order."""
+        """Pack ``X`` (uint8, (n, dim)), or its rows ``rows`` (indices) in that order: one pass in C
+        (``dqm_pack_u8``), the rows gathered on the way."""
+        if _LIB is None or X.dtype != np.uint8:
+            raise ValueError("U8Operands: uint8 descriptors and the native kernel needed")
+        if X.strides[1] != 1:
+            X = np.ascontiguousarray(X)
         if rows is not None:
             rows = np.ascontiguousarray(rows, np.int64)
             if len(rows) and (rows.min() < 0 or rows.max() >= len(X)):
                 raise IndexError(f"U8Operands: rows outside the {len(X)} descriptors")
         n, dim = (len(X) if rows is None else len(rows)), X.shape[1]
         self.n, self.nq = n, -(-dim // 4)
-        width = 4 * self.nq
         groups = -(-n // 32) * 2
-        if _LIB is not None and X.dtype == np.uint8 and X.strides[1] == 1:
-            # one pass in C, the rows gathered on the way (numpy's way below: the gathered copy and three
-            # temporaries of the descriptors' size, one thread)
-            self.rows = np.empty((n + _VNNI_ROWS, width), np.int8)
-            self.rows[n:] = 0
-            self.cols = np.empty((groups, self.nq, 16, 4), np.uint8)
-            self.cols[n // 16:] = 0  # the group holding feature n and those after it (filled again up to n)
-            self.na = np.zeros(n + _VNNI_ROWS, np.int32)
-            self.nb = np.zeros(groups * 16, np.int32)
-            _LIB.dqm_pack_u8(X.ctypes.data, X.strides[0], None if rows is None else rows.ctypes.data, n, dim,
-                             self.nq, self.rows.ctypes.data, self.cols.ctypes.data, self.na.ctypes.data,
-                             self.nb.ctypes.data)
-            return
-        if rows is not None:
-            X = X[rows]
-        self.rows = np.zeros((n + _VNNI_ROWS, width), np.int8)
-        self.rows[:n, :dim] = (X ^ np.uint8(0x80)).view(np.int8)  # x - 128 in two's complement
-        cols = np.zeros((groups * 16, width), np.uint8)
-        cols[:n, :dim] = X
-        # each feature's 4 bytes of a step as one uint32: a 3-d transpose of words, not a 4-d one of bytes (the
-        # same bytes, several times faster)
-        self.cols = np.ascontiguousarray(cols.view(np.uint32).reshape(groups, 16, self.nq).transpose(0, 2, 1)) \
-            .view(np.uint8).reshape(groups, self.nq, 16, 4)
-        norm = np.square(X, dtype=np.uint16).sum(axis=1, dtype=np.int32)  # 255^2 fits 16 bits
+        self.rows = np.empty((n + _VNNI_ROWS, 4 * self.nq), np.int8)
+        self.rows[n:] = 0
+        self.cols = np.empty((groups, self.nq, 16, 4), np.uint8)
+        self.cols[n // 16:] = 0  # the group holding feature n and those after it (filled again up to n)
         self.na = np.zeros(n + _VNNI_ROWS, np.int32)
-        self.na[:n] = norm
         self.nb = np.zeros(groups * 16, np.int32)
-        self.nb[:n] = norm - 256 * X.sum(axis=1, dtype=np.int32)
+        _LIB.dqm_pack_u8(X.ctypes.data, X.strides[0], None if rows is None else rows.ctypes.data, n, dim,
+                         self.nq, self.rows.ctypes.data, self.cols.ctypes.data, self.na.ctypes.data,
+                         self.nb.ctypes.data)
 
     def _args(self, a: int, b: int):
         if b % 32:
