@@ -435,7 +435,7 @@ class CoordinatorCore:
         else:
             ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
                                                    for a in range(self.m)])
-        if len(np.unique(ids)) != len(ids):
+        if sources.has_repeats(ids):
             self.fail(JobFailed("two agents reported the same feature (feature ids must be unique across the "
                                 "job: give each FEATURES file its own feature_ids, or none)", None, "result"))
         if self.catalog:

@@ -25,7 +25,7 @@ from . import messages, protocol
 from .config import DQMConfig
 from .driver import JobAborted
 from .ledger import COORDINATOR
-from .sources import AgentFeatures, assemble_labels
+from .sources import AgentFeatures, assemble_labels, has_repeats
 
 
 def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:
@@ -89,7 +89,7 @@ def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarr
     ``(ids, labels)``, labels numbered canonically. Feature ids must be unique."""
     import dqm
 
-    if len(np.unique(ids)) != len(ids):
+    if has_repeats(ids):
         raise ValueError("two sources sent the same feature id (feature ids must be unique across the job: give "
                          "each FEATURES file its own feature_ids, or none)")
     r = dqm.quickmatch(descriptors, image_ids, params=params or QuickMatchParams(kernel=FINITE_KERNEL),

@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from dqm.cli import COMMANDS, build_parser, command_named
@@ -49,3 +50,57 @@ def test_help_of_all_commands_still_lists_them(capsys):
         main(["--help"])
     out = capsys.readouterr().out
     assert all(name in out for name in COMMANDS)
+
+
+def test_the_coordinator_pick_and_the_gathered_match_load_neither_numpy_ma_nor_numpy_random():
+    """np.median's and np.unique's first calls import numpy.ma, and numpy.random is an import of its own:
+    about 20 ms of CPU each, 80 ms on a host's quarter core, in the coordinator before ``--mode auto``
+    decides and in the gathering agent. The pair-rate probe, the cost model's pick (a median of the rates)
+    and the gathered match (a check for repeated ids) use neither, and still refuse repeated ids."""
+    code = """
+import json, sys
+import numpy as np
+from dqm.core.pairs import pair_cpu_s_here
+from dqm.distributed import costmodel
+from dqm.distributed.gathering import match_gathered
+rate = pair_cpu_s_here(128, np.uint8, rows=256, repeats=1)
+job = costmodel.JobShape(n=20000, agents=4, dim=128)
+pick = costmodel.choose(job, costmodel.Hosts.of([1.25e6, 12.5e6, 125e6, 12.5e6], 0.25, kernel_cpu_s=rate))
+k = np.arange(300 * 16, dtype=np.int64)
+X = ((k * 2654435761) % 251).astype(np.uint8).reshape(300, 16)
+ids, labels = match_gathered(np.arange(300), np.arange(300) % 3, X)
+try:
+    match_gathered(np.r_[np.arange(299), 7], np.arange(300) % 3, X)
+    refused = ""
+except ValueError as exc:
+    refused = str(exc)
+loaded = sorted(m for m in ("numpy.ma", "numpy.random") if m in sys.modules)
+print(json.dumps([pick.mode, len(labels), refused, loaded]))
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    mode, n, refused, loaded = json.loads(r.stdout.strip().splitlines()[-1])
+    assert mode in ("gather", "lean", "balanced") and n == 300
+    assert "same feature id" in refused
+    assert loaded == []
+
+
+def test_has_repeats_agrees_with_unique():
+    from dqm.distributed.sources import has_repeats
+
+    rng = np.random.default_rng(4)
+    for n in (0, 1, 2, 3, 50, 1000):
+        for hi in (2, 60, 10**9):
+            v = rng.integers(0, hi, n)
+            assert has_repeats(v) == (len(np.unique(v)) != len(v)), (n, hi)
+    assert has_repeats(np.array([[1, 2], [3, 1]])) and not has_repeats([5.0, -5.0])
+
+
+def test_the_cost_models_median_is_numpys():
+    from dqm.distributed.costmodel import _median
+
+    rng = np.random.default_rng(5)
+    for n in range(1, 30):
+        v = rng.random(n) * 10.0 ** rng.integers(-3, 10)
+        assert _median(v) == float(np.median(v))
+
