@@ -15,6 +15,8 @@ from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "agent"
 HELP = "run one distributed agent process"
+#: ``python -m dqm`` leaves with os._exit once this command returned (:data:`dqm.cli.exit_at_once`)
+EXIT_AT_ONCE = True
 
 
 def add_arguments(p) -> None:

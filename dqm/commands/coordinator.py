@@ -20,6 +20,8 @@ from .runtime_options import add_algorithm, add_tls, config_from, tls_from
 
 NAME = "coordinator"
 HELP = "run the coordinator of a distributed job"
+#: ``python -m dqm`` leaves with os._exit once this command returned (:data:`dqm.cli.exit_at_once`)
+EXIT_AT_ONCE = True
 
 
 def add_arguments(p) -> None:
