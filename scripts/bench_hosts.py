@@ -6,7 +6,8 @@ Each of M hosts is a network namespace in a cgroup-v1 CPU quota (2 cores / M eac
 hosts share this machine's two cores as M small machines would), joined to a router namespace by a
 veth capped with `tc tbf` at each link rate (`dqm.runtime.multihost.EmulatedHosts`). Source a's
 features (whole images, image k -> source k mod M) start on host a. Modes, run one after the other
-on the same hosts (`dqm.runtime.multihost.run_on_hosts`):
+on the same hosts (`dqm.runtime.multihost.run_on_hosts`; with `--repeats N`, N rounds of them in turn, each
+row the run of median time):
 
 * gather: every source sends its features to host 0 (zenoh, through the router), which runs
   centralized QuickMatch (quadratic kernel, the same clusters as balanced) in the same CPU quota
@@ -87,9 +88,14 @@ def _canonical(labels: np.ndarray) -> np.ndarray:
     return order[inv]
 
 
-def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save) -> list:
-    """Run every mode at every rate on M emulated hosts; appends to ``rows`` and calls ``save()`` after each
-    run (a long benchmark keeps what it measured). A mode that fails is a row with its ``error``."""
+def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save,
+          repeats: int = 1) -> list:
+    """Run every mode at every rate on M emulated hosts, ``repeats`` times in turn (the first round in the
+    order given, gather first; each later round starts one mode further on, so that no mode always runs
+    first or after the same one). Each mode's row is its run of median time (of an even count, the lower
+    of the two middle ones), with every run's time in ``runs_s``. Appends to ``rows`` and calls ``save()``
+    after each rate (a long benchmark keeps what it measured). A mode whose run fails is a row with its
+    ``error``."""
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(X, ids, m, workdir)
     raw = X.size * X.dtype.itemsize
@@ -100,32 +106,45 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
     for rate in rates:
         with EmulatedHosts(hosts=m, rate_mbit=rate, cpu_cores=cpu) as nss:
             procs = Processes()
+            runs: dict = {mode: [] for mode in modes}
+            failed: dict = {}
             try:
                 endpoints = [f"tcp/{nss.router_addr(h)}:{ROUTER_PORT}" for h in range(m)]
                 start_router(procs, endpoints, workdir, _wait_ready_file, prefix=nss.prefix(nss.router_ns))
-                ref = None
-                for mode in modes:
-                    t = time.perf_counter()
-                    row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                           "mode": mode, "kernel_cpu_s": kernel}
-                    try:
-                        r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
-                    except RuntimeError as exc:  # JobFailure included: the row says why
-                        row.update(error=str(exc).split("\n")[0], seconds=time.perf_counter() - t)
-                        log(f"{name} M={m} {rate:g} Mbit/s {mode}: FAILED after {row['seconds']:.1f} s: "
-                            f"{row['error']}")
-                    else:
-                        ref = r if mode == "gather" else ref
-                        row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
-                        if ref is not None:
-                            row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
+                for k in range(repeats):
+                    for mode in modes[k % len(modes):] + modes[:k % len(modes)]:
+                        if mode in failed:
+                            continue
+                        t = time.perf_counter()
+                        try:
+                            r = run_on_hosts(nss, mode, cfg, files, workdir, timeout_s=timeout_s)
+                        except RuntimeError as exc:  # JobFailure included: the row says why
+                            failed[mode] = (str(exc).split("\n")[0], time.perf_counter() - t)
+                            log(f"{name} M={m} {rate:g} Mbit/s {mode}: FAILED after {failed[mode][1]:.1f} s: "
+                                f"{failed[mode][0]}")
+                            continue
+                        runs[mode].append(r)
                         picked = f" (picked {r.detail['picked']})" if "picked" in r.detail else ""
                         log(f"{name} M={m} {rate:g} Mbit/s {mode}{picked}: {r.seconds:.1f} s, {r.bytes / raw:.2f}x "
                             f"raw ({time.perf_counter() - t:.1f} s)")
-                    rows.append(row)
-                    save()
             finally:
                 procs.stop_all()
+            median = {mode: sorted(rs, key=lambda r: r.seconds)[(len(rs) - 1) // 2] for mode, rs in runs.items() if rs}
+            ref = median.get("gather")
+            for mode in modes:
+                row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
+                       "mode": mode, "kernel_cpu_s": kernel}
+                if mode in failed:
+                    row.update(error=failed[mode][0], seconds=failed[mode][1])
+                else:
+                    r = median[mode]
+                    row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
+                    if repeats > 1:
+                        row["runs_s"] = [x.seconds for x in runs[mode]]
+                    if ref is not None:
+                        row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
+                rows.append(row)
+            save()
     return rows
 
 
@@ -206,6 +225,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", default="1000,100,10", help="link rates in Mbit/s")
     ap.add_argument("--modes", default=",".join(HOST_MODES), help=f"of {', '.join(HOST_MODES)}; gather first")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds one mode may take")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="runs of every mode at every rate, in turn; each row is the run of median time")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--figure", help="write the figure (PNG) here")
     ap.add_argument("--keep", help="keep the work folder (files, logs) here")
@@ -230,6 +251,8 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f"unknown mode {bad[0]!r}; the modes are {', '.join(HOST_MODES)}")
     rates = [float(r) for r in args.rates.split(",") if r]
+    if args.repeats < 1:
+        ap.error(f"--repeats must be at least 1, got {args.repeats}")
     rows = []
     try:
         with work_folder(args.keep, "dqm-hosts-") as wd:
@@ -241,7 +264,8 @@ def main(argv=None) -> int:
                 for m in [int(a) for a in args.agents.split(",") if a]:
                     bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
                           lambda text: print(text, file=sys.stderr, flush=True), rows,
-                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)))
+                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)),
+                          repeats=args.repeats)
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2

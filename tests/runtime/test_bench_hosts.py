@@ -143,3 +143,27 @@ def test_the_table_says_what_auto_picked_and_its_time_over_the_best():
     auto = next(ln for ln in lines if "| auto | 2.5 |" in ln)
     assert auto.endswith("| balanced | 1.25 |")  # over balanced's 2.0: gather-approx is not among the picks
     assert all(ln.count("|") == lines[0].count("|") for ln in lines)
+
+
+def test_repeated_runs_take_turns_and_each_row_is_the_run_of_median_time(tmp_path):
+    """--repeats: every mode runs that many times at a rate, the rounds starting one mode further on (no mode
+    always first); each row is the run of median time (of two, the faster) and lists every run's time."""
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(f"emulated hosts need network namespaces: {reason}")
+    bench = _bench_script()
+    ds = synthetic.sift_like(n_images=4, n_points=250, seed=5)
+    rows, lines, saved = [], [], []
+    try:
+        bench.bench("small", ds.descriptors, ds.image_ids, 2, [100.0], ["gather", "auto"], tmp_path, 120.0,
+                    lines.append, rows, lambda: saved.append(len(rows)), repeats=2)
+    except NamespacesUnavailable as exc:
+        pytest.skip(f"emulated hosts cannot be built here: {exc}")
+    order = [ln.split(" Mbit/s ")[1].split()[0].rstrip(":") for ln in lines]
+    assert order == ["gather", "auto", "auto", "gather"], lines
+    assert [r["mode"] for r in rows] == ["gather", "auto"] and saved == [2]
+    for r in rows:
+        assert len(r["runs_s"]) == 2 and r["seconds"] == min(r["runs_s"]) and "error" not in r
+    gather, auto = rows
+    assert auto["picked"] == "gather" and auto["identical"]
+    assert auto["speedup_over_gather"] == pytest.approx(gather["seconds"] / auto["seconds"])
