@@ -50,7 +50,9 @@ def test_agent_forked_from_the_coordinator_gives_the_centralized_clusters(tmp_pa
         start_router(procs, [f"tcp/127.0.0.1:{port}"], tmp_path, ("127.0.0.1", port))
         job = start_job(procs, cfg, files, tmp_path, connect=lambda a: f"tcp/127.0.0.1:{port}",
                         threads_per_agent=None, agent0_in_coordinator=True)
-        assert isinstance(job.agents[0], ForkedAgent) and len(procs.procs) == 1 + 2 + 1  # router, agents 1-2, coord
+        assert isinstance(job.agents[0], ForkedAgent) and len(procs.procs) == 1 + 2 + 1  # router, coord, agents 1-2
+        # the coordinator's host has the longest start (agent 0 is forked from it): it is started first
+        assert procs.procs[1:] == [job.coordinator, *job.agents[1:]]
         seen = []
         while job.coordinator.poll() is None and not seen:  # the coordinator and the agent it forked
             seen = [pid for pid in processes_with("coordinator", f"--job=forked-{mode}") if pid != job.coordinator.pid]
