@@ -47,7 +47,7 @@ from typing import List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import outputs
-from .validation import InputError, check_descriptors, check_image_ids
+from .validation import InputError, check_descriptors, check_image_ids, has_repeats
 
 #: the optional per-feature and per-image arrays of a FEATURES file, in the order they are written
 OPTIONAL_FIELDS = ("keypoints", "image_names", "point_ids", "feature_ids")
@@ -128,7 +128,7 @@ def combine_images(local_ids: Sequence[np.ndarray]) -> Tuple[List[np.ndarray], b
     """
     local = [np.unique(np.asarray(ids, np.int64)) for ids in local_ids]
     everything = np.concatenate(local) if local else np.zeros(0, np.int64)
-    if len(np.unique(everything)) == len(everything):
+    if not has_repeats(everything):
         return local, False
     out, start = [], 0
     for ids in local:
@@ -304,7 +304,7 @@ def merge_features(sets: Sequence[FeatureSet], sources: Sequence[str]) -> Tuple[
                                            else np.full(len(fs), -1, np.int64) for fs in sets])
     if all(fs.feature_ids is not None for fs in sets):
         fid = np.concatenate([np.asarray(fs.feature_ids, np.int64) for fs in sets])
-        if len(np.unique(fid)) == len(fid):
+        if not has_repeats(fid):
             merged.feature_ids = fid
     note = ""
     if renumbered:

@@ -10,6 +10,13 @@ class InputError(ValueError):
     """Raised for input that dqm cannot use; the message names the input and the problem."""
 
 
+def has_repeats(values) -> bool:
+    """Whether some value occurs twice in ``values``: a sort and a comparison of neighbours (``np.unique``
+    imports ``numpy.ma`` on its first call, about 20 ms of CPU at a job's start in every process that checks)."""
+    s = np.sort(np.asarray(values).ravel())
+    return bool(len(s) > 1 and (s[1:] == s[:-1]).any())
+
+
 def check_descriptors(descriptors, name: str = "descriptors", keep_integer: bool = False) -> np.ndarray:
     """Return descriptors as a C-contiguous float64 (n, dim) array, or raise InputError.
 

@@ -34,6 +34,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..validation import has_repeats
 from ..wording import seconds
 from . import costmodel, protocol, sources
 from .config import RECOVERY, DQMConfig
@@ -435,7 +436,7 @@ class CoordinatorCore:
         else:
             ids, labels = sources.assemble_labels([(self.results[a]["ids"], self.results[a]["labels"])
                                                    for a in range(self.m)])
-        if sources.has_repeats(ids):
+        if has_repeats(ids):
             self.fail(JobFailed("two agents reported the same feature (feature ids must be unique across the "
                                 "job: give each FEATURES file its own feature_ids, or none)", None, "result"))
         if self.catalog:

@@ -21,11 +21,12 @@ from typing import Callable, Dict, Iterable, Optional, Tuple
 import numpy as np
 
 from ..core.params import FINITE_KERNEL, QuickMatchParams
+from ..validation import has_repeats
 from . import messages, protocol
 from .config import DQMConfig
 from .driver import JobAborted
 from .ledger import COORDINATOR
-from .sources import AgentFeatures, assemble_labels, has_repeats
+from .sources import AgentFeatures, assemble_labels
 
 
 def gather_payload(ids, image_ids, descriptors) -> Dict[str, np.ndarray]:

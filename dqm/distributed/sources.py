@@ -176,13 +176,6 @@ def catalog_names(catalog: Dict[str, np.ndarray]) -> List[str]:
     return names if len(names) == n else [""] * n
 
 
-def has_repeats(values) -> bool:
-    """Whether some value occurs twice in ``values``: a sort and a comparison of neighbours (``np.unique``
-    imports ``numpy.ma`` on its first call, about 20 ms of CPU at a job's start in every process that checks)."""
-    s = np.sort(np.asarray(values).ravel())
-    return bool(len(s) > 1 and (s[1:] == s[:-1]).any())
-
-
 def assemble_labels(results: Sequence[Tuple[np.ndarray, np.ndarray]]) -> Tuple[np.ndarray, np.ndarray]:
     """Feature ids (ascending) and canonical labels from every agent's ``(ids, labels)`` result.
 

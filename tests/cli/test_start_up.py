@@ -86,7 +86,7 @@ print(json.dumps([pick.mode, len(labels), refused, loaded]))
 
 
 def test_has_repeats_agrees_with_unique():
-    from dqm.distributed.sources import has_repeats
+    from dqm.validation import has_repeats
 
     rng = np.random.default_rng(4)
     for n in (0, 1, 2, 3, 50, 1000):
