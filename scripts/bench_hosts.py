@@ -92,10 +92,10 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
           repeats: int = 1) -> list:
     """Run every mode at every rate on M emulated hosts, ``repeats`` times in turn (the first round in the
     order given, gather first; each later round starts one mode further on, so that no mode always runs
-    first or after the same one). Each mode's row is its run of median time (of an even count, the lower
-    of the two middle ones), with every run's time in ``runs_s``. Appends to ``rows`` and calls ``save()``
-    after each rate (a long benchmark keeps what it measured). A mode whose run fails is a row with its
-    ``error``."""
+    first or after the same one). Each mode's row is its run of median time so far (of an even count, the
+    lower of the two middle ones), with every run's time in ``runs_s``. Keeps ``rows`` up to date and calls
+    ``save()`` after each run (a long benchmark keeps what it measured). A mode whose run fails is a row
+    with its ``error`` (and is not run again at that rate)."""
     workdir.mkdir(parents=True, exist_ok=True)
     files = write_agent_files(X, ids, m, workdir)
     raw = X.size * X.dtype.itemsize
@@ -103,7 +103,29 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
     cfg = DQMConfig(agents=m, seed=1, job=f"hosts{m}").validated(len(X))
     # this machine's all-pairs kernel: scripts/fit_costmodel.py scales each row's pair work by it
     kernel = pair_cpu_s_here(X.shape[1], X.dtype)
+
+    def rate_rows(rate, runs: dict, failed: dict) -> list:
+        """The rows of one rate from the runs so far: one per mode that ran or failed, in ``modes``' order."""
+        median = {mode: sorted(rs, key=lambda r: r.seconds)[(len(rs) - 1) // 2] for mode, rs in runs.items() if rs}
+        ref = median.get("gather")
+        out = []
+        for mode in [mode for mode in modes if mode in failed or mode in median]:
+            row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
+                   "mode": mode, "kernel_cpu_s": kernel}
+            if mode in failed:
+                row.update(error=failed[mode][0], seconds=failed[mode][1])
+            else:
+                r = median[mode]
+                row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
+                if repeats > 1:
+                    row["runs_s"] = [x.seconds for x in runs[mode]]
+                if ref is not None:
+                    row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
+            out.append(row)
+        return out
+
     for rate in rates:
+        base = len(rows)
         with EmulatedHosts(hosts=m, rate_mbit=rate, cpu_cores=cpu) as nss:
             procs = Processes()
             runs: dict = {mode: [] for mode in modes}
@@ -122,29 +144,15 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
                             failed[mode] = (str(exc).split("\n")[0], time.perf_counter() - t)
                             log(f"{name} M={m} {rate:g} Mbit/s {mode}: FAILED after {failed[mode][1]:.1f} s: "
                                 f"{failed[mode][0]}")
-                            continue
-                        runs[mode].append(r)
-                        picked = f" (picked {r.detail['picked']})" if "picked" in r.detail else ""
-                        log(f"{name} M={m} {rate:g} Mbit/s {mode}{picked}: {r.seconds:.1f} s, {r.bytes / raw:.2f}x "
-                            f"raw ({time.perf_counter() - t:.1f} s)")
+                        else:
+                            runs[mode].append(r)
+                            picked = f" (picked {r.detail['picked']})" if "picked" in r.detail else ""
+                            log(f"{name} M={m} {rate:g} Mbit/s {mode}{picked}: {r.seconds:.1f} s, "
+                                f"{r.bytes / raw:.2f}x raw ({time.perf_counter() - t:.1f} s)")
+                        rows[base:] = rate_rows(rate, runs, failed)
+                        save()
             finally:
                 procs.stop_all()
-            median = {mode: sorted(rs, key=lambda r: r.seconds)[(len(rs) - 1) // 2] for mode, rs in runs.items() if rs}
-            ref = median.get("gather")
-            for mode in modes:
-                row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                       "mode": mode, "kernel_cpu_s": kernel}
-                if mode in failed:
-                    row.update(error=failed[mode][0], seconds=failed[mode][1])
-                else:
-                    r = median[mode]
-                    row.update(seconds=r.seconds, bytes=r.bytes, bytes_over_raw=r.bytes / raw, **r.detail)
-                    if repeats > 1:
-                        row["runs_s"] = [x.seconds for x in runs[mode]]
-                    if ref is not None:
-                        row.update(agreement(r, ref), speedup_over_gather=ref.seconds / r.seconds)
-                rows.append(row)
-            save()
     return rows
 
 
