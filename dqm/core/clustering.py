@@ -40,7 +40,7 @@ import logging
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Union
+from typing import Callable, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -314,7 +314,7 @@ def quickmatch(
     approximate: bool = False,
     n_neighbors: int = DEFAULT_NEIGHBORS,
     engine: str = "exact",
-    n_probe: int = inverted_lists.DEFAULT_PROBES,
+    n_probe: Optional[int] = None,
     seed: int = 0,
 ) -> QuickMatchResult:
     """Cluster features of many images so each cluster is one physical point.
@@ -351,7 +351,8 @@ def quickmatch(
         densities leave far terms out, so clusters can differ slightly from
         exact ones) or ``"auto"`` (exact below :data:`FAST_FROM` features, fast
         from there; what ``dqm match`` does by default).
-    n_probe : lists each feature scans in the fast engine.
+    n_probe : lists each feature scans in the fast engine (default: a sixteenth of them, at least 32:
+        :func:`dqm.core.inverted_lists.default_probes`).
     seed : seed of the fast engine's k-means sample.
 
     Returns
@@ -396,7 +397,8 @@ def quickmatch(
                            "approximate=True, not both")
     fast = engine == "fast" or (engine == "auto" and n >= FAST_FROM)
     if fast and not approximate and n > 2 and n_images > 1:
-        n_probe = V.check_positive_int(n_probe, "n_probe")
+        n_probe = (inverted_lists.default_probes(inverted_lists.n_lists(n)) if n_probe is None
+                   else V.check_positive_int(n_probe, "n_probe"))
         return _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, parent, sigma, n_probe,
                                 int(seed), threads, budget, held, progress, t0)
     if approximate and n > 2:
@@ -532,11 +534,17 @@ def _quickmatch_approximate(X, ids, image_index, n_images, rho, ratio_density, k
                              stats, t0)
 
 
+#: a search for the parents a truncated engine's candidates lack: ``(density, parent)`` -> more candidate edges
+#: ``(child, cand, distance)`` for some children without a parent
+ParentSearch = Callable[[np.ndarray, np.ndarray], Tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
 def _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,
-                      stats: Dict[str, float], t0: float) -> QuickMatchResult:
+                      stats: Dict[str, float], t0: float, search: Optional[ParentSearch] = None) -> QuickMatchResult:
     """The result of an engine whose densities leave far terms out (approximate, fast): zero-sigma and
     duplicate terms as in the exact engine, then parents among the candidate edges ``cr -> cc`` at exact
-    distances ``d`` and the exact break/merge."""
+    distances ``d`` (and, for the children still without one, among the edges ``search`` finds) and the
+    exact break/merge."""
     t = time.perf_counter()
     n = len(sig)
     gsize = np.bincount(groups)
@@ -545,6 +553,14 @@ def _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, rat
         dens_o = dens_o + zero_sigma_counts(groups, gsize, zero) - zero
     density = 1.0 + equalize_duplicates(dens_o, groups, gsize)
     par, pdist = tree.select_parents(n, cr, cc, d, density)
+    if search is not None:
+        t_search = time.perf_counter()
+        sr, sc, sd = search(density, par)
+        more, more_d = tree.select_parents(n, sr, sc, sd, density)
+        found = (par < 0) & (more >= 0)
+        par[found], pdist[found] = more[found], more_d[found]
+        stats["n_parents_searched"] = float(found.sum())
+        stats["time_parent_search"] = time.perf_counter() - t_search
     labels = tree.merge_clusters(par, pdist, sig, image_index, rho)
     stats["n_candidate_edges"] = float(len(cr))
     stats["time_tree"] = time.perf_counter() - t
@@ -572,22 +588,30 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
     t = time.perf_counter()
     w, active = kernel_weights(sig, kernel, ratio_density)
     radius = rho * sig
-    dens_o, cr, cc, scan_stats = inverted_lists.scan(
-        aug, w, active, kernel, radius, n_probe=n_probe, seed=seed, n_threads=threads,
-        image_index=image_index if parent == "other-image" else None,
+    other_image = image_index if parent == "other-image" else None
+    found = inverted_lists.scan(
+        aug, w, active, kernel, radius, n_probe=n_probe, seed=seed, n_threads=threads, image_index=other_image,
         progress=feature_progress(progress, "quickmatch (fast)", n), centroids=lists)
-    scan_stats["time_lists"] += waited  # the k-means time not hidden behind sigma's
-    stats.update(scan_stats)
+    found.stats["time_lists"] += waited  # the k-means time not hidden behind sigma's
+    stats.update(found.stats)
     stats["time_pass"] = time.perf_counter() - t + waited
-    LOG.info("list scan (%d lists, %d probed each; %.1f%% of all pairs): %.2f s", scan_stats["n_lists"],
-             scan_stats["n_probe"], 100.0 * scan_stats["pairs_computed"] / max(1.0, n * (n - 1.0)),
+    LOG.info("list scan (%d lists, %d probed each; %.1f%% of all pairs): %.2f s", found.stats["n_lists"],
+             found.stats["n_probe"], 100.0 * found.stats["pairs_computed"] / max(1.0, n * (n - 1.0)),
              stats["time_pass"])
     t = time.perf_counter()
-    cr, cc, d = _edges_within_radius(aug, cr, cc, radius, None)  # the scan kept other images' pairs only
+    # the scan kept other images' pairs only
+    cr, cc, d = _edges_within_radius(aug, found.child, found.cand, radius, None)
     stats["time_edges"] = time.perf_counter() - t
-    del aug
-    return _truncated_result(dens_o, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density, kernel, parent,
-                             stats, t0)
+
+    def capped_roots(density: np.ndarray, par: np.ndarray):
+        """The children whose kept candidates were cut at the cap and all rank below them: their parent
+        among every member of the lists they scan."""
+        rows = np.flatnonzero(found.capped & (par < 0))
+        sr, sc = inverted_lists.nearest_above(aug, found.index, rows, density, radius, other_image, threads)
+        return _edges_within_radius(aug, sr, sc, radius, None)
+
+    return _truncated_result(found.density_others, cr, cc, d, sig, groups, ids, image_index, rho, ratio_density,
+                             kernel, parent, stats, t0, search=capped_roots)
 
 
 class QuickMatch:

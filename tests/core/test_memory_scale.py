@@ -362,8 +362,9 @@ from dqm.synthetic import sized
 ds = sized(int(sys.argv[1]), seed=0)
 X, ids = ds.descriptors, ds.image_ids
 held = memory.process_bytes()
-need = memory.check_fast(len(X), X.shape[1], inverted_lists.DEFAULT_PROBES, inverted_lists.n_lists(len(X)), 2,
-                         1 << 50, itemsize=1, integer_kernel=pairs.Augmented(X).integer_kernel)
+lists = inverted_lists.n_lists(len(X))
+need = memory.check_fast(len(X), X.shape[1], inverted_lists.default_probes(lists), lists, 2, 1 << 50, itemsize=1,
+                         integer_kernel=pairs.Augmented(X).integer_kernel)
 r = dqm.quickmatch(X, ids, max_memory=held + need, n_threads=2, engine="fast")
 print(held + need, memory.peak_bytes(), held, need, memory.base_bytes(len(X), X.shape[1], 2, itemsize=1))
 """
