@@ -53,7 +53,8 @@ REAL = ("graf", "wall")
 
 
 def load(name):
-    """Descriptors and image ids: generated (a number), real SIFT (graf, wall) or graf+wall."""
+    """Descriptors and image ids: generated (a number of features, 2,000 an image, or ``NxIMAGES``), real SIFT
+    (graf, wall), graf+wall, a FEATURES file or a COLMAP database."""
     from dqm import synthetic
 
     if "+" in name:
@@ -80,7 +81,8 @@ def load(name):
         CACHE.mkdir(parents=True, exist_ok=True)
         np.savez(cache, D=D, ids=ids)
         return D, ids
-    ds = synthetic.sized(int(name))
+    n, _, images = name.partition("x")  # "N" (2,000 features an image) or "NxIMAGES"
+    ds = synthetic.sized(int(n), features_per_image=int(n) // int(images) if images else 2000)
     return ds.descriptors, ds.image_ids
 
 
@@ -174,7 +176,8 @@ def _measure(task, q):
         dense_quickmatch(X, ids, dqm.DEFAULT_RHO)
     wall = time.perf_counter() - t
     peak = peak_kib()
-    q.put({"wall": wall, "peak_rss_mib": peak / 1024, "base_rss_mib": base / 1024, "n": len(X), **info})
+    q.put({"wall": wall, "peak_rss_mib": peak / 1024, "base_rss_mib": base / 1024, "n": len(X),
+           "images": len(np.unique(ids)), **info})
 
 
 def peak_kib():
@@ -318,20 +321,25 @@ def fast_section(names):
     from dqm.evaluation import comembership_scores
 
     print("\n### Fast engine against exact\n")
-    print("| data | n | exact s | fast s | exact / fast | pairs computed (of n^2) | lists (probed) | "
-          "fast phases s: sigma / lists / scan / edges+tree | precision | recall | F1 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| data | n | images | exact s | fast s | fast / exact | pairs computed (of n^2) | lists (probed) | "
+          "fast phases s: sigma / lists / scan / edges+tree | parents searched (s) | precision | recall | F1 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    rows = []
     for name in names:
         ex = run((name, "quickmatch", {"engine": "exact", "save": scratch("exact")}))
         fa = run((name, "quickmatch", {"engine": "fast", "save": scratch("fast")}))
         sc = comembership_scores(np.load(scratch("fast"))["labels"], np.load(scratch("exact"))["labels"])
         scan = fa["time_pass"] - fa["time_lists"]
-        print(f"| {Path(name).stem} | {ex['n']:,} | {ex['wall']:.2f} | {fa['wall']:.2f} | "
-              f"{ex['wall'] / fa['wall']:.2f} | "
+        print(f"| {Path(name).stem} | {ex['n']:,} | {ex['images']:,} | {ex['wall']:.2f} | {fa['wall']:.2f} | "
+              f"{fa['wall'] / ex['wall']:.3f} | "
               f"{fa['pairs_computed'] / ex['n'] ** 2:.3f} | {fa['n_lists']:.0f} ({fa['n_probe']:.0f}) | "
               f"{fa['time_sigma']:.2f} / {fa['time_lists']:.2f} / {scan:.2f} / "
-              f"{fa['time_edges'] + fa['time_tree']:.2f} | {sc.precision:.4f} | {sc.recall:.4f} | {sc.f1:.4f} |",
+              f"{fa['time_edges'] + fa['time_tree']:.2f} | {fa.get('n_parents_searched', 0):,.0f} "
+              f"({fa.get('time_parent_search', 0.0):.2f}) | {sc.precision:.4f} | {sc.recall:.4f} | {sc.f1:.4f} |",
               flush=True)
+        rows.append({"data": name, "exact": ex, "fast": fa, "precision": sc.precision, "recall": sc.recall,
+                     "f1": sc.f1})
+    return rows
 
 
 def fast_million():
