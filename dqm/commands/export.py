@@ -157,7 +157,7 @@ def _run_colmap(args, t0: float):
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
                                verify=not args.no_verify, camera=camera)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
-          f"{s.n_matches} matches in {s.n_image_pairs} image pairs"
+          f"{s.pairs_line()}"
           + ("" if args.no_verify else f", {s.n_verified_pairs} verified pairs")
           + f" ({time.perf_counter() - t0:.1f} s)")
     return c, s.image_dir
@@ -175,7 +175,7 @@ def _run_colmap_into(args, t0: float):
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
                              names=[str(n) for n in c["image_names"]])
     verified = "" if args.no_verify else f", {s.n_verified_pairs} verified pairs"
-    print(f"wrote into {db}: {s.n_matches} matches in {s.n_image_pairs} image pairs{verified} "
+    print(f"wrote into {db}: {s.pairs_line()}{verified} "
           f"({time.perf_counter() - t0:.1f} s)")
     return c, args.image_dir or "IMAGE_DIR"
 

@@ -120,8 +120,8 @@ def run(args) -> int:
     s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
                                descriptors=fs.descriptors, camera=camera, seed=args.seed)
     times["export"] = time.perf_counter() - t
-    print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.n_matches} matches in {s.n_image_pairs} image "
-          f"pairs, {s.n_verified_pairs} verified; mapping ...", flush=True)
+    print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.n_verified_pairs} verified; "
+          "mapping ...", flush=True)
     rec, times["map"], folder = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
                                             seed=args.seed, num_threads=threads)
     mapped = model_numbers(rec)

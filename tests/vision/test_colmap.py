@@ -11,6 +11,7 @@ from dqm import InputError, io
 from dqm.vision import colmap, features
 from dqm.vision.scenes import generate_scene
 from dqm.vision.verify import verify_clusters
+from dqm.wording import count
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
 
@@ -77,6 +78,33 @@ def test_exported_database_holds_keypoints_matches_and_geometries(scene, tmp_pat
         d.close()
     with pytest.raises(InputError, match="exists"):
         colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"])
+
+
+def test_pairs_too_weak_for_colmaps_verification_are_not_written(scene, tmp_path):
+    """An image pair with fewer matches than COLMAP's verification accepts (min_num_inliers, 15) can never be
+    verified: when the export verifies, it is left out (and counted); without verification every pair is
+    written. Here the clusters that join images 2 and 3 are cut to 10, so that pair has 10 matches."""
+    labels = scene["labels"].copy()
+    ids = scene["ids"]
+    both = [lab for lab in np.unique(labels) if {2, 3} <= set(ids[labels == lab].tolist())]
+    assert len(both) > 20
+    fresh = labels.max() + 1
+    for k, lab in enumerate(both[10:]):  # the image-3 member leaves the cluster: the pair keeps 10 matches
+        labels[(labels == lab) & (ids == 3)] = fresh + k
+    want = expected_pairs(labels, ids)
+    assert len(want[(2, 3)]) == 10 and min(len(m) for p, m in want.items() if p != (2, 3)) >= 15
+    assert colmap.min_verified_matches() == 15
+    s = colmap.export_database(tmp_path / "v.db", scene["kp"], ids, scene["paths"], labels)
+    assert (s.n_image_pairs, s.n_pairs_left_out) == (len(want) - 1, 1)
+    assert "(1 pair with fewer than 15 matches left out" in s.pairs_line()
+    d = pycolmap.Database.open(str(tmp_path / "v.db"))
+    try:
+        assert d.num_matched_image_pairs() == len(want) - 1 and len(d.read_matches(3, 4)) == 0
+        assert len(d.read_matches(1, 2)) == len(want[(0, 1)])
+    finally:
+        d.close()
+    s = colmap.export_database(tmp_path / "all.db", scene["kp"], ids, scene["paths"], labels, verify=False)
+    assert (s.n_image_pairs, s.n_pairs_left_out) == (len(want), 0)
 
 
 def test_import_round_trip_database_features_clusters_database(scene, tmp_path):
@@ -309,7 +337,8 @@ def test_match_into_database_writes_verified_matches_where_colmap_features_are(s
         verified = d.num_verified_image_pairs()
     finally:
         d.close()
-    assert verified == len(want) and f"{sum(map(len, want.values()))} matches in {len(want)} image pairs" in out
+    matches = count(sum(map(len, want.values())), "match", "matches")
+    assert verified == len(want) and f"{matches} in {len(want)} image pairs" in out
     assert f"{verified} verified pairs" in out
     recs = pycolmap.incremental_mapping(str(db), str(scene["folder"]), str(tmp_path / "sparse"))
     assert max(r.num_reg_images() for r in recs.values()) == 4
