@@ -189,13 +189,11 @@ def peak_kib():
 
 
 def reset_peak():
-    """Start the peak over from the present resident memory (Linux: clear_refs 5), so that the peak is the
-    measured call's and not the data generation's before it."""
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")
-    except OSError:
-        pass
+    """Start the peak over from the present resident memory, so that the peak is the measured call's and not the
+    data generation's before it."""
+    from dqm.core import memory
+
+    memory.restart_peak()
 
 
 def run(task, repeat=1, target=None, errors=False):
