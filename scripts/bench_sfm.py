@@ -22,6 +22,17 @@ verification and mapper seeded too) and report each run and the mean, for the me
 whose run-to-run spread matters. ``--max-images N``: the first N photos only (CI's small run).
 Writes ``sfm.md`` (the table), ``sfm.json`` (every run) and ``sfm_poses.png`` (the cumulative
 pose-error curves, with --gt) into ``--out-dir`` (default: a temporary folder).
+
+Several ``--images`` folders make a **collection** of several scenes (issue 59): their photos are linked
+into one folder, a sub-folder a scene, and every pipeline matches and maps them at once. Each scene is
+scored in the model that holds most of its photos (registered, its cameras against that scene's
+``--gt``, the model's points); over all models, the 3-D points seen in photos of two scenes, the image
+pairs COLMAP's verification kept within and across scenes, dqm's clusters across scenes before
+verification, and dqm's peak memory per stage.
+
+    python scripts/bench_sfm.py --images ../shared/data/dtu/scan24/images ../shared/data/nerf_lego/images \\
+        ../shared/data/strecha/entry-P10/images ../shared/data/sacre_coeur --gt ../shared/data/dtu/scan24/gt_cameras \\
+        ../shared/data/nerf_lego/gt_cameras ../shared/data/strecha/entry-P10/gt_cameras - --pipelines colmap,dqm
 """
 from __future__ import annotations
 
@@ -60,8 +71,9 @@ def run_colmap(name: str, images: Path, work: Path, seed: int | None, truth) -> 
     from dqm.vision.sfm import colmap_pipeline, model_numbers
 
     t0 = time.perf_counter()
-    rec, times = colmap_pipeline(images, work, seed=seed, mapper="global" if "global" in name else "incremental")
+    models, times = colmap_pipeline(images, work, seed=seed, mapper="global" if "global" in name else "incremental")
     times["total"] = time.perf_counter() - t0
+    rec = models[0].rec if models else None
     out = {"model": model_numbers(rec), "times": times}
     if truth is not None and rec is not None:
         out["poses"] = poses.evaluate_poses(poses.poses_of(rec), truth).as_dict()
@@ -198,9 +210,13 @@ def pose_figure(results: dict, truth, path: Path, title: str) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--images", type=Path, required=True, help="the photos (one folder)")
-    ap.add_argument("--gt", type=Path, default=None, help="ground-truth cameras: Strecha *.camera files or a "
-                                                          "COLMAP model")
+    ap.add_argument("--images", type=Path, required=True, nargs="+",
+                    help="the photos (one folder); several folders: a collection of several scenes, matched and "
+                         "mapped at once (one sub-folder a scene), each scene scored in the model that holds most of "
+                         "its photos")
+    ap.add_argument("--gt", type=Path, default=None, nargs="+",
+                    help="ground-truth cameras: Strecha *.camera files or a COLMAP model; with several --images, "
+                         "one per folder in their order ('-' for none)")
     ap.add_argument("--out-dir", type=Path, default=None, help="where sfm.md, sfm.json, sfm_poses.png go "
                                                                "(default: a temporary folder)")
     ap.add_argument("--pipelines", default=None,
@@ -230,13 +246,26 @@ def main() -> int:
         sys.exit("bench_sfm: needs pycolmap (pip install 'dqm[colmap]')")
     from dqm.vision import features
 
-    if not args.images.is_dir():
-        sys.exit(f"bench_sfm: no image folder {args.images}")
+    for folder in args.images:
+        if not folder.is_dir():
+            sys.exit(f"bench_sfm: no image folder {folder}")
+    gts = [None if g is None or str(g) == "-" else g for g in (args.gt or [None] * len(args.images))]
+    if len(gts) != len(args.images):
+        sys.exit(f"bench_sfm: {len(args.images)} image folders and {len(gts)} --gt folders: give one each ('-': none)")
+    if len(args.images) > 1 and (args.subsets or args.max_images):
+        sys.exit("bench_sfm: --subsets and --max-images take one image folder")
     if args.out_dir is not None and args.out_dir.exists() and any(args.out_dir.iterdir()):
         sys.exit(f"bench_sfm: --out-dir {args.out_dir} is not empty")
     work = Path(tempfile.mkdtemp(prefix="dqm-bench-sfm-"))
     out_dir = args.out_dir or work / "out"
     out_dir.mkdir(parents=True, exist_ok=True)
+    if len(args.images) > 1:
+        try:
+            return collection_main(chosen, seeds, args.images, gts, work, out_dir)
+        finally:
+            if args.out_dir is not None:
+                shutil.rmtree(work, ignore_errors=True)
+    args.images, args.gt = args.images[0], gts[0]
     try:
         paths = features.collect_images([str(args.images)])
         if args.max_images:
@@ -411,6 +440,204 @@ def platform_line() -> str:
     except OSError:
         pass
     return f"{model}, {os.cpu_count()} cores, {flags}"
+
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# A collection of several scenes in one folder (--images A B C ...): one model per scene expected
+
+
+def scene_name(folder: Path) -> str:
+    """A short name for a scene's photo folder: its path's last parts without ``images`` (``dtu/scan24``)."""
+    parts = [p for p in folder.resolve().parts if p != "images"]
+    return "-".join(parts[-2:]) if parts[-2:-1] and parts[-2] in ("dtu", "strecha") else parts[-1]
+
+
+def link_collection(folders: list[Path], image_dir: Path) -> dict[str, str]:
+    """Every folder's photos linked under ``image_dir/<scene>/``; ``{image name: scene}`` (names as the mappers
+    give them, relative to ``image_dir``)."""
+    from dqm.vision import features
+
+    scene_of = {}
+    for folder in folders:
+        scene = scene_name(folder)
+        (image_dir / scene).mkdir(parents=True)
+        for p in features.collect_images([str(folder)]):
+            (image_dir / scene / p.name).symlink_to(p.resolve())
+            scene_of[f"{scene}/{p.name}"] = scene
+    return scene_of
+
+
+def verified_by_scene_pair(database: Path, scene_of: dict[str, str]) -> dict[str, int]:
+    """Image pairs COLMAP's verification kept (15+ inliers), counted by scene pair (``a|b``, a <= b)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        name = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    out: dict[str, int] = {}
+    for pair_id, k in zip(pair_ids, inliers):
+        if k < 15:
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        key = "|".join(sorted((scene_of[name[a]], scene_of[name[b]])))
+        out[key] = out.get(key, 0) + 1
+    return out
+
+
+def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
+    """dqm's clusters (its CLUSTERS file) with members in images of two scenes or more, before verification; the
+    images named as the run's database names them (dqm's image k is the database's image k + 1)."""
+    import numpy as np
+    import pycolmap
+
+    z = np.load(run_dir / "clusters.npz", allow_pickle=False)
+    db = pycolmap.Database.open(str(run_dir / "database.db"))
+    try:
+        names = [im.name for im in sorted(db.read_all_images(), key=lambda im: im.image_id)]
+    finally:
+        db.close()
+    scenes = sorted(set(scene_of.values()))
+    code = np.array([scenes.index(scene_of[n]) for n in names])
+    labels, where = z["labels"], code[z["image_ids"]]
+    pairs = np.unique(np.stack([labels, where], axis=1), axis=0)
+    _, k = np.unique(pairs[:, 0], return_counts=True)
+    return {"clusters": int((k > 1).sum()), "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
+
+
+def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> dict:
+    """Per scene: the model holding most of its photos, its photos registered there, its cameras against the
+    scene's ground truth (pairs among the scene's photos) and its points; over all models: points seen in
+    photos of two scenes, models made."""
+    import pycolmap
+
+    from dqm.vision import poses
+
+    models = [pycolmap.Reconstruction(str(d)) for d in sorted((run_dir / "sparse").iterdir()) if d.is_dir()] \
+        if (run_dir / "sparse").is_dir() else []
+    mixed = 0
+    for rec in models:
+        names = {i: im.name for i, im in rec.images.items()}
+        for point in rec.points3D.values():
+            if len({scene_of[names[el.image_id]] for el in point.track.elements}) > 1:
+                mixed += 1
+    out = {"models": len(models), "points_seen_from_two_scenes": mixed, "scenes": {}}
+    for scene in sorted(set(scene_of.values())):
+        photos = [n for n, s in scene_of.items() if s == scene]
+        best, held = None, 0
+        for rec in models:
+            k = sum(1 for im in rec.images.values() if im.has_pose and scene_of[im.name] == scene)
+            if k > held:
+                best, held = rec, k
+        entry = {"photos": len(photos), "registered": held,
+                 "points": best.num_points3D() if best is not None else 0,
+                 "model_images": best.num_reg_images() if best is not None else 0}
+        if scene in truths:
+            est = {n.split("/", 1)[1]: p for n, p in (poses.poses_of(best).items() if best is not None else [])
+                   if scene_of[n] == scene}
+            entry["poses"] = poses.evaluate_poses(est, truths[scene]).as_dict() if est else None
+        out["scenes"][scene] = entry
+    return out
+
+
+def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) -> tuple[dict, dict]:
+    """Every chosen pipeline on the photos of all the folders at once (one folder of links, one sub-folder a
+    scene): {name: [run, ...]}, each run with its per-scene scores, and the scenes' photo counts."""
+    from dqm.validation import InputError
+    from dqm.vision import poses
+
+    work.mkdir(parents=True)
+    image_dir = work / "images"
+    scene_of = link_collection(folders, image_dir)
+    truths = {}
+    for folder, gt in zip(folders, gts):
+        if gt is not None:
+            scene = scene_name(folder)
+            names = [n.split("/", 1)[1] for n, s in scene_of.items() if s == scene]
+            try:
+                truths[scene] = poses.restrict(poses.read_ground_truth(gt), names, f"--gt {gt}")
+            except InputError as exc:
+                sys.exit(f"bench_sfm: {exc}")
+    results: dict[str, list[dict]] = {}
+    for name in chosen:
+        for seed in seeds:
+            run_dir = work / f"run{len(list(work.iterdir()))}"
+            if PIPELINES[name] is None:
+                r = run_colmap(name, image_dir, run_dir, seed, None)
+            else:
+                r = run_dqm(PIPELINES[name] + ["--recursive"], image_dir, run_dir, seed, None)
+                if (run_dir / "clusters.npz").exists():
+                    r["clusters_across_scenes"] = clusters_across_scenes(run_dir, scene_of)
+            r["seed"] = seed
+            r["collection"] = score_collection(run_dir, scene_of, truths)
+            r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
+            results.setdefault(name, []).append(r)
+            c = r["collection"]
+            print(f"[collection of {len(scene_of)} photos] {name}: {c['models']} models, " + "; ".join(
+                f"{s} {e['registered']}/{e['photos']}" for s, e in c["scenes"].items())
+                + f", {c['points_seen_from_two_scenes']} points seen from two scenes, {r['times']['total']:.1f} s",
+                flush=True)
+    counts = {s: sum(1 for v in scene_of.values() if v == s) for s in sorted(set(scene_of.values()))}
+    return results, counts
+
+
+def collection_main(chosen, seeds, folders, gts, work: Path, out_dir: Path) -> int:
+    """The collection run: its tables into sfm.md, every run into sfm.json."""
+    results, counts = run_collection(chosen, seeds, folders, gts, work / "collection")
+    cpu = platform_line()
+    lines = [f"{sum(counts.values())} photos of {len(counts)} scenes in one folder: "
+             + ", ".join(f"{s} ({n})" for s, n in counts.items()), ""]
+    lines += collection_table(results, counts)
+    lines += ["", f"One run per pipeline on {cpu}; dqm's times are whole `dqm sfm` processes, COLMAP's its three "
+                  "pycolmap calls in this process. Each scene is scored in the model that holds most of its photos; "
+                  "its AUC over the pairs of its photos with ground truth (an unregistered photo's pairs count as "
+                  "wrong)."]
+    (out_dir / "sfm.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "sfm.json").write_text(json.dumps({"images": [str(f) for f in folders], "scenes": counts,
+                                                   "gt": [None if g is None else str(g) for g in gts],
+                                                   "machine": cpu, "results": results}, indent=1) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {out_dir / 'sfm.md'}, {out_dir / 'sfm.json'}")
+    return 0
+
+
+def collection_table(results: dict, counts: dict) -> list[str]:
+    """Per scene and pipeline: registered, AUC@1/2/5, points; then per pipeline the totals and the checks."""
+    lines = ["| scene | pipeline | registered | AUC@1° | AUC@2° | AUC@5° | 3-D points (its model) |",
+             "|---|---|---|---|---|---|---|"]
+    for scene, n in counts.items():
+        for name, runs in results.items():
+            e = runs[0]["collection"]["scenes"][scene]
+            auc = (e.get("poses") or {}).get("auc", {})
+            lines.append(f"| {scene} | {name} | {e['registered']} / {n} | "
+                         + " | ".join(fmt(auc.get(k), ".3f") for k in AUC_KEYS) + f" | {e['points']:,} |")
+    lines += ["", "| pipeline | models | points seen from two scenes | verified pairs within scenes | verified pairs "
+                  "across scenes | clusters across scenes (before verification) | extract s | match s | map s | "
+                  "triang. s | total s | peak memory by stage |", "|" + "---|" * 12]
+    for name, runs in results.items():
+        r = runs[0]
+        c, t, v = r["collection"], r["times"], r["verified_pairs"]
+        within = sum(k for key, k in v.items() if key.split("|")[0] == key.split("|")[1])
+        across = sum(v.values()) - within
+        ca = r.get("clusters_across_scenes")
+        peaks = r.get("peak_memory_bytes") or {}
+        peak = ", ".join(f"{k} {b / (1 << 30):.1f} GiB" for k, b in peaks.items()) or "-"
+        match = t.get("match", 0.0) + t.get("export", 0.0)
+        lines.append(f"| {name} | {c['models']} | {c['points_seen_from_two_scenes']:,} | {within:,} | {across:,} | "
+                     + (f"{ca['clusters']:,} of {ca['of_multi_image_clusters']:,}" if ca else "-")
+                     + f" | {fmt(t.get('extract'), '.1f')} | {fmt(match, '.1f')} | {fmt(t.get('map'), '.1f')} | "
+                     f"{fmt(t.get('triangulate'), '.1f')} | {t['total']:.1f} | {peak} |")
+    if "colmap" in results:
+        c0 = results["colmap"][0]
+        for name, runs in results.items():
+            if name.startswith("colmap"):
+                continue
+            lines.append("")
+            lines.append(f"- {name} / COLMAP time: x{runs[0]['times']['total'] / c0['times']['total']:.2f}")
+    return lines
 
 
 if __name__ == "__main__":

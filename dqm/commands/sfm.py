@@ -16,12 +16,14 @@ and options give the same model. Needs pycolmap: pip install 'dqm[colmap]'.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 from pathlib import Path
 
 from .. import io, outputs
 from ..validation import InputError
+from ..wording import count
 from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
 
@@ -86,6 +88,71 @@ def _out_dir(path: str) -> Path:
     return outputs.check_dir(out, "--out")  # probed for writing; created when the first file is written
 
 
+class _Stages:
+    """Each stage's seconds and the process's peak resident memory while it ran (the peak restarted at its
+    start: :func:`dqm.core.memory.restart_peak`)."""
+
+    def __init__(self):
+        self.times: dict[str, float] = {}
+        self.peaks: dict[str, int] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        from ..core import memory
+
+        memory.restart_peak()
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.times[name] = self.times.get(name, 0.0) + time.perf_counter() - t
+            self.peaks[name] = max(self.peaks.get(name, 0), memory.peak_bytes())
+
+    def line(self) -> str:
+        from ..core.memory import format_bytes
+
+        return "times (peak memory): " + ", ".join(
+            f"{name} {t:.1f} s ({format_bytes(self.peaks[name])})" for name, t in self.times.items())
+
+
+def _models_report(models, mapped, truth) -> list[dict]:
+    """Every model's numbers (before and after triangulation) and, with ground truth, its cameras against the
+    truth of its own images (in a collection of several scenes, each model is one scene)."""
+    from ..vision import poses
+    from ..vision.sfm import model_numbers
+
+    out = []
+    for m, before in zip(models, mapped):
+        entry = dict(model_numbers(m.rec), folder=f"sparse/{m.folder.name}", before_triangulation=before)
+        if truth is not None:
+            names = {Path(image.name).name for image in m.rec.images.values()}
+            own = {k: v for k, v in truth.items() if Path(k).name in names}
+            if own:
+                entry["poses"] = poses.evaluate_poses(poses.poses_of(m.rec), own).as_dict()
+        out.append(entry)
+    return out
+
+
+def _clusters_across_models(models, export, fs, labels) -> dict:
+    """The clusters whose members lie in images of two models or more (QuickMatch joined them before COLMAP's
+    verification and mapper kept the models apart; on a collection of several scenes, clusters across scenes),
+    and their features in registered images."""
+    import numpy as np
+
+    by_name = {name: k for k, name in enumerate(export.names)}
+    model_of = np.full(len(export.names), -1)
+    for k, m in enumerate(models):
+        for image in m.rec.images.values():
+            if image.has_pose:
+                model_of[by_name[image.name]] = k
+    where = model_of[fs.image_ids]
+    on = where >= 0
+    pairs = np.unique(np.stack([np.asarray(labels)[on], where[on]], axis=1), axis=0)
+    lab, n_models = np.unique(pairs[:, 0], return_counts=True)
+    across = lab[n_models > 1]
+    return {"clusters": int(len(across)), "features": int(np.isin(np.asarray(labels)[on], across).sum())}
+
+
 def run(args) -> int:
     from ..vision import colmap, poses
     from ..vision.sfm import model_figure, model_numbers, reconstruct
@@ -106,54 +173,64 @@ def run(args) -> int:
         names = [p.name for p in collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)]
         truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
     out = _out_dir(args.out)
-    times = {}
-    t = time.perf_counter()
-    fs = extract(args, min_images=2)
-    times["extract"] = time.perf_counter() - t
-    t = time.perf_counter()
-    result, extra = cluster(args, fs)
-    times["match"] = time.perf_counter() - t
-    t = time.perf_counter()
-    io.save_clusters(out / "clusters.npz", fs, result, extra)
-    io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
-    paths = colmap.resolve_images(fs.image_names, None)
-    s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
-                               descriptors=fs.descriptors, camera=camera, seed=args.seed)
-    times["export"] = time.perf_counter() - t
+    stage = _Stages()
+    with stage("extract"):
+        fs = extract(args, min_images=2)
+    with stage("match"):
+        result, extra = cluster(args, fs)
+    with stage("export"):
+        io.save_clusters(out / "clusters.npz", fs, result, extra)
+        io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+        paths = colmap.resolve_images(fs.image_names, None)
+        s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
+                                   descriptors=fs.descriptors, camera=camera, seed=args.seed)
     print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.n_verified_pairs} verified; "
           "mapping ...", flush=True)
-    rec, times["map"], folder = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
-                                            seed=args.seed, num_threads=threads)
-    mapped = model_numbers(rec)
-    if rec is not None and args.triangulate:
-        t = time.perf_counter()
-        rec, ts = _triangulate(rec, out / "database.db", s, fs, folder, args.seed, threads, args.threads)
-        times["triangulate"] = time.perf_counter() - t
-        print(ts.summary())
-    m = model_numbers(rec)
+    with stage("map"):
+        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
+                                seed=args.seed, num_threads=threads)
+    mapped = [model_numbers(m.rec) for m in models]
+    if models and args.triangulate:
+        with stage("triangulate"):
+            for m in models:  # every model (each scene of a mixed collection): their images are disjoint
+                m.rec, ts = _triangulate(m.rec, out / "database.db", s, fs, m.folder, args.seed, threads,
+                                         args.threads)
+                print(ts.summary() if len(models) == 1 else f"sparse/{m.folder.name}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": args.mapper, "seed": args.seed,
-        "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate)}, "model": m,
-        "model_before_triangulation": mapped}
-    if rec is None:
-        report["times"] = dict(times, total=time.perf_counter() - t0)
+        "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate)},
+        "model": model_numbers(models[0].rec if models else None),
+        "model_before_triangulation": mapped[0] if models else model_numbers(None),
+        "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs},
+        "models": _models_report(models, mapped, truth),
+        "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
+    figures = []
+    for k, (m, entry) in enumerate(zip(models, report["models"])):
+        figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
+        model_figure(m.rec, figures[-1], f"sparse/{m.folder.name}: {entry['registered']} of {s.n_images} images, "
+                                         f"{entry['points']:,} points")
+    report["times"] = dict(stage.times, total=time.perf_counter() - t0)
+    report["peak_memory_bytes"] = stage.peaks
+    if not models:
         outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
-        print(f"no model: pycolmap's mapper registered no image pair ({times['map']:.1f} s); the clusters and the "
-              f"database are in {out}")
+        print(f"no model: pycolmap's mapper registered no image pair ({stage.times['map']:.1f} s); the clusters and "
+              f"the database are in {out}")
         return 1
-    model_figure(rec, out / "model.png", f"{m['registered']} of {s.n_images} images, {m['points']:,} points")
-    times["total"] = time.perf_counter() - t0
-    report["times"] = times
+    m = report["model"]
     print(f"model: {m['registered']} of {s.n_images} images registered, {m['points']:,} 3-D points, mean track "
-          f"length {m['track']:.2f}, mean reprojection error {m['reproj']:.3f} px; times: extraction "
-          f"{times['extract']:.1f} s, matching {times['match']:.1f} s, export {times['export']:.1f} s, mapping "
-          f"{times['map']:.1f} s" + (f", triangulation {times['triangulate']:.1f} s" if "triangulate" in times else "")
-          + f", {times['total']:.1f} s in all")
+          f"length {m['track']:.2f}, mean reprojection error {m['reproj']:.3f} px; {stage.line()}, "
+          f"{report['times']['total']:.1f} s in all")
+    if len(models) > 1:
+        across = report["clusters_across_models"]
+        print(f"{len(models)} models, {sum(e['registered'] for e in report['models'])} of {s.n_images} images "
+              "registered: " + "; ".join(f"{e['folder']} {e['registered']} images, {e['points']:,} points"
+                                         for e in report["models"])
+              + f"; {count(across['clusters'], 'cluster')} of QuickMatch's joined images of two models")
     if truth is not None:
-        scores = poses.evaluate_poses(poses.poses_of(rec), truth)
+        scores = poses.evaluate_poses(poses.poses_of(models[0].rec), truth)
         report["poses"] = scores.as_dict()
         print(scores.line())
     outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}/sparse, {out / 'model.png'}, {out / 'sfm.json'}")
+    print(f"wrote {out}/sparse, {', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
     return 0

@@ -9,6 +9,7 @@ multi-threaded and their result can still depend on the number of threads (docs/
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +23,11 @@ MAPPERS = ("incremental", "global")
 DEFAULT_SEED = 0
 
 
-def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_threads: int = -1):
-    """pycolmap's options of a mapper (COLMAP's defaults) with the random seed set (-1: COLMAP's unseeded
-    default) and its threads (-1: all cores; 1 gives the same model bit for bit); InputError for a bad name."""
+def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_threads: int = -1,
+                   structure_less: bool = False):
+    """pycolmap's options of a mapper (COLMAP's defaults, but for the incremental mapper's structure-less
+    fallback, off unless ``structure_less``) with the random seed set (-1: COLMAP's unseeded default) and its
+    threads (-1: all cores; 1 gives the same model bit for bit); InputError for a bad name."""
     pycolmap = require_pycolmap()
     if mapper not in MAPPERS:
         raise InputError(f"--mapper {mapper}: use one of {', '.join(MAPPERS)}")
@@ -33,35 +36,51 @@ def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_th
     options = pycolmap.IncrementalPipelineOptions() if mapper == "incremental" else pycolmap.GlobalPipelineOptions()
     options.random_seed = int(seed)
     options.num_threads = int(num_threads)
+    if hasattr(options, "structure_less_registration_fallback") and not structure_less:
+        # COLMAP 4's incremental mapper tries an image it cannot register from 3-D points again from 2-D matches
+        # alone: about 30 s an attempt where the image belongs to another scene (two generated scenes of 4 and 5
+        # images: mapping 131 s with it, 0.8 s without, the same two models; nerf_lego: the same model)
+        options.structure_less_registration_fallback = False
     return options
 
 
+@dataclass
+class Model:
+    """One model of a mapping: pycolmap's Reconstruction, the mapper's key for it and its folder."""
+
+    key: int
+    rec: object
+    folder: Path
+
+
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
-                num_threads: int = -1):
-    """The largest model of pycolmap's mapping of ``database`` (most registered images, then most points;
-    None if no model), the mapping time in seconds and the largest model's folder. Models go to
-    ``out_dir`` (``0``, ``1``, ...).
+                num_threads: int = -1, structure_less: bool = False) -> tuple[list[Model], float]:
+    """Every model of pycolmap's mapping of ``database``, the largest first (:func:`by_size`; empty if none),
+    and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...): a collection of several
+    scenes gives one model per scene.
 
     ``mapper``: ``incremental`` (``pycolmap.incremental_mapping``) or ``global``
     (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed.
     """
     pycolmap = require_pycolmap()
-    options = mapper_options(mapper, seed, num_threads)
+    options = mapper_options(mapper, seed, num_threads, structure_less)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
     t0 = time.perf_counter()
     recs = run(str(database), str(image_dir), str(out), options=options)
     dt = time.perf_counter() - t0
-    if not recs:
-        return None, dt, None
-    key = largest(recs)
-    return recs[key], dt, out / str(key)
+    return [Model(k, recs[k], out / str(k)) for k in by_size(recs)], dt
+
+
+def by_size(recs: dict) -> list[int]:
+    """The models' keys, largest first: most registered images, then most points, then the lowest key."""
+    return sorted(recs, key=lambda k: (-recs[k].num_reg_images(), -recs[k].num_points3D(), k))
 
 
 def largest(recs: dict) -> int:
-    """The key of the largest model (most registered images, then most points; the lowest key on ties)."""
-    return min(recs, key=lambda k: (-recs[k].num_reg_images(), -recs[k].num_points3D(), k))
+    """The key of the largest model (:func:`by_size`'s first)."""
+    return by_size(recs)[0]
 
 
 def model_numbers(rec) -> dict:
@@ -110,7 +129,8 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     and a mapper; the peer of ``dqm sfm`` in ``scripts/bench_sfm.py``.
 
     ``seed`` None keeps COLMAP's unseeded defaults; a number seeds its verification and mapper.
-    Returns the largest model (or None) and the seconds of each stage (extract, match, map).
+    Returns every model, the largest first (:class:`Model`; none if the mapper made none), and the seconds of
+    each stage (extract, match, map).
     """
     pycolmap = require_pycolmap()
     work = Path(work_dir)
@@ -131,6 +151,6 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
         two_view.ransac.random_seed = int(seed)
     pycolmap.match_exhaustive(str(database), verification_options=two_view)
     times["match"] = time.perf_counter() - t0
-    rec, times["map"], _ = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
-                                       seed=-1 if seed is None else seed)
-    return rec, times
+    models, times["map"] = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
+                                       seed=-1 if seed is None else seed, structure_less=True)
+    return models, times
