@@ -158,7 +158,7 @@ def _run_colmap(args, t0: float):
                                verify=not args.no_verify, camera=camera)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
           f"{s.pairs_line()}"
-          + ("" if args.no_verify else f", {s.n_verified_pairs} verified pairs")
+          + ("" if args.no_verify else f", {s.verified_line()}")
           + f" ({time.perf_counter() - t0:.1f} s)")
     return c, s.image_dir
 
@@ -174,7 +174,7 @@ def _run_colmap_into(args, t0: float):
     c = _load(args, ("image_names", "image_ids"))
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
                              names=[str(n) for n in c["image_names"]])
-    verified = "" if args.no_verify else f", {s.n_verified_pairs} verified pairs"
+    verified = "" if args.no_verify else f", {s.verified_line()}"
     print(f"wrote into {db}: {s.pairs_line()}{verified} "
           f"({time.perf_counter() - t0:.1f} s)")
     return c, args.image_dir or "IMAGE_DIR"

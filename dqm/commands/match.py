@@ -209,7 +209,7 @@ def run(args) -> int:
         s = write_matches(database, result.labels, fs.image_ids, overwrite=args.overwrite,
                           num_threads=args.threads or -1)
         print(f"wrote into {database}: {s.pairs_line()}, "
-              f"{s.n_verified_pairs} verified pairs (COLMAP's geometric verification)")
+              f"{s.verified_line()} (COLMAP's geometric verification)")
         image_dir = str(args.image_dir) if args.image_dir else "IMAGE_DIR"
         print(f"reconstruct: pycolmap.incremental_mapping({str(database)!r}, {image_dir!r}, OUTPUT_DIR)")
     wrote = " and ".join(str(p) for p in (args.out, database) if p is not None)

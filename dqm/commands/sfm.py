@@ -33,7 +33,7 @@ HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycol
 
 def add_arguments(p) -> None:
     from ..vision.features import SFM_PRESET
-    from ..vision.sfm import DEFAULT_SEED, MAPPERS
+    from ..vision.sfm import DEFAULT_SEED, GLOBAL_FROM, MAPPERS
 
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders / globs / files (or none, with --image-list)")
@@ -43,8 +43,9 @@ def add_arguments(p) -> None:
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
     p.add_argument("--single-camera", action="store_true", help="one camera for all images (one size)")
-    p.add_argument("--mapper", choices=MAPPERS, default="incremental",
-                   help="COLMAP's incremental mapper (default) or its global mapper (COLMAP 4, ex-GLOMAP)")
+    p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
+                   help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
+                        f"global one from {GLOBAL_FROM} images, the incremental one below (docs/sfm.md)")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help=f"random seed of the two-view verification and the mapper (default {DEFAULT_SEED})")
     p.add_argument("--mapper-threads", type=int, default=1, metavar="N",
@@ -155,7 +156,7 @@ def _clusters_across_models(models, export, fs, labels) -> dict:
 
 def run(args) -> int:
     from ..vision import colmap, poses
-    from ..vision.sfm import model_figure, model_numbers, reconstruct
+    from ..vision.sfm import choose_mapper, model_figure, model_numbers, reconstruct
 
     t0 = time.perf_counter()
     colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
@@ -184,11 +185,12 @@ def run(args) -> int:
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
                                    descriptors=fs.descriptors, camera=camera, seed=args.seed)
-    print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.n_verified_pairs} verified; "
-          "mapping ...", flush=True)
+    mapper = choose_mapper(args.mapper, s.n_images)
+    print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
+          f"{mapper} mapping ...", flush=True)
     with stage("map"):
-        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=args.mapper,
-                                seed=args.seed, num_threads=threads)
+        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
+                                num_threads=threads)
     mapped = [model_numbers(m.rec) for m in models]
     if models and args.triangulate:
         with stage("triangulate"):
@@ -198,11 +200,12 @@ def run(args) -> int:
                 print(ts.summary() if len(models) == 1 else f"sparse/{m.folder.name}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
-        "verify": bool(args.verify), "mapper": args.mapper, "seed": args.seed,
+        "verify": bool(args.verify), "mapper": mapper, "seed": args.seed,
         "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate)},
         "model": model_numbers(models[0].rec if models else None),
         "model_before_triangulation": mapped[0] if models else model_numbers(None),
-        "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs},
+        "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs,
+                  "dropped_as_weak": s.n_pairs_dropped},
         "models": _models_report(models, mapped, truth),
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
     figures = []
