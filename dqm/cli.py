@@ -201,19 +201,39 @@ exit_at_once = False
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    with_env_defaults(os.environ)  # before numpy loads: OpenBLAS's workers do not spin, no huge pages (dqm.process_env)
-    # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
-    signals.install_sigterm()
-    signals.received = None
-    argv = list(sys.argv[1:] if argv is None else argv)
+    """Run one ``dqm`` command line; returns its exit code. From its first line a stop (Ctrl-C, SIGTERM) is one
+    line and 130 / 143, whatever was running: the imports, the argument parsing or the command."""
+    command = "dqm"
     try:
+        with_env_defaults(os.environ)  # before numpy loads: OpenBLAS's workers do not spin, no huge pages
+        # SIGTERM leaves like Ctrl-C from the first moment: the imports below take a while
+        signals.install_sigterm()
+        signals.received = None
+        argv = list(sys.argv[1:] if argv is None else argv)
+        command = f"dqm {command_named(argv)}" if command_named(argv) else "dqm"
         parser = build_parser(only=command_named(argv))
-        from .validation import InputError
-    except KeyboardInterrupt as exc:
+        from . import outputs
+
+        outputs.reset_claims()
+        try:
+            return _command(parser, argv)
+        finally:
+            outputs.release_unused()
+    except BaseException as exc:
+        stop = exc if isinstance(exc, KeyboardInterrupt) else signals.stopped_by_signal()
+        if stop is None or isinstance(exc, SystemExit):
+            raise
+        # a stop before the command ran (imports, parsing): Python may have wrapped it (a class being made
+        # during an import: "Error calling __set_name__")
         global interrupted_while_importing
         interrupted_while_importing = True
-        print(f"dqm: {signals.word(exc)}", file=sys.stderr)
-        return signals.exit_code(exc)
+        print(f"{command}: {signals.word(stop)}", file=sys.stderr)
+        return signals.exit_code(stop)
+
+
+def _command(parser: argparse.ArgumentParser, argv: List[str]) -> int:
+    from .validation import InputError
+
     args, clash = _parsed(parser, argv)
     if not getattr(args, "_run", None):
         parser.print_help()

@@ -17,6 +17,16 @@
 * **Whole or not at all**: results are written to a temporary name beside the output and
   renamed when complete (:func:`atomic_output`), so an error or a stop signal leaves no
   partial file.
+* **Claimed, not just checked**: the check at the start cannot see what another run (or the user)
+  puts at the name while the command works, so the name is *taken* at the end, by a hard link
+  that fails if the name exists (create-if-absent), never by a rename over it. A default name
+  then moves on to the next free one (two ``dqm run`` in one folder write ``clusters.npz`` and
+  ``clusters-2.npz``); a name the user gave is left as it is, the result is kept under the next
+  free name, and the command refuses in one line that says both (:class:`OutputTaken`). Only
+  ``--overwrite`` (and the commands that update a file in place, ``--into-database``) replace,
+  and a symbolic link is then written through to its target, as COLMAP's own tools do.
+  Default folders are taken when checked (created, the next free name if another run was first),
+  and given back at exit if nothing was written in them (:func:`release_unused`).
 
 Commands write their results under ``./dqm-out/<command>`` unless told
 otherwise, never into the repository's committed docs.
@@ -74,6 +84,66 @@ def _probe(folder: Path, what: str) -> None:
         raise InputError(f"{what}: cannot create the folder {folder} ({exc.strerror or exc})") from None
 
 
+#: how a checked output's name is taken at the end (:func:`atomic_output`): replaced (``--overwrite``), the
+#: next free name if taken meanwhile (a default name), or kept as it is, the result going to the next free name
+#: with a refusal (a name the user gave)
+REPLACE, NEXT_FREE, KEEP = "replace", "next free", "keep"
+#: absolute path of a checked file or folder -> (policy, option); a folder's applies to the files in it
+_claims: dict[Path, tuple[str, str]] = {}
+#: absolute path asked for -> where this process wrote it
+_written: dict[Path, Path] = {}
+#: default folders this process created when it checked them (given back at exit if still empty)
+_created: list[Path] = []
+
+
+class OutputTaken(InputError):
+    """A name the user gave was taken by someone else while the command ran; the result went elsewhere."""
+
+
+def _absolute(path) -> Path:
+    return Path(os.path.abspath(path))
+
+
+def _claim(path, option: str, overwrite: bool, default: bool) -> None:
+    _claims[_absolute(path)] = (REPLACE if overwrite else NEXT_FREE if default else KEEP, option)
+
+
+def _policy(path) -> tuple[str, Optional[str]]:
+    """The policy of ``path`` (its own, or its nearest checked folder's): unchecked paths (library calls) and
+    files this process already wrote are replaced."""
+    p = _absolute(path)
+    if p in _written:  # rewritten where it went
+        return REPLACE, None
+    for q in (p, *p.parents):
+        if q in _claims:
+            return _claims[q]
+    return REPLACE, None
+
+
+def reset_claims() -> None:
+    """Forget every check and write of this process (each command starts afresh: :func:`dqm.cli.main`)."""
+    _claims.clear()
+    _written.clear()
+    _created.clear()
+
+
+def release_unused() -> None:
+    """Remove the default folders this process created when it checked them and never wrote into (a command
+    refused or stopped after its checks leaves no empty folder behind)."""
+    for folder in reversed(_created):
+        try:
+            folder.rmdir()  # only if empty
+        except OSError:
+            pass
+    _created.clear()
+
+
+def written(path) -> Path:
+    """Where this process wrote the output it was asked to write at ``path`` (another name only for a default
+    name that another run took meanwhile); ``path`` itself if not written."""
+    return _written.get(_absolute(path), Path(path))
+
+
 def free_name(path) -> Path:
     """``path`` if nothing is there, else the first of ``stem-2.suffix``, ``stem-3.suffix``, ... that is free."""
     p = Path(path)
@@ -101,7 +171,7 @@ def check_file(path, option: str, suffixes: Optional[Iterable[str]] = None, *, o
         allowed = tuple(s.lower() for s in suffixes)
         if p.suffix.lower() not in allowed:
             raise InputError(f"{what}: unknown format {p.suffix or '(no suffix)'}; use one of {', '.join(allowed)}")
-    if p.exists():
+    if p.exists() or p.is_symlink():
         if default:
             p = free_name(p)
         elif not overwrite:
@@ -109,6 +179,7 @@ def check_file(path, option: str, suffixes: Optional[Iterable[str]] = None, *, o
         elif not os.access(p, os.W_OK):
             raise InputError(f"{what}: the file exists and is read-only")
     _probe(p.parent, what)
+    _claim(p, option, overwrite, default)
     return p
 
 
@@ -143,7 +214,27 @@ def check_dir(path, option: str, writes: Optional[Sequence[str]] = None, *, over
             raise InputError(f"{what} already holds {clash[0].name}{more}, which this command would replace; pass "
                              "--overwrite to replace them, or name another folder")
     _probe(p, what)
+    if default and not overwrite:
+        p = _take_folder(p)
+    _claim(p, option, overwrite, False)
     return p
+
+
+def _take_folder(p: Path) -> Path:
+    """A default folder taken for this process: created now (``p`` or, if another run created it first, the next
+    free name); an existing one (that held none of the command's files when checked) is used as it is."""
+    if p.is_dir():
+        return p
+    p.parent.mkdir(parents=True, exist_ok=True)
+    first = p
+    while True:
+        try:
+            p.mkdir()
+        except FileExistsError:
+            p = free_name(first)
+            continue
+        _created.append(p)
+        return p
 
 
 def existing(folder: Path, writes: Optional[Sequence[str]] = None) -> list:
@@ -155,14 +246,28 @@ def existing(folder: Path, writes: Optional[Sequence[str]] = None) -> list:
     return sorted({f for pattern in writes for f in folder.glob(pattern)})
 
 
+#: the files SQLite keeps beside a database (a temporary database's are removed with it)
+SQLITE_SIBLINGS = ("-wal", "-shm", "-journal")
+
+
+def remove_temporary(tmp) -> None:
+    """Remove a temporary output and the files SQLite made beside it, if there."""
+    for name in (str(tmp), *(str(tmp) + s for s in SQLITE_SIBLINGS)):
+        try:
+            os.unlink(name)
+        except FileNotFoundError:
+            pass
+
+
 @contextmanager
 def atomic_output(path, mode: int | None = None) -> Iterator[str]:
-    """A temporary file beside ``path`` (same suffix), renamed to ``path`` when the block ends, removed if
-    it fails or is interrupted: no partial output. The result gets ``mode``, or the permissions of any new
-    file (0666 minus the umask; ``mkstemp`` makes 0600)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    """A temporary file beside ``path`` (same suffix), given the name ``path`` when the block ends
+    (:func:`publish`: by its checked policy), removed if it fails or is interrupted: no partial output. The
+    result gets ``mode``, or the permissions of any new file (0666 minus the umask; ``mkstemp`` makes 0600).
+    Where the result went: :func:`written`."""
+    target = _target(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp" + target.suffix, dir=target.parent)
     os.close(fd)
     try:
         yield tmp
@@ -171,11 +276,59 @@ def atomic_output(path, mode: int | None = None) -> Iterator[str]:
             os.umask(mask)
             mode = 0o666 & ~mask
         os.chmod(tmp, mode)
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        remove_temporary(tmp)
         raise
+
+
+def _target(path) -> Path:
+    """Where a result for ``path`` goes: where this process wrote it before, or through a symbolic link to its
+    target where the policy replaces."""
+    p = _written.get(_absolute(path), Path(path))
+    if p.is_symlink() and _policy(p)[0] == REPLACE:
+        return Path(os.path.realpath(p))
+    return p
+
+
+def publish(src, path) -> Path:
+    """Give the complete file ``src`` (in ``path``'s folder, or one on the same file system) the name ``path``
+    by ``path``'s policy (:func:`check_file`, :func:`check_dir`): replaced (through a symbolic link), or taken
+    only if free, by a hard link. Returns where it went (also :func:`written`); raises :class:`OutputTaken`
+    when a name the user gave was taken meanwhile (the result is then kept under the next free name)."""
+    policy, option = _policy(path)
+    key = _absolute(path)
+    if policy == REPLACE:
+        final = _written.get(key, Path(path))
+        os.replace(src, _target(path))
+        _written[key] = final
+        return final
+    final = Path(path)
+    while not _take(src, final):
+        final = free_name(path)
+    _written[key] = final
+    if final != Path(path) and policy == KEEP:
+        raise OutputTaken(f"{option} {path} appeared while this command ran (another run or program made it); it "
+                          f"is left as it is, and this result is kept as {final}")
+    return final
+
+
+def _take(src, path: Path) -> bool:
+    """Give ``src`` the name ``path`` if nothing has it (create-if-absent); False if something has."""
+    try:
+        os.link(src, path)
+    except FileExistsError:
+        return False
+    except OSError:  # a file system without hard links: take the name empty, then fill it
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        except FileExistsError:
+            return False
+        os.close(fd)
+        os.replace(src, path)
+        return True
+    os.unlink(src)
+    return True
 
 
 def write_text(path, text: str) -> Path:

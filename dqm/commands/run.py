@@ -14,7 +14,8 @@ If an agent process dies, its images and cell go to the next live agent and
 the job starts again (identical clusters); losing more than --max-lost agents
 ends the job with a paragraph saying what failed (docs/runtime.md).
 
-Exit codes: 0 done, 1 --check found different clusters, 2 bad input,
+Exit codes: 0 done, 1 --check found different clusters, 2 bad input (or --out taken meanwhile by another
+run or program: the result is then kept under the next free name),
 3 the job failed, 4 an agent refused the job (differing parameters),
 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
@@ -22,8 +23,11 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -90,11 +94,25 @@ def run(args) -> int:
              count(cfg.agents, "agent process", "agent processes"), cfg.mode)
     LOG.debug("algorithm: %s", cfg.params_text())
     t0 = time.perf_counter()
+    # the coordinator writes the CLUSTERS file into a folder of this run's own beside --out; this process then
+    # takes the name (dqm.outputs.publish): a run started meanwhile, or a file put there, is not replaced
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".staging", dir=out.parent))
+    taken = None
     try:
-        rep = run_job(X, ids, cfg, limits, progress=True, features=fs, clusters=str(out), secure=args.secure)
-    except JobFailure as exc:
-        print(f"dqm run: {exc}", file=sys.stderr)
-        return 4 if exc.failure.get("refused") else 3
+        try:
+            rep = run_job(X, ids, cfg, limits, progress=True, features=fs, clusters=str(staging / out.name),
+                          secure=args.secure)
+        except JobFailure as exc:
+            print(f"dqm run: {exc}", file=sys.stderr)
+            return 4 if exc.failure.get("refused") else 3
+        try:
+            out = outputs.publish(staging / out.name, out)
+        except outputs.OutputTaken as exc:  # the result is kept under another name: the report still follows
+            taken, out = exc, outputs.written(out)
+        rep["clusters_file"] = str(out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     wall = time.perf_counter() - t0
     labels = np.asarray(rep["labels"])
     sizes = np.bincount(labels)
@@ -163,4 +181,7 @@ def run(args) -> int:
               f"({time.perf_counter() - t1:.1f} s).")
         if not same:
             return 1
+    if taken is not None:
+        print(f"dqm run: error: {taken}", file=sys.stderr)
+        return 2
     return 0

@@ -21,7 +21,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional
 
-from .. import io, signals
+from .. import io, outputs, signals
 from ..distributed import keys, messages, sources
 from ..distributed.config import DQMConfig
 from ..distributed.coordination import (  # noqa: F401 - JobFailed and the helpers are this module's API too
@@ -364,6 +364,9 @@ class Coordinator:
 FINISH_WAIT_S = 2.0
 #: exit codes of ``dqm coordinator`` (docs/runtime.md)
 EXIT_OK, EXIT_FAILED, EXIT_REFUSED = 0, 3, 4  # 130 / 143: dqm.signals
+#: the job ran, but --clusters was taken meanwhile by another run or program (the result kept under the next free
+#: name): the exit code of bad input
+EXIT_OUTPUT_TAKEN = 2
 
 
 def failure_path(out: str) -> Path:
@@ -373,10 +376,7 @@ def failure_path(out: str) -> Path:
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj))
-    tmp.replace(path)
+    outputs.write_text(path, json.dumps(obj))
 
 
 def clusters_params(cfg: DQMConfig) -> dict:
@@ -416,10 +416,15 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
                         announce=lambda text: print(text, flush=True), recovery=limits.recovery)
     try:
         rep = coord.run(tcp_port=tcp_port)
+        taken = None
         if clusters:  # before the report: a report names a CLUSTERS file that exists
-            io.write_clusters(clusters, coord.clusters.features, {"labels": coord.clusters.labels},
-                              clusters_params(coord.cfg))
-            rep["clusters_file"] = str(clusters)
+            try:
+                io.write_clusters(clusters, coord.clusters.features, {"labels": coord.clusters.labels},
+                                  clusters_params(coord.cfg))
+            except outputs.OutputTaken as exc:  # kept under the next free name; the report says which
+                taken = exc
+                log.error("%s", exc)
+            rep["clusters_file"] = str(outputs.written(clusters))
             if coord.clusters.note:
                 log.warning("%s", coord.clusters.note)
         if out:
@@ -427,13 +432,13 @@ def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Opt
         print(f"{rep['features']} features -> {rep['clusters']} clusters ({rep['mode']} mode), {rep['total_bytes']} "
               "bytes metered"
                   + (f", {len(rep['lost'])} agent process(es) lost and replaced" if rep["lost"] else "")
-                  + (f"; wrote {clusters}" if clusters else ""))
+                  + (f"; wrote {rep['clusters_file']}" if clusters else ""))
         # the finish messages reach the agents before the session closes: they leave once they have them (a
         # blind 0.2-s sleep here was in every job's time to result)
         if not coord.wait_agents_left(FINISH_WAIT_S):
             log.warning("some agent processes had not left %s after the job's end; closing anyway",
                         seconds(FINISH_WAIT_S))
-        return EXIT_OK
+        return EXIT_OK if taken is None else EXIT_OUTPUT_TAKEN
     except JobFailed as exc:
         if view is not None:
             view.close()

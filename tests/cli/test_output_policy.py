@@ -147,7 +147,70 @@ def test_default_outputs_take_the_next_free_name(tmp_path):
     folder.mkdir()
     (folder / "evaluation.md").write_bytes(KEEP)
     assert outputs.check_dir(folder, "--out-dir", ("evaluation.md",), default=True) == tmp_path / "evaluate-2"
-    assert not (tmp_path / "evaluate-2").exists()  # checked, not created
+    # a default folder is taken when checked: a second run checking meanwhile gets the next one
+    assert (tmp_path / "evaluate-2").is_dir()
+    assert outputs.check_dir(folder, "--out-dir", ("evaluation.md",), default=True) == tmp_path / "evaluate-3"
+    outputs.release_unused()  # nothing written in them: given back
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["evaluate", "run"]
+
+
+def test_a_name_taken_while_the_command_ran_is_not_replaced(tmp_path):
+    """The check at the start cannot see a file made later: the name is taken at the end, if free."""
+    given = outputs.check_file(tmp_path / "c.npz", "--out", (".npz",))
+    given.write_bytes(KEEP)  # the user (or another run) puts a file there while the command works
+    with pytest.raises(outputs.OutputTaken, match=r"--out .*c\.npz appeared while this command ran.* kept as "
+                                                   r".*c-2\.npz"):
+        with outputs.atomic_output(given) as tmp, open(tmp, "wb") as fh:
+            fh.write(b"result")
+    assert given.read_bytes() == KEEP and (tmp_path / "c-2.npz").read_bytes() == b"result"
+    default = outputs.check_file(tmp_path / "d.npz", "--out", (".npz",), default=True)
+    default.write_bytes(KEEP)
+    with outputs.atomic_output(default) as tmp, open(tmp, "wb") as fh:
+        fh.write(b"result")
+    assert default.read_bytes() == KEEP and outputs.written(default) == tmp_path / "d-2.npz"
+    assert (tmp_path / "d-2.npz").read_bytes() == b"result"
+    outputs.write_text(default, "again")  # this process's own output is rewritten where it went
+    assert (tmp_path / "d-2.npz").read_text() == "again" and default.read_bytes() == KEEP
+    told = outputs.check_file(tmp_path / "e.npz", "--out", (".npz",), overwrite=True)
+    told.write_bytes(KEEP)
+    outputs.write_text(told, "replaced")
+    assert told.read_text() == "replaced"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c-2.npz", "c.npz", "d-2.npz", "d.npz", "e.npz"]
+
+
+def test_a_link_is_written_through_where_the_output_is_replaced(tmp_path):
+    target = tmp_path / "real" / "database.db"
+    target.parent.mkdir()
+    target.write_bytes(KEEP)
+    link = tmp_path / "database.db"
+    link.symlink_to(target)
+    outputs.check_file(link, "--into-database", overwrite=True)
+    outputs.write_text(link, "updated")
+    assert link.is_symlink() and target.read_text() == "updated"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["database.db"]
+    other = tmp_path / "other.npz"
+    other.symlink_to(tmp_path / "nowhere.npz")  # a dangling link is a name taken too
+    with pytest.raises(outputs.InputError, match="exists"):
+        outputs.check_file(other, "--out", (".npz",))
+
+
+def test_a_file_made_at_out_while_match_runs_survives(tmp_path, capsys, inputs, monkeypatch):
+    """`dqm match ... --out race.npz & sleep 1; echo precious > race.npz` (issue 60): the file stays, the result is
+    kept beside it and the command says so in one line."""
+    checked = outputs.check_file
+
+    def check_then_user_writes(path, *args, **kwargs):
+        p = checked(path, *args, **kwargs)
+        p.write_bytes(KEEP)
+        return p
+
+    monkeypatch.setattr(outputs, "check_file", check_then_user_writes)
+    out = tmp_path / "race.npz"
+    _one_line(capsys, ["match", inputs["features"], "--out", str(out), "--quiet"], "--out", "race.npz appeared",
+              "race-2.npz")
+    assert out.read_bytes() == KEEP
+    n = len(io.load_features(inputs["features"]).image_ids)
+    assert len(io.load_clusters(tmp_path / "race-2.npz")["labels"]) == n
 
 
 @pytest.mark.parametrize("stop", [RuntimeError("disk full"), KeyboardInterrupt()])
@@ -176,6 +239,22 @@ def test_the_run_command_writes_a_second_result_beside_the_first(tmp_path):
     assert p.returncode == 0, p.stderr
     assert sorted(p.name for p in first.parent.iterdir()) == ["clusters-2.npz", "clusters.npz"]
     assert first.read_bytes() == KEEP and "wrote dqm-out/run/clusters-2.npz" in p.stdout
+
+
+def test_two_runs_started_together_keep_both_results(tmp_path):
+    """Two `dqm run --agents 2` in one folder at once (issue 60): each checked a free default name at its start;
+    both results are kept (clusters.npz and clusters-2.npz) and each run names its own."""
+    procs = [subprocess.Popen([sys.executable, "-m", "dqm", "run", "--agents", "2"], cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    said = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], said
+    folder = tmp_path / "dqm-out" / "run"
+    assert sorted(p.name for p in folder.iterdir()) == ["clusters-2.npz", "clusters.npz"]
+    assert sorted(f"wrote dqm-out/run/{name}" in out for out, _ in said for name in ("clusters.npz",
+                                                                                    "clusters-2.npz")) == \
+        [False, False, True, True]
+    first, second = (io.load_clusters(folder / name)["labels"] for name in ("clusters.npz", "clusters-2.npz"))
+    assert len(first) > 1000 and np.array_equal(first, second)  # the same job twice: the same clusters
 
 
 @pytest.mark.parametrize("argv, holds", [

@@ -1,4 +1,5 @@
 """COLMAP export / import and geometric verification of clusters (dqm.vision.colmap, dqm.vision.verify)."""
+import os
 import subprocess
 import sys
 
@@ -357,6 +358,29 @@ def test_match_into_database_writes_verified_matches_where_colmap_features_are(s
         assert main(argv + ["--quiet"]) == 2, argv
         got = capsys.readouterr()
         assert message in got.err and "Traceback" not in got.err and "QuickMatch" not in got.out, argv
+
+
+def test_match_into_a_linked_database_writes_through_the_link(scene, tmp_path, capsys):
+    """Issue 60: `dqm match work/database.db --into-database` where work/database.db is a symbolic link (as a user
+    keeps one database for several projects): the matches reach the database it points to, the link stays a
+    link, and no temporary file is left on either side, as with COLMAP's own matchers."""
+    from dqm.cli import main
+
+    real = tmp_path / "store" / "colmap.db"
+    real.parent.mkdir()
+    pycolmap.extract_features(str(real), str(scene["folder"]))
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "database.db").symlink_to(real)
+    assert main(["match", str(work / "database.db"), "--into-database", "--quiet"]) == 0
+    assert (work / "database.db").is_symlink() and os.path.samefile(work / "database.db", real)
+    d = pycolmap.Database.open(str(real))
+    try:
+        assert d.num_matched_image_pairs() > 0 and d.num_verified_image_pairs() > 0
+    finally:
+        d.close()
+    assert [p.name for p in work.iterdir()] == ["database.db"]
+    assert [p.name for p in real.parent.iterdir()] == ["colmap.db"]
 
 
 def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path, capsys, monkeypatch):
