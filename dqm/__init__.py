@@ -4,7 +4,33 @@ The public names load on first use (PEP 562), so that ``import dqm`` -- and the 
 command, which must own Ctrl-C from its first moment -- does not pay for numpy and the
 engine until they are needed.
 """
-from .lazy_exports import lazy_exports
+
+
+def _own_stops_from_the_start() -> None:
+    """In the ``dqm`` command (its console script or ``python -m dqm``), from this package's first line until the
+    CLI installs its signal policy (:func:`dqm.signals.install_sigterm`): Ctrl-C or SIGTERM print one line and
+    leave with 130 / 143 at once (nothing has started yet). A program that imports dqm keeps its own handlers."""
+    import os
+    import sys
+
+    argv = getattr(sys, "orig_argv", [])
+    if os.path.basename(sys.argv[0] if sys.argv else "") != "dqm" and argv[1:3] != ["-m", "dqm"]:
+        return
+    import signal
+
+    def leave(signum, frame):
+        terminated = signum == signal.SIGTERM
+        os.write(2, b"dqm: terminated\n" if terminated else b"dqm: interrupted\n")
+        os._exit(143 if terminated else 130)
+
+    leave.before_the_cli = True  # dqm.signals.install_sigterm replaces it
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, leave)
+
+
+_own_stops_from_the_start()
+
+from .lazy_exports import lazy_exports  # noqa: E402 - after the stop handlers: the command owns Ctrl-C first
 
 __version__ = "0.1.0"
 

@@ -48,9 +48,12 @@ def install_sigterm(force: bool = False) -> None:
     """Make SIGTERM raise :class:`Terminated` (unless a handler other than the default is set and not ``force``),
     and SIGINT raise ``KeyboardInterrupt`` even when the process started with SIGINT ignored (as a shell
     script's background jobs do): a dqm command obeys Ctrl-C whoever started it."""
-    if force or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+    early = [s for s in (signal.SIGINT, signal.SIGTERM)
+             if getattr(signal.getsignal(s), "before_the_cli", False)]  # dqm/__init__.py's, until now
+    if force or signal.SIGTERM in early or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         signal.signal(signal.SIGTERM, raise_terminated)
-    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler):
+    if signal.SIGINT in early or \
+            signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler):
         signal.signal(signal.SIGINT, raise_interrupted)
 
 
@@ -108,3 +111,48 @@ def restore(handlers: dict) -> None:
     """Put back the handlers :meth:`StopFlag.install` returned."""
     for s, h in handlers.items():
         signal.signal(s, h)
+
+
+def reassert() -> None:
+    """Give SIGINT and SIGTERM back to the handlers Python has for them, at the C level: a native library may
+    install its own when it loads (pycolmap's glog prints a stack dump and dies on SIGTERM), and Python does
+    not notice. Only from the main thread (where handlers are set); elsewhere it does nothing."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for s in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(s)
+        if handler is not None:
+            signal.signal(s, handler)
+
+
+#: how often the main thread looks up from a native call it waits for (:func:`interruptible`)
+WAKE_S = 0.1
+
+
+def interruptible(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a worker thread, the main thread waiting for it in steps of :data:`WAKE_S`, so
+    that a stop reaches Python's handlers while a long native call (one that releases the GIL: pycolmap's
+    extraction, matching, verification, mapping) runs: the ``KeyboardInterrupt`` is raised here at once, its
+    cleanup runs, and the call is left behind (the CLI then leaves with os._exit, which ends it). Returns what
+    ``fn`` returns, raises what it raises. Off the main thread it simply calls ``fn``."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args, **kwargs)
+    box: dict = {}
+
+    def work():
+        try:
+            box["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread, raised there
+            box["error"] = exc
+
+    worker = threading.Thread(target=work, name=f"dqm-native-{getattr(fn, '__name__', 'call')}", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(WAKE_S)
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")

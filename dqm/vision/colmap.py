@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import signals
 from ..io import FeatureSet
 from ..outputs import atomic_output
 from ..validation import InputError
@@ -54,14 +55,28 @@ CAMERA_MODES = ("per-image", "single", "per-folder")
 def require_pycolmap(quiet: bool = True, what: str = "this command"):
     """The pycolmap module, or one line saying how to install it (``what`` names what needs it).
 
-    ``quiet``: COLMAP's own log keeps to warnings and errors (its info lines go to stderr).
+    Loading it installs glog's failure handler for SIGTERM (a stack dump, death by the signal, no cleanup):
+    Python's handlers are given the signal back (:func:`dqm.signals.reassert`). COLMAP's log goes to
+    stderr, never to glog's files in the temporary folder; ``quiet``: only with ``-v`` (its warnings; its
+    errors are reported by the calls that fail).
     """
+    import sys
+
+    fresh = "pycolmap" not in sys.modules
     try:
         import pycolmap
     except ImportError:
         raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
-    if quiet and hasattr(pycolmap, "logging"):
-        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
+    if fresh:
+        from .. import signals
+
+        signals.reassert()
+    if hasattr(pycolmap, "logging"):
+        import logging
+
+        pycolmap.logging.logtostderr = True
+        verbose = not quiet or logging.getLogger("dqm").isEnabledFor(logging.INFO)
+        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING if verbose else pycolmap.logging.FATAL)
     return pycolmap
 
 
@@ -408,7 +423,8 @@ def _verify(path, num_threads: int, seed: int) -> int:
         opts.num_threads = num_threads
     two_view = pycolmap.TwoViewGeometryOptions()
     two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
-    pycolmap.geometric_verification(str(path), verifier_options=opts, two_view_geometry_options=two_view)
+    signals.interruptible(pycolmap.geometric_verification, str(path), verifier_options=opts,
+                          two_view_geometry_options=two_view)
     return verified_pairs(path)
 
 
@@ -427,11 +443,18 @@ def verified_pairs(path) -> int:
 
 def _read_only(database: Path, read: Callable):
     """``read(connection)`` on the database's SQLite file opened read-only, or None where SQLite fails (not an
-    SQLite file, a table or column missing)."""
+    SQLite file, a table or column missing).
+
+    COLMAP's databases are in WAL mode, where a read-only reader makes ``-shm`` and ``-wal`` files beside the
+    database and leaves them (it may not check the log back in), and cannot read at all in a read-only folder.
+    Without a log of pending writes beside it the file is read as immutable: nothing is made beside it."""
     import sqlite3
 
+    wal = Path(f"{database}-wal")
+    pending = wal.exists() and wal.stat().st_size > 0
     try:
-        con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+        con = sqlite3.connect(f"{Path(database).absolute().as_uri()}?{'mode=ro' if pending else 'immutable=1'}",
+                              uri=True)
     except sqlite3.Error:
         return None
     try:
@@ -608,13 +631,37 @@ def _read_tables(database: Path) -> list | None:
     return out
 
 
+def unreadable_because(database: Path, exc: BaseException) -> str:
+    """Why SQLite (through pycolmap) could not open ``database``, in words: not an SQLite file, a truncated one, a
+    read-only folder (SQLite must make its ``-shm`` file beside a WAL database), or the error itself."""
+    try:
+        with open(database, "rb") as fh:
+            head = fh.read(100)
+    except OSError as err:
+        return err.strerror or str(err)
+    if not head.startswith(SQLITE_MAGIC):
+        return "it is not an SQLite file"
+    page = int.from_bytes(head[16:18], "big")
+    page = 65536 if page == 1 else page
+    pages = int.from_bytes(head[28:32], "big")
+    size = database.stat().st_size
+    if len(head) < 100 or size < page * pages:
+        return f"it is truncated ({size:,} bytes of the {page * pages:,} its header gives)"
+    folder = database.absolute().parent
+    if not os.access(folder, os.W_OK):
+        return (f"its folder {folder} is read-only, and SQLite must make its -shm file beside a COLMAP database "
+                "(copy the database somewhere writable)")
+    return f"{type(exc).__name__}: {str(exc).strip() or 'SQLite refused it'}"
+
+
 def _read_with_pycolmap(database: Path) -> list:
     """As :func:`_read_tables`, through pycolmap (any layout it reads)."""
     pycolmap = require_pycolmap(what="reading this COLMAP database")
     try:
         db = pycolmap.Database.open(str(database))
     except Exception as exc:  # noqa: BLE001 - a file that is not a database
-        raise InputError(f"{database}: not a COLMAP database ({type(exc).__name__})") from None
+        raise InputError(f"{database}: cannot be read as a COLMAP database: {unreadable_because(database, exc)}") \
+            from None
     try:
         out = []
         for im in sorted(db.read_all_images(), key=lambda im: im.image_id):

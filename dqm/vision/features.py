@@ -10,6 +10,7 @@ into a list of image paths, each folder's in natural order (``img2`` before ``im
 from __future__ import annotations
 
 import glob
+import logging
 import os
 import re
 from collections.abc import Iterable, Sequence
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import signals
 from ..validation import InputError
 
 #: SIFT settings; "paper" is the seed paper's experiment preset
@@ -269,11 +271,12 @@ def extract_colmap(images: Sequence, max_features: int = 0, progress=None,
         options.sift.max_num_features = int(max_features) or COLMAP_MAX_FEATURES
         db = Path(tmp) / "features.db"
         level = pycolmap.logging.minloglevel  # COLMAP warns that it uses every core; it is asked to
-        pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
+        pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
+        logging.getLogger("dqm.vision").info("COLMAP's SIFT (pycolmap's extractor): %d images", len(names))
         try:
-            pycolmap.extract_features(str(db), str(root), image_names=names,
-                                      camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
-                                      device=pycolmap.Device.cpu)
+            signals.interruptible(pycolmap.extract_features, str(db), str(root), image_names=names,
+                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
+                                  device=pycolmap.Device.cpu)
         finally:
             pycolmap.logging.minloglevel = level
         fs = import_database(db)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import signals
 from ..validation import InputError
 from .colmap import require_pycolmap
 
@@ -82,7 +83,7 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     out.mkdir(parents=True, exist_ok=True)
     run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
     t0 = time.perf_counter()
-    recs = run(str(database), str(image_dir), str(out), options=options)
+    recs = signals.interruptible(run, str(database), str(image_dir), str(out), options=options)
     dt = time.perf_counter() - t0
     return [Model(k, recs[k], out / str(k)) for k in by_size(recs)], dt
 
@@ -153,9 +154,9 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     times = {}
     t0 = time.perf_counter()
     level = pycolmap.logging.minloglevel  # COLMAP warns that its extraction uses every core; it is meant to
-    pycolmap.logging.minloglevel = int(pycolmap.logging.ERROR)
+    pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
     try:
-        pycolmap.extract_features(str(database), str(image_dir))
+        signals.interruptible(pycolmap.extract_features, str(database), str(image_dir))
     finally:
         pycolmap.logging.minloglevel = level
     times["extract"] = time.perf_counter() - t0
@@ -163,7 +164,7 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     two_view = pycolmap.TwoViewGeometryOptions()
     if seed is not None:
         two_view.ransac.random_seed = int(seed)
-    pycolmap.match_exhaustive(str(database), verification_options=two_view)
+    signals.interruptible(pycolmap.match_exhaustive, str(database), verification_options=two_view)
     times["match"] = time.perf_counter() - t0
     models, times["map"] = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
                                        seed=-1 if seed is None else seed, structure_less=True)

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import signals
 from ..core.pairs import default_threads
 from .colmap import require_pycolmap
 from .guided import DEFAULT_RATIO, propose_links
@@ -170,8 +171,8 @@ def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors:
     out.mkdir(parents=True, exist_ok=True)
     before = (rec.num_points3D(), rec.compute_num_observations())
     last_id = max(rec.point3D_ids(), default=0)
-    dense = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), str(database), str(image_dir), str(out),
-                                        clear_points=False, options=options)
+    dense = signals.interruptible(pycolmap.triangulate_points, pycolmap.Reconstruction(rec), str(database),
+                                  str(image_dir), str(out), clear_points=False, options=options)
     # COLMAP's triangulator creates two-view points, which its incremental mapper never does: the new
     # points must be seen in 3 images or more, as the mapper's are when it creates them (the model's
     # own points keep their ids and stay)
