@@ -111,6 +111,16 @@ def _command_parser(parser: argparse.ArgumentParser, name: Optional[str]) -> Opt
     return None
 
 
+def _innermost(parser: argparse.ArgumentParser, argv: List[str]) -> argparse.ArgumentParser:
+    """The parser of the (sub-)command ``argv`` names, as deep as it goes (``dqm export colmap``'s)."""
+    while True:
+        action = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        name = next((t for t in argv if action is not None and t in action.choices), None)
+        if name is None:
+            return parser
+        parser, argv = action.choices[name], argv[argv.index(name) + 1:]
+
+
 def join_negative_values(parser: argparse.ArgumentParser, argv: List[str]) -> List[str]:
     """``--camera-params -1,1,2,3`` as ``--camera-params=-1,1,2,3``: argparse takes a value that starts with
     '-' and is not a plain number for an option; an option that takes one value takes it here."""
@@ -157,7 +167,9 @@ def _parsed(parser: argparse.ArgumentParser, argv: List[str]) -> Tuple[argparse.
     """``argv`` parsed (argparse exits on what does not parse) and the first contradiction among its flags
     (:func:`contradiction`), or None."""
     argv = join_negative_values(parser, argv)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said by the command's own parser, with its usage (argparse's top level says 'dqm: error')
+        _innermost(parser, argv).error(f"unrecognized arguments: {' '.join(extra)}")
     sub = _command_parser(parser, getattr(args, "command", None)) if getattr(args, "_run", None) else None
     return args, (contradiction(sub, argv) if sub is not None else None)
 

@@ -321,6 +321,15 @@ def absolute_if_exists(name: str) -> str:
     return str(p.resolve()) if p.is_file() else str(name)
 
 
+def find_image(name: str, image_dir=None) -> Optional[Path]:
+    """The image a FEATURES / CLUSTERS file names: as named, else under ``image_dir`` by its relative name, else
+    by its file name alone (the names are absolute where the images were found, and images move); None if none
+    of these is a file."""
+    p = Path(str(name))
+    candidates = [p] if image_dir is None else [p, Path(image_dir) / p, Path(image_dir) / p.name]
+    return next((c for c in candidates if c.is_file()), None)
+
+
 def save_clusters(path, fs: FeatureSet, result, extra_params: Optional[dict] = None) -> None:
     """Write ``dqm match``'s CLUSTERS file: the features, a QuickMatchResult and its parameters."""
     params = {"rho": result.rho, "ratio_density": result.ratio_density, "kernel": result.kernel,

@@ -8,7 +8,8 @@ inputs, in the same order, as dqm extract; --recursive too). Under access contro
 (--tls-cert or --user) the node first checks that the router lets it put as camera C
 (the roster line 'camera NAME C'), else exits 2 naming the line. It waits for the
 stream's liveliness token (dqm/<job>/alive/stream, up to --wait seconds), then
-extracts SIFT (the same --preset / --max-features as dqm extract) and puts one
+extracts SIFT (the --preset / --max-features options of dqm extract, but the default
+preset is rootsift, the online matcher's, where dqm extract's is sfm) and puts one
 `image` message per image on dqm/<job>/stream/images/from/C, one every 1/--rate seconds
 (an image whose SIFT takes longer is put as soon as it is ready). Every message
 carries the image's name (--names: its absolute path, its file name, or none) and

@@ -28,6 +28,7 @@ pycolmap (colmap) or h5py (hloc): pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -43,6 +44,8 @@ HELP = "export clusters as a COLMAP database or hloc matches / pairs / features 
 _ONLY_FOR = {"database": "colmap", "into_database": "colmap", "no_verify": "colmap", "camera_model": "colmap",
              "camera_params": "colmap", "single_camera": "colmap", "single_camera_per_folder": "colmap",
              "matches": "hloc", "pairs": "hloc", "features": "hloc"}
+
+LOG = logging.getLogger("dqm.commands")
 
 
 def add_arguments(p) -> None:
@@ -110,6 +113,7 @@ def _check_options(args) -> None:
 
 def _load(args, needs: tuple) -> dict:
     """The CLUSTERS file, with the arrays the export ``needs`` (one line naming a missing one)."""
+    LOG.info("export %s: reading %s", args.format, args.clusters)
     c = io.load_clusters(args.clusters)
     for key in needs:
         if key not in c:

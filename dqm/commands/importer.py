@@ -11,6 +11,7 @@ pycolmap (colmap) or h5py (h5): pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -20,6 +21,8 @@ from ..wording import count
 
 NAME = "import"
 HELP = "convert a COLMAP database or an hloc .h5 feature file to a FEATURES .npz"
+
+LOG = logging.getLogger("dqm.commands")
 
 
 def add_arguments(p) -> None:
@@ -33,6 +36,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     t0 = time.perf_counter()
     out = outputs.check_file(args.out, "--out", (".npz",), overwrite=args.overwrite)
+    LOG.info("import %s: reading the features of %s", args.format, args.source)
     if args.format == "colmap":
         from ..vision.colmap import import_database, require_pycolmap
 

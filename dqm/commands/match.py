@@ -210,10 +210,12 @@ def run(args) -> int:
                           num_threads=args.threads or -1)
         print(f"wrote into {database}: {s.pairs_line()}, "
               f"{s.verified_line()} (COLMAP's geometric verification)")
-        image_dir = str(args.image_dir) if args.image_dir else "IMAGE_DIR"
-        print(f"reconstruct: pycolmap.incremental_mapping({str(database)!r}, {image_dir!r}, OUTPUT_DIR)")
-    wrote = " and ".join(str(p) for p in (args.out, database) if p is not None)
-    print(f"wrote {wrote} ({time.perf_counter() - t0:.2f} s in all)")
+        image_dir = repr(str(args.image_dir)) if args.image_dir else "IMAGE_DIR"  # else a placeholder, as OUTPUT_DIR
+        print(f"reconstruct: pycolmap.incremental_mapping({str(database)!r}, {image_dir}, OUTPUT_DIR)")
+    if args.out is not None:
+        print(f"wrote {args.out} ({time.perf_counter() - t0:.2f} s in all)")
+    else:  # what went into the database was said above
+        print(f"done in {time.perf_counter() - t0:.2f} s")
     return 0
 
 

@@ -18,6 +18,7 @@ images records their paths (image_names); --image-dir resolves relative ones.
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ from . import HelpFormatter
 
 NAME = "plot"
 HELP = "draw matches (pair, clusters), cluster sizes or PR curves"
+
+LOG = logging.getLogger("dqm.commands")
 
 
 def add_arguments(p) -> None:
@@ -42,7 +45,7 @@ def add_arguments(p) -> None:
     a.add_argument("--tol", type=float, default=5.0, help="pixels, with --truth")
     a.add_argument("--max-lines", type=int, default=300,
                    help="draw at most this many matches (a random subset)")
-    a.add_argument("--image-dir", default=None, help="folder for relative image names")
+    a.add_argument("--image-dir", default=None, help=IMAGE_DIR_HELP)
     c = sub.add_parser("clusters", formatter_class=HelpFormatter,
                        help="patches of the features of the largest clusters")
     c.add_argument("clusters", metavar="CLUSTERS.npz")
@@ -51,7 +54,7 @@ def add_arguments(p) -> None:
     c.add_argument("--count", type=int, default=6, help="clusters to draw (largest first)")
     c.add_argument("--min-size", type=int, default=2, help="smallest cluster size drawn")
     c.add_argument("--radius", type=int, default=32, help="patch half-size in pixels")
-    c.add_argument("--image-dir", default=None, help="folder for relative image names")
+    c.add_argument("--image-dir", default=None, help=IMAGE_DIR_HELP)
     s = sub.add_parser("sizes", formatter_class=HelpFormatter, help="histogram of cluster sizes")
     s.add_argument("clusters", metavar="CLUSTERS.npz")
     s.add_argument("--out", required=True, help="figure file (.png, .pdf, .svg, ...)")
@@ -63,23 +66,28 @@ def add_arguments(p) -> None:
     outputs.add_overwrite_option(r)
 
 
+#: --image-dir of the plots that draw images
+IMAGE_DIR_HELP = ("where the images are now: a name the file holds is looked up as it is, then under this folder "
+                  "(relative names), then by its file name alone (absolute names of images that moved)")
+
+
 def _images(cl: dict, image_dir, needed) -> list:
     """Paths of the images (row k: image id k); only the ``needed`` image ids must exist (a CLUSTERS
     file may name images it holds no feature of, e.g. a distributed job's)."""
     if "image_names" not in cl:
         raise InputError("this clusters file records no image names (made from a FEATURES file without them); "
                          "pair and clusters plots need the images")
-    out = []
-    for name in cl["image_names"].tolist():
-        p = Path(name)
-        if not p.is_absolute() and image_dir is not None:
-            p = Path(image_dir) / p
-        out.append(p)
+    from ..io import find_image
+
+    names = [str(n) for n in cl["image_names"].tolist()]
+    out = [find_image(name, image_dir) or Path(name) for name in names]
     for k in sorted(set(int(k) for k in needed)):
-        if not 0 <= k < len(out) or not str(cl["image_names"][k]):
+        if not 0 <= k < len(out) or not names[k]:
             raise InputError(f"this clusters file names no image for image id {k}")
-        if not out[k].exists():
-            raise InputError(f"image {out[k]} not found (use --image-dir to say where the images are)")
+        if not out[k].is_file():
+            where = (f"nor under --image-dir {image_dir} (by that name or by its file name)" if image_dir is not None
+                     else "(use --image-dir to say where the images are)")
+            raise InputError(f"image {names[k]} not found {where}")
     return out
 
 
@@ -176,6 +184,7 @@ def _pr(args) -> int:
 
 
 def run(args) -> int:
+    LOG.info("plot %s: reading %s", args.what, getattr(args, "evaluation", None) or args.clusters)
     if args.what == "pr":
         outputs.check_dir(args.out_dir, "--out-dir", ("pr_*",), overwrite=args.overwrite)
     else:

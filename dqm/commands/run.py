@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import shutil
 import sys
 import tempfile
@@ -157,8 +158,9 @@ def run(args) -> int:
     if rep.get("images_note"):
         print(f"Images: {rep['images_note']}.")
     drawable = fs.keypoints is not None and fs.image_names is not None
-    print(f"wrote {out} (CLUSTERS" + (f": dqm plot clusters {out} --out clusters.png, dqm export colmap {out} ..."
-                                      if drawable else f": dqm plot sizes {out} --out sizes.png") + ")")
+    named = shlex.quote(str(out))  # the hint is a command line to paste: a path with spaces quoted
+    print(f"wrote {out} (CLUSTERS" + (f": dqm plot clusters {named} --out clusters.png, dqm export colmap {named} ..."
+                                      if drawable else f": dqm plot sizes {named} --out sizes.png") + ")")
     if args.check:
         from ..distributed.simulator import simulate
 

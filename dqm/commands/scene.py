@@ -10,6 +10,8 @@ every dqm command that reads images or homography sequences reads it:
 """
 from __future__ import annotations
 
+import logging
+
 from .. import outputs
 from ..validation import InputError
 from ..vision.scenes import generate_scene
@@ -18,6 +20,8 @@ NAME = "scene"
 #: what dqm scene writes in its folder (an Oxford-layout sequence), refused when already there
 SCENE_FILES = ("img*", "H1to*")
 HELP = "write a generated multi-view scene (images + homographies) to a folder"
+
+LOG = logging.getLogger("dqm.commands")
 
 
 def add_arguments(p) -> None:
@@ -36,6 +40,8 @@ def run(args) -> int:
     if args.images < 2:
         raise InputError("--images must be at least 2")
     outputs.check_dir(args.out, "FOLDER", SCENE_FILES, overwrite=args.overwrite)
+    LOG.info("scene: %d images of %d x %d px (seed %d), written to %s with their homographies", args.images,
+             args.size[1], args.size[0], args.seed, args.out)
     scene = generate_scene(args.images, tuple(args.size), seed=args.seed, viewpoint=args.viewpoint,
                            photometric=args.photometric, noise=args.noise)
     seq = scene.write(args.out)

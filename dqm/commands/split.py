@@ -14,6 +14,8 @@ prints the `dqm agent` command of each (deploy/README.md).
 """
 from __future__ import annotations
 
+import logging
+import shlex
 from pathlib import Path
 from typing import List
 
@@ -21,11 +23,14 @@ import numpy as np
 
 from .. import outputs
 from ..validation import InputError, positive_int_arg
+from ..wording import count
 
 NAME = "split"
 #: what dqm split writes in its folder
 AGENT_FILES = ("agent*.npz",)
 HELP = "split a FEATURES file into one file per agent (whole images each)"
+
+LOG = logging.getLogger("dqm.commands")
 
 
 def add_arguments(p) -> None:
@@ -76,6 +81,8 @@ def run(args) -> int:
     out = outputs.check_dir(args.out or outputs.default_dir("split"), "--out", AGENT_FILES, overwrite=args.overwrite,
                             default=not args.out)
     fs = io.load_features(args.features)
+    LOG.info("split: %s of %s from %s over %s, whole images each", count(len(fs), "feature"),
+             count(len(np.unique(fs.image_ids)), "image"), args.features, count(args.agents, "agent"))
     ids = np.asarray(fs.image_ids)
     n_images = len(np.unique(ids))
     lists = None
@@ -94,6 +101,6 @@ def run(args) -> int:
     for a, (path, part) in enumerate(zip(paths, parts)):
         print(f"agent {a}: {path} ({len(np.unique(part.image_ids))} images, {len(part)} features)")
     print(f"start each agent on its host with its file, e.g.\n  dqm agent --id 0 --agents {m} --connect "
-          f"tcp/ROUTER:7447 --job JOB {paths[0]}\nand a coordinator: dqm coordinator --agents {m} --connect "
-          "tcp/ROUTER:7447 --job JOB (deploy/README.md)")
+          f"tcp/ROUTER:7447 --job JOB {shlex.quote(str(paths[0]))}\nand a coordinator: dqm coordinator --agents {m} "
+          "--connect tcp/ROUTER:7447 --job JOB (deploy/README.md)")
     return 0

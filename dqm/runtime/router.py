@@ -15,6 +15,7 @@ import sys
 import threading
 from typing import Dict, List, Optional
 
+from .. import signals
 from .bus import router_config, zenoh_message
 from .roster import Roster, access_control
 
@@ -69,8 +70,10 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
     from .lifeline import watch_parent
 
     stop = threading.Event()
+    came: list = []
 
     def _stop(signum, frame):
+        came.append(signum)
         stop.set()
 
     signal.signal(signal.SIGTERM, _stop)
@@ -97,6 +100,9 @@ def main_router(endpoints: List[str], tls: Optional[dict] = None, ready_file: Op
         while not stop.wait(0.5):
             if watch is not None:
                 watch.poll()
-        return 0
+        # stopped as every command is: 130 after Ctrl-C, 143 after SIGTERM (dqm.signals), one line
+        terminated = came[0] == signal.SIGTERM
+        _say("terminated" if terminated else "interrupted")
+        return signals.EXIT_TERMINATED if terminated else signals.EXIT_INTERRUPTED
     finally:
         session.close()

@@ -29,6 +29,7 @@ pycolmap is an optional dependency (``pip install 'dqm[colmap]'``).
 """
 from __future__ import annotations
 
+import logging
 import os
 import posixpath
 import shutil
@@ -43,6 +44,8 @@ from ..io import FeatureSet
 from ..outputs import atomic_output
 from ..validation import InputError
 from ..wording import count
+
+LOG = logging.getLogger("dqm.vision")
 
 #: COLMAP's default focal length without EXIF, relative to the larger image side
 DEFAULT_FOCAL_FACTOR = 1.2
@@ -283,11 +286,11 @@ def image_folder(paths: Sequence, image_dir: Path | None = None) -> tuple[Path, 
 
 def resolve_images(image_names, image_dir=None) -> list[Path]:
     """Paths of the images, found as named or under ``image_dir``; one line if one is missing."""
+    from ..io import find_image
+
     out = []
     for name in [str(n) for n in image_names]:
-        p = Path(name)
-        candidates = [p] if image_dir is None else [p, Path(image_dir) / p, Path(image_dir) / p.name]
-        found = next((c for c in candidates if c.is_file()), None)
+        found = find_image(name, image_dir)
         if found is None:
             where = f" or under {image_dir}" if image_dir is not None else " (pass --image-dir)"
             raise InputError(f"image {name} not found{where}; the export needs every image's size")
@@ -407,6 +410,7 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
 def _write_cluster_matches(db, pairs: dict, colmap_id, local: np.ndarray) -> int:
     """Write every image pair's matches (:func:`cluster_pairs`; ``colmap_id[k]``: COLMAP's id of dqm image k,
     ``local``: every feature's keypoint index in its image) into the open pycolmap database; the match count."""
+    LOG.info("writing the matches of %s", count(len(pairs), "image pair"))
     n_matches = 0
     for (a, b), m in pairs.items():
         db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
@@ -423,6 +427,7 @@ def _verify(path, num_threads: int, seed: int) -> int:
         opts.num_threads = num_threads
     two_view = pycolmap.TwoViewGeometryOptions()
     two_view.ransac.random_seed = int(seed)  # COLMAP's default (-1) draws a new seed every run
+    LOG.info("COLMAP's geometric verification (RANSAC seed %d)", seed)
     signals.interruptible(pycolmap.geometric_verification, str(path), verifier_options=opts,
                           two_view_geometry_options=two_view)
     return verified_pairs(path)

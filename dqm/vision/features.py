@@ -13,6 +13,7 @@ import glob
 import logging
 import os
 import re
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -197,7 +198,26 @@ def read_gray(path) -> np.ndarray:
     img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
     if img is None or img.size == 0:
         raise InputError(f"cannot read image (not an image or empty): {p}")
+    if truncated_jpeg(p):
+        warnings.warn(f"{p} is a truncated JPEG file (it has no end marker): its missing part is read as grey, "
+                      "where no features are found", stacklevel=2)
     return img
+
+
+#: the end marker (EOI) of a JPEG file, and how far from the end it may sit (some writers pad after it)
+JPEG_END, JPEG_END_WITHIN = b"\xff\xd9", 4096
+
+
+def truncated_jpeg(path) -> bool:
+    """Whether ``path`` is a JPEG file (by its first bytes) without its end marker near the end: libjpeg decodes
+    such a file with a warning that names no file ('Premature end of JPEG file')."""
+    with open(path, "rb") as fh:
+        if fh.read(3) != b"\xff\xd8\xff":
+            return False
+        fh.seek(0, os.SEEK_END)
+        size = fh.tell()
+        fh.seek(max(0, size - JPEG_END_WITHIN))
+        return JPEG_END not in fh.read()
 
 
 def as_gray(image) -> np.ndarray:

@@ -102,7 +102,7 @@ def read_strecha(folder) -> dict[str, Pose]:
     """Every ``IMAGE.camera`` file of a folder, keyed by the image's name (the file name without ``.camera``)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise InputError(f"ground truth {folder}: not a folder")
+        raise InputError(f"ground truth {folder}: {'not a folder' if folder.exists() else 'no such folder'}")
     out = {}
     for path in sorted(folder.glob("*.camera")):
         out[path.name[: -len(".camera")]] = read_strecha_camera(path)[0]
@@ -130,7 +130,7 @@ def read_colmap_model(folder) -> dict[str, Pose]:
     pycolmap = require_pycolmap()
     folder = Path(folder)
     if not folder.is_dir():
-        raise InputError(f"ground truth {folder}: not a folder")
+        raise InputError(f"ground truth {folder}: {'not a folder' if folder.exists() else 'no such folder'}")
     try:
         rec = pycolmap.Reconstruction(str(folder))
     except Exception as exc:  # noqa: BLE001 - pycolmap raises its own errors for a folder without a model
@@ -144,6 +144,8 @@ def read_colmap_model(folder) -> dict[str, Pose]:
 def read_ground_truth(path) -> dict[str, Pose]:
     """Ground-truth poses from a folder of Strecha camera files or a COLMAP model folder, told apart by content."""
     path = Path(path)
+    if not path.exists():
+        raise InputError(f"--gt {path}: no such folder (give the folder of Strecha *.camera files, or a COLMAP model)")
     if not path.is_dir():
         raise InputError(f"--gt {path}: not a folder (Strecha *.camera files, or a COLMAP model)")
     if any(path.glob("*.camera")):

@@ -373,6 +373,8 @@ def test_match_into_a_linked_database_writes_through_the_link(scene, tmp_path, c
     work.mkdir()
     (work / "database.db").symlink_to(real)
     assert main(["match", str(work / "database.db"), "--into-database", "--quiet"]) == 0
+    out = capsys.readouterr().out  # said once, and IMAGE_DIR a placeholder as OUTPUT_DIR, not a string
+    assert out.count("wrote") == 1 and out.count("reconstruct: ") == 1 and "', IMAGE_DIR, OUTPUT_DIR)" in out
     assert (work / "database.db").is_symlink() and os.path.samefile(work / "database.db", real)
     d = pycolmap.Database.open(str(real))
     try:
