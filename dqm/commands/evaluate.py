@@ -30,6 +30,7 @@ and writes evaluation_<file>[_<data>].json (evaluation.json's layout).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -217,6 +218,21 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
     return "\n".join(lines).rstrip() + "\n"
 
 
+@contextlib.contextmanager
+def _no_figures_without_their_tables(plot_files: dict):
+    """A stopped or failed evaluation removes the figures it wrote (``plot_files``: data set -> files): without
+    the tables they belong to they would only block the rerun (its --out-dir check refuses pr_*.png)."""
+    try:
+        yield
+    except BaseException:
+        written = [outputs.written(f) for files in plot_files.values() for f in files]
+        for f in written:
+            f.unlink(missing_ok=True)
+        if written:
+            LOG.info("removed the %d figure(s) of this unfinished evaluation", len(written))
+        raise
+
+
 def _figures(bench: benchmark.Benchmark, out_dir: Path, rho: float, stem: str) -> list[Path]:
     from .. import plots
     from ..core import quickmatch
@@ -350,48 +366,49 @@ def run(args) -> int:
     skipped = []
     plot_files: dict[str, list[Path]] = {}
     stems: dict[str, str] = {}  # data-set name -> its part of file names, unique in out_dir
-    for spec in specs:
-        try:
-            LOG.info("loading %s", spec)
-            bench = benchmark.load_benchmark(spec, args.data_root, preset=args.preset,
-                                             max_features=args.max_features, tol=args.tol)
-        except InputError as exc:
-            if explicit:
-                raise
-            LOG.warning("note: %s skipped: %s", spec, exc)  # shown by default; also listed in evaluation.md
-            skipped.append((spec, str(exc)))
-            continue
-        name = bench.name if bench.name not in results else f"{bench.name}-{len(results)}"
-        stems[name] = benchmark.file_stem(name, stems.values())
-        rows = benchmark.evaluate(bench, methods, rho=args.rho, ratio=args.ratio, rhos=rhos, ratios=ratios,
-                                  seed=args.seed)
-        results[name] = rows
-        benches[name] = bench
-        fig = plots.pr_figure([r.curve for r in rows],
-                              {r.method: (r.scores.recall, r.scores.precision) for r in rows},
-                              labels=benchmark.METHODS,
-                              title=f"{name}: {len(bench)} features, {bench.n_images} images")
-        plot_files[name] = [plots.save(fig, out_dir / f"pr_{stems[name]}.png")]
-        if args.figures:
-            plot_files[name] += _figures(bench, out_dir, args.rho, stems[name])
-        if not args.quiet:
-            print(benchmark.markdown_table({name: rows}, {name: bench}), flush=True)
-    if not results:
-        raise InputError("no dataset could be loaded: " + "; ".join(f"{s}: {w}" for s, w in skipped))
-    total = time.perf_counter() - t0
-    out_dir.mkdir(parents=True, exist_ok=True)
-    md = _markdown(args, methods, results, benches, skipped, plot_files, total, load)
-    outputs.write_text(out_dir / "evaluation.md", md)
-    payload = {
-        "dqm_version": __version__,
-        "settings": {k: getattr(args, k) for k in ("rho", "ratio", "tol", "preset", "max_features", "seed")},
-        "datasets": {name: {"n_features": len(benches[name]), "n_images": benches[name].n_images,
-                            "kind": benches[name].kind, "stats": benches[name].stats,
-                            "methods": [r.as_dict() for r in rows]} for name, rows in results.items()},
-        "skipped": dict(skipped),
-    }
-    payload["settings"].update(methods=methods, command=command_line(args))
-    outputs.write_text(out_dir / "evaluation.json", json.dumps(payload, indent=1))
-    print(f"wrote {out_dir / 'evaluation.md'}, {out_dir / 'evaluation.json'} and "
-          f"{sum(len(v) for v in plot_files.values())} plot(s) in {total:.0f} s")
-    return 0
+    with _no_figures_without_their_tables(plot_files):
+        for spec in specs:
+            try:
+                LOG.info("loading %s", spec)
+                bench = benchmark.load_benchmark(spec, args.data_root, preset=args.preset,
+                                                 max_features=args.max_features, tol=args.tol)
+            except InputError as exc:
+                if explicit:
+                    raise
+                LOG.warning("note: %s skipped: %s", spec, exc)  # shown by default; also listed in evaluation.md
+                skipped.append((spec, str(exc)))
+                continue
+            name = bench.name if bench.name not in results else f"{bench.name}-{len(results)}"
+            stems[name] = benchmark.file_stem(name, stems.values())
+            rows = benchmark.evaluate(bench, methods, rho=args.rho, ratio=args.ratio, rhos=rhos, ratios=ratios,
+                                      seed=args.seed)
+            results[name] = rows
+            benches[name] = bench
+            fig = plots.pr_figure([r.curve for r in rows],
+                                  {r.method: (r.scores.recall, r.scores.precision) for r in rows},
+                                  labels=benchmark.METHODS,
+                                  title=f"{name}: {len(bench)} features, {bench.n_images} images")
+            plot_files[name] = [plots.save(fig, out_dir / f"pr_{stems[name]}.png")]
+            if args.figures:
+                plot_files[name] += _figures(bench, out_dir, args.rho, stems[name])
+            if not args.quiet:
+                print(benchmark.markdown_table({name: rows}, {name: bench}), flush=True)
+        if not results:
+            raise InputError("no dataset could be loaded: " + "; ".join(f"{s}: {w}" for s, w in skipped))
+        total = time.perf_counter() - t0
+        out_dir.mkdir(parents=True, exist_ok=True)
+        md = _markdown(args, methods, results, benches, skipped, plot_files, total, load)
+        outputs.write_text(out_dir / "evaluation.md", md)
+        payload = {
+            "dqm_version": __version__,
+            "settings": {k: getattr(args, k) for k in ("rho", "ratio", "tol", "preset", "max_features", "seed")},
+            "datasets": {name: {"n_features": len(benches[name]), "n_images": benches[name].n_images,
+                                "kind": benches[name].kind, "stats": benches[name].stats,
+                                "methods": [r.as_dict() for r in rows]} for name, rows in results.items()},
+            "skipped": dict(skipped),
+        }
+        payload["settings"].update(methods=methods, command=command_line(args))
+        outputs.write_text(out_dir / "evaluation.json", json.dumps(payload, indent=1))
+        print(f"wrote {out_dir / 'evaluation.md'}, {out_dir / 'evaluation.json'} and "
+              f"{sum(len(v) for v in plot_files.values())} plot(s) in {total:.0f} s")
+        return 0

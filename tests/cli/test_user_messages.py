@@ -150,3 +150,26 @@ def test_every_command_says_what_it_does_with_v(matched, tmp_path, capsys):
         capsys.readouterr()
         assert main(["-v", *argv]) == 0, name
         assert capsys.readouterr().err.split()[0].rstrip(":") == name, name
+
+
+def test_a_stopped_evaluation_leaves_no_figure_that_blocks_its_rerun(tmp_path, capsys, monkeypatch):
+    """An interrupted `dqm evaluate` left pr_*.png, and the rerun of the same command was refused (its --out-dir
+    check refuses pr_*.png): a stop now removes the figures of the evaluation it did not finish."""
+    from dqm import benchmark
+
+    real, calls = benchmark.evaluate, []
+
+    def stop_at_the_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(benchmark, "evaluate", stop_at_the_second)
+    argv = ["evaluate", "scene:1", "scene:2", "--out-dir", str(tmp_path / "ev"), "--quiet", "--methods", "quickmatch"]
+    assert main(argv) == 130
+    assert capsys.readouterr().err.strip() == "dqm evaluate: interrupted"
+    assert not [p for p in (tmp_path / "ev").glob("*")]
+    monkeypatch.setattr(benchmark, "evaluate", real)
+    assert main(argv) == 0
+    assert sorted(p.name for p in (tmp_path / "ev").glob("pr_*.png")) == ["pr_scene-1.png", "pr_scene-2.png"]
