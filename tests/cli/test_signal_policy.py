@@ -211,3 +211,23 @@ def test_a_stop_reaches_a_command_in_pycolmaps_native_work(tmp_path, sig, code):
     assert text.strip().splitlines()[-1] == f"dqm extract: {word}" and "Aborted" not in text, text
     assert took < 2.0, f"{took:.2f} s"
     assert list(tmp.iterdir()) == [] and not (tmp_path / "f.npz").exists()
+
+
+def test_colmap_logs_to_stderr_only_when_asked_and_never_to_files(tmp_path):
+    """Issue 60: COLMAP's log lines reached stderr on error paths and glog left /tmp/.vm.root.log.* files. After
+    require_pycolmap, a COLMAP warning is silent by default and on stderr with -v (the dqm logger at INFO), and
+    no log file appears in the temporary folder either way."""
+    pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
+    script = ("import logging, sys\n"
+              "if sys.argv[1] == 'verbose':\n"
+              "    logging.getLogger('dqm').setLevel(logging.INFO)\n"
+              "from dqm.vision.colmap import require_pycolmap\n"
+              "require_pycolmap().logging.warning('a warning from COLMAP')\n")
+    for mode in ("quiet", "verbose"):
+        tmp = tmp_path / mode
+        tmp.mkdir()
+        p = subprocess.run([sys.executable, "-c", script, mode], capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ, TMPDIR=str(tmp)))
+        assert p.returncode == 0, p.stderr
+        assert ("a warning from COLMAP" in p.stderr) == (mode == "verbose"), (mode, p.stderr)
+        assert list(tmp.iterdir()) == [], mode
