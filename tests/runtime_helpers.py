@@ -79,3 +79,20 @@ def kill_all(procs):
         if p is not None and p.poll() is None:
             p.kill()
             p.wait()
+
+
+def stop_once_ready(argv, log, ready, sig, settle=0.0, env=None, timeout=60.0):
+    """``python -m dqm ARGV`` (stdout and stderr to the file ``log``), stopped with ``sig`` once its log holds
+    ``ready`` and ``settle`` more seconds passed; returns the ended process and the seconds it took to leave."""
+    with open(log, "w") as fh:
+        p = subprocess.Popen([sys.executable, "-m", "dqm", *argv], stdout=fh, stderr=subprocess.STDOUT, env=env)
+    try:
+        wait_for_text(log, ready, p)
+        time.sleep(settle)
+        assert p.poll() is None, log.read_text()
+        t = time.monotonic()
+        p.send_signal(sig)
+        p.wait(timeout=timeout)
+        return p, time.monotonic() - t
+    finally:
+        kill_all([p])

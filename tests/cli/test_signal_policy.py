@@ -10,7 +10,7 @@ import sys
 import time
 
 import pytest
-from runtime_helpers import kill_all, wait_for_text
+from runtime_helpers import kill_all, stop_once_ready, wait_for_text
 
 from dqm import io, synthetic
 from dqm.runtime.launcher import free_port
@@ -192,19 +192,8 @@ def test_a_stop_reaches_a_command_in_pycolmaps_native_work(tmp_path, sig, code):
     tmp.mkdir()
     log = tmp_path / "log.txt"
     env = dict(os.environ, TMPDIR=str(tmp))
-    with open(log, "w") as fh:
-        p = subprocess.Popen([sys.executable, "-m", "dqm", "-v", "extract", str(images), "--preset", "colmap",
-                              "--out", str(tmp_path / "f.npz")], stdout=fh, stderr=subprocess.STDOUT, env=env)
-    try:
-        wait_for_text(log, "COLMAP's SIFT", p)
-        time.sleep(1.0)
-        assert p.poll() is None, log.read_text()
-        t = time.monotonic()
-        p.send_signal(sig)
-        p.wait(timeout=60)
-        took = time.monotonic() - t
-    finally:
-        kill_all([p])
+    p, took = stop_once_ready(["-v", "extract", str(images), "--preset", "colmap", "--out", str(tmp_path / "f.npz")],
+                              log, "COLMAP's SIFT", sig, settle=1.0, env=env)
     text = log.read_text()
     word = "interrupted" if sig == signal.SIGINT else "terminated"
     assert p.returncode == code, text

@@ -4,24 +4,15 @@ truncated JPEG, the router's exit codes, the hints of --into-database and -v on 
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
-from runtime_helpers import kill_all, wait_for_text
+from runtime_helpers import stop_once_ready
+from test_user_errors import one_line
 
 from dqm import io
 from dqm.cli import main
 from dqm.runtime.launcher import free_port
-
-
-def one_line(capsys, argv, *needles, code=2):
-    assert main(argv) == code, argv
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1, err
-    for needle in needles:
-        assert needle in err[0], err[0]
-    return err[0]
 
 
 @pytest.fixture(scope="module")
@@ -116,17 +107,7 @@ def test_a_truncated_jpeg_is_named(tmp_path):
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_the_router_stops_with_the_codes_of_every_command(tmp_path, sig, code):
     log = tmp_path / "router.log"
-    with open(log, "w") as fh:
-        p = subprocess.Popen([sys.executable, "-m", "dqm", "router", "--listen", f"tcp/127.0.0.1:{free_port()}"],
-                             stdout=fh, stderr=subprocess.STDOUT)
-    try:
-        wait_for_text(log, "listening on", p)
-        t = time.monotonic()
-        p.send_signal(sig)
-        p.wait(timeout=30)
-        took = time.monotonic() - t
-    finally:
-        kill_all([p])
+    p, took = stop_once_ready(["router", "--listen", f"tcp/127.0.0.1:{free_port()}"], log, "listening on", sig)
     assert p.returncode == code and took < 2.0, log.read_text()
     assert log.read_text().strip().splitlines()[-1] == \
         f"[router] {'interrupted' if sig == signal.SIGINT else 'terminated'}"
