@@ -8,6 +8,7 @@ multi-threaded and their result can still depend on the number of threads (docs/
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,8 @@ import numpy as np
 from .. import signals
 from ..validation import InputError
 from .colmap import require_pycolmap
+
+LOG = logging.getLogger("dqm.vision")
 
 #: the mappers dqm sfm can run: COLMAP's incremental mapper (its default) and its global mapper (ex-GLOMAP)
 MAPPERS = ("incremental", "global")
@@ -69,13 +72,16 @@ class Model:
 
 
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
-                num_threads: int = -1, structure_less: bool = False) -> tuple[list[Model], float]:
+                num_threads: int = -1, structure_less: bool = False,
+                split: bool = True) -> tuple[list[Model], float]:
     """Every model of pycolmap's mapping of ``database``, the largest first (:func:`by_size`; empty if none),
     and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...): a collection of several
     scenes gives one model per scene.
 
     ``mapper``: ``incremental`` (``pycolmap.incremental_mapping``) or ``global``
-    (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed.
+    (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed. ``split``: a
+    model whose images fall in groups that share (almost) no 3-D point is one model per group (:func:`split_scenes`; the
+    global mapper places the scenes of a collection in one model where a few verified image pairs join them).
     """
     pycolmap = require_pycolmap()
     options = mapper_options(mapper, seed, num_threads, structure_less)
@@ -84,8 +90,79 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
     t0 = time.perf_counter()
     recs = signals.interruptible(run, str(database), str(image_dir), str(out), options=options)
-    dt = time.perf_counter() - t0
-    return [Model(k, recs[k], out / str(k)) for k in by_size(recs)], dt
+    models = [Model(k, recs[k], out / str(k)) for k in by_size(recs)]
+    if split:
+        models = split_scenes(models, out)
+    return models, time.perf_counter() - t0
+
+
+#: two images of a model are of one scene where they share at least this many 3-D points (COLMAP's least
+#: inliers of a verified pair): chance matches between two scenes give a few points seen from both
+MIN_SHARED_POINTS = 15
+
+
+def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
+    """The registered images of a model (pycolmap's Reconstruction) in the groups that hold together by the 3-D
+    points they share (two images linked where they share ``least`` or more), largest first; an image linked to
+    none joins the largest group. One group where the model is one scene."""
+    from collections import Counter
+    from itertools import combinations
+
+    ids = sorted(rec.reg_image_ids())
+    shared: Counter = Counter()
+    for point in rec.points3D.values():
+        shared.update(combinations(sorted({e.image_id for e in point.track.elements}), 2))
+    parent = {i: i for i in ids}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for (a, b), n in shared.items():
+        if n >= least and root(a) != root(b):
+            parent[root(b)] = root(a)
+    groups: dict[int, list[int]] = {}
+    for i in ids:
+        groups.setdefault(root(i), []).append(i)
+    many = sorted((g for g in groups.values() if len(g) > 1), key=lambda g: (-len(g), g[0]))
+    if len(many) < 2:
+        return [ids]
+    many[0] = sorted(many[0] + [g[0] for g in groups.values() if len(g) == 1])
+    return many
+
+
+def split_scenes(models: list[Model], out: Path) -> list[Model]:
+    """Each model whose images fall in groups that share (almost) no 3-D point (:func:`scene_groups`) as one model
+    per group, written to ``out``: the largest group keeps the model's key and folder, the others take the next free
+    keys. COLMAP 4's global mapper placed three scenes of a mixed collection (nerf_lego, entry-P10, sacre_coeur)
+    in one model, joined by 6 verified image pairs and no point: their relative placement means nothing. The
+    largest first (:func:`by_size`)."""
+    pycolmap = require_pycolmap()
+    key = max((m.key for m in models), default=-1) + 1
+    result = []
+    for m in models:
+        groups = scene_groups(m.rec)
+        if len(groups) == 1:
+            result.append(m)
+            continue
+        LOG.info("model %d: %d groups of images (%s) that share almost no 3-D point, each a model of its own", m.key,
+                 len(groups), ", ".join(str(len(g)) for g in groups))
+        for k, group in enumerate(groups):
+            rec = pycolmap.Reconstruction(m.rec)
+            keep = set(group)
+            for image_id in [i for i in rec.reg_image_ids() if i not in keep]:
+                rec.deregister_frame(rec.image(image_id).frame_id)
+            if k:
+                folder, key = out / str(key), key + 1
+            else:
+                folder = m.folder
+            folder.mkdir(parents=True, exist_ok=True)
+            rec.write(str(folder))
+            result.append(Model(int(folder.name), rec, folder))
+    recs = {i: r.rec for i, r in enumerate(result)}
+    return [result[i] for i in by_size(recs)]
 
 
 def by_size(recs: dict) -> list[int]:
@@ -167,5 +244,5 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     signals.interruptible(pycolmap.match_exhaustive, str(database), verification_options=two_view)
     times["match"] = time.perf_counter() - t0
     models, times["map"] = reconstruct(database, image_dir, work / "sparse", mapper=mapper,
-                                       seed=-1 if seed is None else seed, structure_less=True)
+                                       seed=-1 if seed is None else seed, structure_less=True, split=False)
     return models, times

@@ -200,6 +200,40 @@ def test_a_collection_of_two_scenes_gives_a_model_each_every_one_triangulated_an
     assert "2 models, 9 of 9 images registered" in capsys.readouterr().out
 
 
+def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, capsys, monkeypatch):
+    """COLMAP 4's global mapper placed three scenes of the shared mixed collection in one model, joined by 6
+    verified image pairs and no 3-D point. Here the weak-pair filter is taken away so that the chance pairs
+    between two generated scenes reach the global mapper, which then makes one model of both (images of the two
+    scenes share one chance point, images of one scene 500-800): dqm sfm splits it by the points its images
+    share (15 or more link two images), one model per scene, each triangulated."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import colmap, sfm
+
+    a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
+    b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
+    monkeypatch.setattr(colmap, "drop_weak_pairs", lambda database: 0)
+    argv = ["sfm", str(a), str(b), "--mapper", "global", "--quiet", "--no-triangulate"]
+    real = sfm.split_scenes
+    monkeypatch.setattr(sfm, "split_scenes", lambda models, out: models)
+    assert main([*argv, "--out", str(tmp_path / "joined")]) == 0
+    assert "model: 9 of 9 images registered" in capsys.readouterr().out  # one: what the global mapper made
+    joined = pycolmap.Reconstruction(str(tmp_path / "joined" / "sparse" / "0"))
+    groups = sfm.scene_groups(joined)
+    assert sorted(len(g) for g in groups) == [4, 5]
+    assert [len({joined.image(i).name.split("/")[0] for i in g}) for g in groups] == [1, 1]
+    monkeypatch.setattr(sfm, "split_scenes", real)
+    assert main([*argv[:-1], "--out", str(tmp_path / "m")]) == 0
+    assert "2 models, 9 of 9 images registered" in capsys.readouterr().out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert [m["registered"] for m in report["models"]] == [5, 4]
+    for m in report["models"]:
+        rec = pycolmap.Reconstruction(str(tmp_path / "m" / m["folder"]))
+        assert len({rec.image(i).name.split("/")[0] for i in rec.reg_image_ids()}) == 1
+        assert m["points"] > m["before_triangulation"]["points"] > 0
+
+
 def test_bench_sfm_collection_of_two_generated_scenes(tmp_path):
     """scripts/bench_sfm.py with two image folders (a collection of two scenes, mapped at once): every scene
     is scored in its own model against its own ground truth, with the points seen from two scenes, the
