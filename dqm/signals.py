@@ -14,6 +14,7 @@ complete or absent (:func:`dqm.outputs.atomic_output`).
 """
 from __future__ import annotations
 
+import contextlib
 import signal
 from typing import Optional
 
@@ -125,6 +126,29 @@ def reassert() -> None:
         handler = signal.getsignal(s)
         if handler is not None:
             signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def held_while(then=None):
+    """Hold SIGINT and SIGTERM back while the block runs, then call ``then`` (if given) and let a held one in:
+    for a native library's import that installs its own handler partway (pycolmap's glog takes SIGTERM early
+    in its import, and a signal before :func:`reassert` killed the process with a stack dump). Off the main
+    thread only ``then`` runs."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        if then is not None:
+            then()
+        return
+    stops = {signal.SIGINT, signal.SIGTERM}
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, stops)
+    try:
+        yield
+        if then is not None:
+            then()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 #: how often the main thread looks up from a native call it waits for (:func:`interruptible`)

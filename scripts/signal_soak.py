@@ -150,7 +150,7 @@ def main() -> int:
                 for k in range(args.tries):
                     router = helper = None
                     endpoint = f"tcp/127.0.0.1:{free_port()}"
-                    if state == "working" and command != "match":
+                    if state == "working" and command not in ("match", "experiment", "run", *NATIVE):
                         router = subprocess.Popen([sys.executable, "-m", "dqm", "router", "--listen", endpoint],
                                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
                         router.stdout.readline()

@@ -65,15 +65,13 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     """
     import sys
 
-    fresh = "pycolmap" not in sys.modules
+    from .. import signals
+
     try:
-        import pycolmap
+        with signals.held_while(signals.reassert if "pycolmap" not in sys.modules else None):
+            import pycolmap
     except ImportError:
         raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
-    if fresh:
-        from .. import signals
-
-        signals.reassert()
     if hasattr(pycolmap, "logging"):
         import logging
 
