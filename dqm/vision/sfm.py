@@ -18,6 +18,7 @@ import numpy as np
 from .. import signals
 from ..validation import InputError
 from .colmap import require_pycolmap
+from .triangulation import MIN_SHARED_POINTS, covisible_pairs
 
 LOG = logging.getLogger("dqm.vision")
 
@@ -96,22 +97,12 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     return models, time.perf_counter() - t0
 
 
-#: two images of a model are of one scene where they share at least this many 3-D points (COLMAP's least
-#: inliers of a verified pair): chance matches between two scenes give a few points seen from both
-MIN_SHARED_POINTS = 15
-
-
 def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
     """The registered images of a model (pycolmap's Reconstruction) in the groups that hold together by the 3-D
-    points they share (two images linked where they share ``least`` or more), largest first; an image linked to
+    points they share (two images linked where they share ``least`` or more, as the triangulation stage links
+    them: chance matches between two scenes give a few points seen from both), largest first; an image linked to
     none joins the largest group. One group where the model is one scene."""
-    from collections import Counter
-    from itertools import combinations
-
     ids = sorted(rec.reg_image_ids())
-    shared: Counter = Counter()
-    for point in rec.points3D.values():
-        shared.update(combinations(sorted({e.image_id for e in point.track.elements}), 2))
     parent = {i: i for i in ids}
 
     def root(i: int) -> int:
@@ -120,8 +111,8 @@ def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
             i = parent[i]
         return i
 
-    for (a, b), n in shared.items():
-        if n >= least and root(a) != root(b):
+    for a, b in covisible_pairs(rec, least):
+        if root(a) != root(b):
             parent[root(b)] = root(a)
     groups: dict[int, list[int]] = {}
     for i in ids:
