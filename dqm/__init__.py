@@ -8,8 +8,9 @@ engine until they are needed.
 
 def _own_stops_from_the_start() -> None:
     """In the ``dqm`` command (its console script or ``python -m dqm``), from this package's first line until the
-    CLI installs its signal policy (:func:`dqm.signals.install_sigterm`): Ctrl-C or SIGTERM print one line and
-    leave with 130 / 143 at once (nothing has started yet). A program that imports dqm keeps its own handlers."""
+    CLI installs its signal policy (:func:`dqm.signals.install_sigterm`): Ctrl-C and SIGTERM are held back
+    (:func:`dqm.cli.main` lets them in, and a stop that came is then one line and 130 / 143), with handlers that
+    leave at once should they come in before. A program that imports dqm keeps its own handlers and mask."""
     import os
     import sys
 
@@ -26,6 +27,10 @@ def _own_stops_from_the_start() -> None:
     leave.before_the_cli = True  # dqm.signals.install_sigterm replaces it
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, leave)
+    # held back until dqm.cli.main has its handlers and the command's modules (numpy, OpenBLAS) are loaded:
+    # the native threads started meanwhile inherit the mask, so a stop reaches the main thread only, never a
+    # native library's handler run in one of its threads (pycolmap's glog takes SIGTERM when it loads)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
 _own_stops_from_the_start()

@@ -224,6 +224,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         argv = list(sys.argv[1:] if argv is None else argv)
         command = f"dqm {command_named(argv)}" if command_named(argv) else "dqm"
         parser = build_parser(only=command_named(argv))
+        signals.let_in()  # the command's modules are loaded, numpy's threads started with the stops held
         from . import outputs
 
         outputs.reset_claims()

@@ -58,6 +58,12 @@ def install_sigterm(force: bool = False) -> None:
         signal.signal(signal.SIGINT, raise_interrupted)
 
 
+def let_in() -> None:
+    """Let in the stops that ``dqm/__init__.py`` held back in the ``dqm`` command (one that came meanwhile is
+    raised now, by the handlers :func:`install_sigterm` set); nothing where none were held."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 def exit_code(exc: BaseException) -> int:
     """143 for :class:`Terminated`, 130 for any other ``KeyboardInterrupt``."""
     return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED

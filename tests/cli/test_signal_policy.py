@@ -173,21 +173,23 @@ def test_a_stop_before_the_command_runs_is_one_line(monkeypatch, capsys, where, 
     assert cli.interrupted_while_importing  # python -m dqm then leaves with os._exit
 
 
-def _pycolmap_inputs(tmp_path):
+@pytest.fixture(scope="module")
+def large_photos(tmp_path_factory):
+    """6 generated photos of 2000 x 1500 px: pycolmap's extractor works on them for several seconds."""
     pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
-    images = tmp_path / "photos"
-    assert subprocess.run([sys.executable, "-m", "dqm", "scene", str(images), "--images", "8", "--size", "1500",
+    images = tmp_path_factory.mktemp("large") / "photos"
+    assert subprocess.run([sys.executable, "-m", "dqm", "scene", str(images), "--images", "6", "--size", "1500",
                            "2000"], capture_output=True, timeout=300).returncode == 0
     return images
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_a_stop_reaches_a_command_in_pycolmaps_native_work(tmp_path, sig, code):
+def test_a_stop_reaches_a_command_in_pycolmaps_native_work(tmp_path, large_photos, sig, code):
     """Issue 60: loading pycolmap installed glog's SIGTERM handler (a 20-35-line native stack dump, death by the
     signal, temporary files left), and Ctrl-C waited for COLMAP's native call to end. `dqm extract --preset
-    colmap` stopped 2.5 s in (pycolmap's extractor on 8 photos of 2000 x 1500 px runs for several seconds):
+    colmap` stopped 1 s into COLMAP's extractor (6 photos of 2000 x 1500 px: several seconds of its work left):
     130 / 143 within 2 s, one line, no temporary file, no output."""
-    images = _pycolmap_inputs(tmp_path)
+    images = large_photos
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     log = tmp_path / "log.txt"
@@ -220,3 +222,25 @@ def test_colmap_logs_to_stderr_only_when_asked_and_never_to_files(tmp_path):
         assert p.returncode == 0, p.stderr
         assert ("a warning from COLMAP" in p.stderr) == (mode == "verbose"), (mode, p.stderr)
         assert list(tmp.iterdir()) == [], mode
+
+
+def test_the_dqm_command_holds_stops_until_main_has_its_handlers(tmp_path):
+    """Issue 60: a stop 0.02-0.3 s after the start landed in the imports (a traceback, or death by SIGTERM), and a
+    SIGTERM while pycolmap loaded ran glog's handler in another thread (a stack dump). In the dqm command
+    (sys.argv[0] named dqm) the package's first line holds SIGINT and SIGTERM back, so that the native threads
+    started meanwhile (numpy's) never take them; main lets them in once its handlers are set, and a stop that
+    came meanwhile is then one line and 143."""
+    script = tmp_path / "dqm"
+    script.write_text("import os, signal, sys\n"
+                      "import dqm\n"
+                      "held = signal.pthread_sigmask(signal.SIG_BLOCK, [])\n"
+                      "print(sorted(int(s) for s in held & {signal.SIGINT, signal.SIGTERM}), flush=True)\n"
+                      "os.kill(os.getpid(), signal.SIGTERM)  # held: nothing happens yet\n"
+                      "import numpy\n"
+                      "from dqm.cli import main\n"
+                      "sys.exit(main(['run', '--agents', '2']))\n")
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path)
+    assert p.stdout.splitlines()[0] == f"[{int(signal.SIGINT)}, {int(signal.SIGTERM)}]", p.stdout
+    assert p.returncode == 143 and p.stderr.strip() == "dqm run: terminated", (p.returncode, p.stderr)
+    assert not (tmp_path / "dqm-out").exists()
