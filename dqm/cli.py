@@ -224,7 +224,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         argv = list(sys.argv[1:] if argv is None else argv)
         command = f"dqm {command_named(argv)}" if command_named(argv) else "dqm"
         parser = build_parser(only=command_named(argv))
-        signals.let_in()  # the command's modules are loaded, numpy's threads started with the stops held
         from . import outputs
 
         outputs.reset_claims()
@@ -244,6 +243,24 @@ def main(argv: Optional[List[str]] = None) -> int:
         return signals.exit_code(stop)
 
 
+#: the suffixes of a COLMAP database given to dqm match as its input
+DATABASE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
+
+
+def _loads_pycolmap(args: argparse.Namespace) -> bool:
+    """Whether the command line will load pycolmap: it is then loaded while the stops are held, so that the
+    handler glog installs for SIGTERM as it loads never runs in another thread (:func:`dqm.signals.let_in`)."""
+    command = getattr(args, "command", None)
+    if command == "sfm" or getattr(args, "preset", None) == "colmap":
+        return True
+    if command in ("export", "import"):
+        return getattr(args, "format", None) == "colmap"
+    if command == "match":
+        return bool(getattr(args, "into_database", False)) or any(
+            str(i).lower().endswith(DATABASE_SUFFIXES) for i in getattr(args, "inputs", None) or ())
+    return False
+
+
 def _command(parser: argparse.ArgumentParser, argv: List[str]) -> int:
     from .validation import InputError
 
@@ -256,6 +273,14 @@ def _command(parser: argparse.ArgumentParser, argv: List[str]) -> int:
         return 2
     warnings.showwarning = _one_line_warning
     logging_config.configure(verbosity(args))
+    if _loads_pycolmap(args):  # while the stops are still held: see signals.let_in
+        from .vision.colmap import require_pycolmap
+
+        try:
+            require_pycolmap()
+        except InputError:
+            pass  # the command says it, in its words
+    signals.let_in()  # the command's modules are loaded, numpy's threads started with the stops held
     global exit_at_once
     exit_at_once = bool(getattr(args, "_exit_at_once", False))
     try:

@@ -60,7 +60,10 @@ def install_sigterm(force: bool = False) -> None:
 
 def let_in() -> None:
     """Let in the stops that ``dqm/__init__.py`` held back in the ``dqm`` command (one that came meanwhile is
-    raised now, by the handlers :func:`install_sigterm` set); nothing where none were held."""
+    raised now, by the handlers :func:`install_sigterm` set); nothing where none were held. The CLI calls it
+    once the command line is parsed and its modules loaded, pycolmap too where the command will use it: every
+    native thread started by then (numpy's, pycolmap's) has them held for good, so that a stop reaches the main
+    thread, and a handler a native library installs (glog's, for SIGTERM) cannot run in one of its threads."""
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
 
 

@@ -464,26 +464,27 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, limits: Optional[RuntimeLimi
         limits = limits.but(ready_timeout_s=DEFAULT_READY_TIMEOUT_S)
     cfg = cfg.validated(len(features) if features is not None else len(descriptors), runtime=True)
     remove_stale_workdirs()
-    tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
-    wd = Path(tmp)
-    wd.mkdir(parents=True, exist_ok=True)
-    files = write_agent_files(descriptors, image_ids, cfg.agents, wd, features)
-    port = free_port()
-    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
-    router_extra: List[str] = []
-    identity: Callable[[int], List[str]] = lambda a: []  # noqa: E731
-    if secure:
-        certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator"] + [f"agent{a}" for a in range(cfg.agents)])
-        router_extra = secure_router_args(wd, cfg, certs)
-        identity = lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}")  # noqa: E731
     procs = Processes()
-    env = dict(os.environ if env is None else env)
-    # balanced (and auto, which may pick it): all agents compute at once: share this host's cores instead of
-    # oversubscribing them. lean / paper: every agent may use all cores, the hand-down cascade runs one agent
-    # at a time (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
-    share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode in ("balanced", "auto") else None
-    tty = os.dup(2) if progress and sys.stderr.isatty() else None
-    try:
+    tty = None
+    tmp = tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-") if workdir is None else workdir
+    try:  # from the work folder's making: a stop at any point removes it
+        wd = Path(tmp)
+        wd.mkdir(parents=True, exist_ok=True)
+        files = write_agent_files(descriptors, image_ids, cfg.agents, wd, features)
+        port = free_port()
+        endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
+        router_extra: List[str] = []
+        identity: Callable[[int], List[str]] = lambda a: []  # noqa: E731
+        if secure:
+            certs = make_certs(wd / "certs", ["127.0.0.1"], ["coordinator"] + [f"agent{a}" for a in range(cfg.agents)])
+            router_extra = secure_router_args(wd, cfg, certs)
+            identity = lambda a: tls_options(certs, "coordinator" if a < 0 else f"agent{a}")  # noqa: E731
+        env = dict(os.environ if env is None else env)
+        # balanced (and auto, which may pick it): all agents compute at once: share this host's cores instead of
+        # oversubscribing them. lean / paper: every agent may use all cores, the hand-down cascade runs one agent
+        # at a time (measured: M = 8 on graf 5.9 s with one thread per agent, 4.8 s with two)
+        share = max(1, (os.cpu_count() or 1) // cfg.agents) if cfg.mode in ("balanced", "auto") else None
+        tty = os.dup(2) if progress and sys.stderr.isatty() else None
         router = procs.start(["router", "--listen", endpoint, *router_extra], wd / "router.log", env)
         wait_listening("127.0.0.1", port, 10.0, router)
         coordinator_extra = ["--tcp-port", str(port)] + (["--progress-fd", str(tty)] if tty is not None else [])
@@ -504,6 +505,4 @@ def run_job(descriptors, image_ids, cfg: DQMConfig, limits: Optional[RuntimeLimi
             os.close(tty)
         procs.stop_all()
         if not keep_logs and workdir is None:
-            import shutil
-
             shutil.rmtree(tmp, ignore_errors=True)
