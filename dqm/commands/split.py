@@ -81,8 +81,9 @@ def run(args) -> int:
     out = outputs.check_dir(args.out or outputs.default_dir("split"), "--out", AGENT_FILES, overwrite=args.overwrite,
                             default=not args.out)
     fs = io.load_features(args.features)
+    agents = args.agents or len(args.image_lists)  # --image-lists: one agent a list
     LOG.info("split: %s of %s from %s over %s, whole images each", count(len(fs), "feature"),
-             count(len(np.unique(fs.image_ids)), "image"), args.features, count(args.agents, "agent"))
+             count(len(np.unique(fs.image_ids)), "image"), args.features, count(agents, "agent"))
     ids = np.asarray(fs.image_ids)
     n_images = len(np.unique(ids))
     lists = None

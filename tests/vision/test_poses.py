@@ -98,8 +98,11 @@ def test_strecha_camera_file_round_trip(tmp_path):
 
 
 def test_bad_ground_truth_is_one_line(tmp_path):
-    with pytest.raises(InputError, match="not a folder"):
+    with pytest.raises(InputError, match="absent: no such folder"):
         poses.read_ground_truth(tmp_path / "absent")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="file: not a folder"):
+        poses.read_ground_truth(tmp_path / "file")
     with pytest.raises(InputError, match="neither Strecha"):
         poses.read_ground_truth(tmp_path)
     (tmp_path / "a.jpg.camera").write_text("1 0 0\n0 1 0\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n")
