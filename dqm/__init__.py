@@ -8,9 +8,9 @@ engine until they are needed.
 
 def _own_stops_from_the_start() -> None:
     """In the ``dqm`` command (its console script or ``python -m dqm``), from this package's first line until the
-    CLI installs its signal policy (:func:`dqm.signals.install_sigterm`): Ctrl-C and SIGTERM are held back
-    (:func:`dqm.cli.main` lets them in, and a stop that came is then one line and 130 / 143), with handlers that
-    leave at once should they come in before. A program that imports dqm keeps its own handlers and mask."""
+    CLI has its signal policy: Ctrl-C and SIGTERM are held back (:func:`dqm.cli.main` lets them in,
+    :func:`dqm.signals.let_in`, and a stop that came is then one line and 130 / 143). A program that imports dqm
+    keeps its own mask."""
     import os
     import sys
 
@@ -19,14 +19,6 @@ def _own_stops_from_the_start() -> None:
         return
     import signal
 
-    def leave(signum, frame):
-        terminated = signum == signal.SIGTERM
-        os.write(2, b"dqm: terminated\n" if terminated else b"dqm: interrupted\n")
-        os._exit(143 if terminated else 130)
-
-    leave.before_the_cli = True  # dqm.signals.install_sigterm replaces it
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, leave)
     # held back until dqm.cli.main has its handlers and the command's modules (numpy, OpenBLAS) are loaded:
     # the native threads started meanwhile inherit the mask, so a stop reaches the main thread only, never a
     # native library's handler run in one of its threads (pycolmap's glog takes SIGTERM when it loads)
@@ -35,7 +27,7 @@ def _own_stops_from_the_start() -> None:
 
 _own_stops_from_the_start()
 
-from .lazy_exports import lazy_exports  # noqa: E402 - after the stop handlers: the command owns Ctrl-C first
+from .lazy_exports import lazy_exports  # noqa: E402 - after the stops are held: the command owns Ctrl-C first
 
 __version__ = "0.1.0"
 

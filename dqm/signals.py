@@ -49,12 +49,9 @@ def install_sigterm(force: bool = False) -> None:
     """Make SIGTERM raise :class:`Terminated` (unless a handler other than the default is set and not ``force``),
     and SIGINT raise ``KeyboardInterrupt`` even when the process started with SIGINT ignored (as a shell
     script's background jobs do): a dqm command obeys Ctrl-C whoever started it."""
-    early = [s for s in (signal.SIGINT, signal.SIGTERM)
-             if getattr(signal.getsignal(s), "before_the_cli", False)]  # dqm/__init__.py's, until now
-    if force or signal.SIGTERM in early or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+    if force or signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         signal.signal(signal.SIGTERM, raise_terminated)
-    if signal.SIGINT in early or \
-            signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler):
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler):
         signal.signal(signal.SIGINT, raise_interrupted)
 
 
@@ -138,24 +135,13 @@ def reassert() -> None:
 
 
 @contextlib.contextmanager
-def held_while(then=None):
-    """Hold SIGINT and SIGTERM back while the block runs, then call ``then`` (if given) and let a held one in:
-    for a native library's import that installs its own handler partway (pycolmap's glog takes SIGTERM early
-    in its import, and a signal before :func:`reassert` killed the process with a stack dump). Off the main
-    thread only ``then`` runs."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        if then is not None:
-            then()
-        return
-    stops = {signal.SIGINT, signal.SIGTERM}
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, stops)
+def held():
+    """Hold SIGINT and SIGTERM back in this thread while the block runs, and let a held one in after it: for a
+    native library's import that installs its own handler partway (pycolmap's glog takes SIGTERM early in its
+    import; the block ends with :func:`reassert`)."""
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         yield
-        if then is not None:
-            then()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
 

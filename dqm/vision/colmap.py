@@ -67,9 +67,13 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
 
     from .. import signals
 
+    fresh = "pycolmap" not in sys.modules
     try:
-        with signals.held_while(signals.reassert if "pycolmap" not in sys.modules else None):
+        with signals.held():
             import pycolmap
+
+            if fresh:
+                signals.reassert()
     except ImportError:
         raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
     if hasattr(pycolmap, "logging"):
