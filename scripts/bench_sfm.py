@@ -377,9 +377,33 @@ def subset_table(subsets: list, with_gt: bool) -> list[str]:
     return lines
 
 
+def read_truth(gt, names):
+    """The ground-truth cameras of these photos (``poses.restrict``), or the script's exit with its one line."""
+    from dqm.validation import InputError
+    from dqm.vision import poses
+
+    try:
+        return poses.restrict(poses.read_ground_truth(gt), names, f"--gt {gt}")
+    except InputError as exc:
+        sys.exit(f"bench_sfm: {exc}")
+
+
+def each_run(chosen, seeds, work: Path, image_dir: Path, truth=None, gt=None, options=()):
+    """``(name, run_dir, run)`` of every chosen pipeline once per seed on ``image_dir``: COLMAP's pipeline (scored
+    against ``truth``) or ``dqm sfm`` with its options and ``options`` (``--gt gt``), each in its own folder."""
+    for name in chosen:
+        for seed in seeds:
+            run_dir = work / f"run{len(list(work.iterdir()))}"
+            if PIPELINES[name] is None:
+                r = run_colmap(name, image_dir, run_dir, seed, truth)
+            else:
+                r = run_dqm(PIPELINES[name] + list(options), image_dir, run_dir, seed, gt)
+            r["seed"] = seed
+            yield name, run_dir, r
+
+
 def run_pipelines(chosen, seeds, paths, gt, work: Path):
     """Every chosen pipeline (once per seed) on these photos: {name: [run, ...]} and the ground truth used."""
-    from dqm.validation import InputError
     from dqm.vision import poses
 
     work.mkdir(parents=True)
@@ -387,35 +411,23 @@ def run_pipelines(chosen, seeds, paths, gt, work: Path):
     image_dir.mkdir()
     for p in paths:  # the mappers read one folder; link the chosen photos there
         (image_dir / p.name).symlink_to(p.resolve())
-    truth = None
-    if gt is not None:
-        try:
-            truth = poses.restrict(poses.read_ground_truth(gt), [p.name for p in paths], f"--gt {gt}")
-        except InputError as exc:
-            sys.exit(f"bench_sfm: {exc}")
+    truth = read_truth(gt, [p.name for p in paths]) if gt is not None else None
     results: dict[str, list[dict]] = {}
-    for name in chosen:
-        for seed in seeds:
-            run_dir = work / f"run{len(list(work.iterdir()))}"
-            if PIPELINES[name] is None:
-                r = run_colmap(name, image_dir, run_dir, seed, truth)
-            else:
-                r = run_dqm(PIPELINES[name], image_dir, run_dir, seed, gt)
-            r["seed"] = seed
-            if truth is not None:
-                model = run_dir / "sparse"
-                best = max(model.iterdir(), key=lambda d: len(poses.read_colmap_model(d))) \
-                    if model.is_dir() and any(model.iterdir()) else None
-                est = poses.read_colmap_model(best) if best is not None else {}
-                r["pair_errors"] = poses.relative_errors(est, truth, sorted(truth)).tolist()
-            results.setdefault(name, []).append(r)
-            m, t = r["model"], r["times"]
-            auc = r.get("poses", {}).get("auc", {})
-            print(f"[{len(paths)} images] {name}" + ("" if seed is None else f" (seed {seed})")
-                  + f": {m['registered']}/{len(paths)} registered, {m['points']:,} points, track "
-                  + f"{fmt(m['track'], '.2f')}, "
-                  + (f"AUC@1/2/5 {'/'.join(fmt(auc.get(k), '.3f') for k in AUC_KEYS)}, " if auc else "")
-                  + f"{t['total']:.1f} s", flush=True)
+    for name, run_dir, r in each_run(chosen, seeds, work, image_dir, truth, gt):
+        if truth is not None:
+            model = run_dir / "sparse"
+            best = max(model.iterdir(), key=lambda d: len(poses.read_colmap_model(d))) \
+                if model.is_dir() and any(model.iterdir()) else None
+            est = poses.read_colmap_model(best) if best is not None else {}
+            r["pair_errors"] = poses.relative_errors(est, truth, sorted(truth)).tolist()
+        results.setdefault(name, []).append(r)
+        m, t, seed = r["model"], r["times"], r["seed"]
+        auc = r.get("poses", {}).get("auc", {})
+        print(f"[{len(paths)} images] {name}" + ("" if seed is None else f" (seed {seed})")
+              + f": {m['registered']}/{len(paths)} registered, {m['points']:,} points, track "
+              + f"{fmt(m['track'], '.2f')}, "
+              + (f"AUC@1/2/5 {'/'.join(fmt(auc.get(k), '.3f') for k in AUC_KEYS)}, " if auc else "")
+              + f"{t['total']:.1f} s", flush=True)
     return results, truth
 
 
@@ -546,9 +558,6 @@ def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> d
 def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) -> tuple[dict, dict]:
     """Every chosen pipeline on the photos of all the folders at once (one folder of links, one sub-folder a
     scene): {name: [run, ...]}, each run with its per-scene scores, and the scenes' photo counts."""
-    from dqm.validation import InputError
-    from dqm.vision import poses
-
     work.mkdir(parents=True)
     image_dir = work / "images"
     scene_of = link_collection(folders, image_dir)
@@ -556,30 +565,19 @@ def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) ->
     for folder, gt in zip(folders, gts):
         if gt is not None:
             scene = scene_name(folder)
-            names = [n.split("/", 1)[1] for n, s in scene_of.items() if s == scene]
-            try:
-                truths[scene] = poses.restrict(poses.read_ground_truth(gt), names, f"--gt {gt}")
-            except InputError as exc:
-                sys.exit(f"bench_sfm: {exc}")
+            truths[scene] = read_truth(gt, [n.split("/", 1)[1] for n, s in scene_of.items() if s == scene])
     results: dict[str, list[dict]] = {}
-    for name in chosen:
-        for seed in seeds:
-            run_dir = work / f"run{len(list(work.iterdir()))}"
-            if PIPELINES[name] is None:
-                r = run_colmap(name, image_dir, run_dir, seed, None)
-            else:
-                r = run_dqm(PIPELINES[name] + ["--recursive"], image_dir, run_dir, seed, None)
-                if (run_dir / "clusters.npz").exists():
-                    r["clusters_across_scenes"] = clusters_across_scenes(run_dir, scene_of)
-            r["seed"] = seed
-            r["collection"] = score_collection(run_dir, scene_of, truths)
-            r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
-            results.setdefault(name, []).append(r)
-            c = r["collection"]
-            print(f"[collection of {len(scene_of)} photos] {name}: {c['models']} models, " + "; ".join(
-                f"{s} {e['registered']}/{e['photos']}" for s, e in c["scenes"].items())
-                + f", {c['points_seen_from_two_scenes']} points seen from two scenes, {r['times']['total']:.1f} s",
-                flush=True)
+    for name, run_dir, r in each_run(chosen, seeds, work, image_dir, options=["--recursive"]):
+        if (run_dir / "clusters.npz").exists():  # dqm's runs
+            r["clusters_across_scenes"] = clusters_across_scenes(run_dir, scene_of)
+        r["collection"] = score_collection(run_dir, scene_of, truths)
+        r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
+        results.setdefault(name, []).append(r)
+        c = r["collection"]
+        print(f"[collection of {len(scene_of)} photos] {name}: {c['models']} models, " + "; ".join(
+            f"{s} {e['registered']}/{e['photos']}" for s, e in c["scenes"].items())
+            + f", {c['points_seen_from_two_scenes']} points seen from two scenes, {r['times']['total']:.1f} s",
+            flush=True)
     counts = {s: sum(1 for v in scene_of.values() if v == s) for s in sorted(set(scene_of.values()))}
     return results, counts
 
