@@ -65,8 +65,6 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     """
     import sys
 
-    from .. import signals
-
     fresh = "pycolmap" not in sys.modules
     try:
         with signals.held():
@@ -77,8 +75,6 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     except ImportError:
         raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
     if hasattr(pycolmap, "logging"):
-        import logging
-
         pycolmap.logging.logtostderr = True
         verbose = not quiet or logging.getLogger("dqm").isEnabledFor(logging.INFO)
         pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING if verbose else pycolmap.logging.FATAL)
@@ -147,7 +143,8 @@ def drop_weak_pairs(database, share: float = WEAK_PAIR_SHARE, rank: int = STRONG
     try:
         pair_ids, inliers = db.read_two_view_geometry_num_inliers()
         pairs = [tuple(pycolmap.pair_id_to_image_pair(p)) for p in pair_ids]
-        verified = [(a, b, int(k)) for (a, b), k in zip(pairs, inliers) if k >= min_verified_matches()]
+        least = min_verified_matches()
+        verified = [(a, b, int(k)) for (a, b), k in zip(pairs, inliers) if k >= least]
         partners: dict[int, list[int]] = {}
         for a, b, k in verified:
             partners.setdefault(a, []).append(k)
