@@ -506,6 +506,8 @@ def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
     import numpy as np
     import pycolmap
 
+    from dqm.vision.sfm import clusters_across
+
     z = np.load(run_dir / "clusters.npz", allow_pickle=False)
     db = pycolmap.Database.open(str(run_dir / "database.db"))
     try:
@@ -514,10 +516,9 @@ def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
         db.close()
     scenes = sorted(set(scene_of.values()))
     code = np.array([scenes.index(scene_of[n]) for n in names])
-    labels, where = z["labels"], code[z["image_ids"]]
-    pairs = np.unique(np.stack([labels, where], axis=1), axis=0)
-    _, k = np.unique(pairs[:, 0], return_counts=True)
-    return {"clusters": int((k > 1).sum()), "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
+    labels = z["labels"]
+    return {"clusters": int(len(clusters_across(labels, code[z["image_ids"]]))),
+            "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
 
 
 def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> dict:

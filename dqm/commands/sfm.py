@@ -140,6 +140,8 @@ def _clusters_across_models(models, export, fs, labels) -> dict:
     and their features in registered images."""
     import numpy as np
 
+    from ..vision.sfm import clusters_across
+
     by_name = {name: k for k, name in enumerate(export.names)}
     model_of = np.full(len(export.names), -1)
     for k, m in enumerate(models):
@@ -147,11 +149,8 @@ def _clusters_across_models(models, export, fs, labels) -> dict:
             if image.has_pose:
                 model_of[by_name[image.name]] = k
     where = model_of[fs.image_ids]
-    on = where >= 0
-    pairs = np.unique(np.stack([np.asarray(labels)[on], where[on]], axis=1), axis=0)
-    lab, n_models = np.unique(pairs[:, 0], return_counts=True)
-    across = lab[n_models > 1]
-    return {"clusters": int(len(across)), "features": int(np.isin(np.asarray(labels)[on], across).sum())}
+    across = clusters_across(labels, where)
+    return {"clusters": int(len(across)), "features": int(np.isin(np.asarray(labels)[where >= 0], across).sum())}
 
 
 def run(args) -> int:

@@ -97,6 +97,16 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     return models, time.perf_counter() - t0
 
 
+def clusters_across(labels, group) -> np.ndarray:
+    """The cluster labels whose members lie in two groups or more (``group``: every feature's group, e.g. its
+    image's model or scene; negative: in none, left out), sorted."""
+    labels, group = np.asarray(labels), np.asarray(group)
+    on = group >= 0
+    pairs = np.unique(np.stack([labels[on], group[on]], axis=1), axis=0)
+    lab, n_groups = np.unique(pairs[:, 0], return_counts=True)
+    return lab[n_groups > 1]
+
+
 def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
     """The registered images of a model (pycolmap's Reconstruction) in the groups that hold together by the 3-D
     points they share (two images linked where they share ``least`` or more, as the triangulation stage links
