@@ -1542,3 +1542,157 @@ void dqm_nearest_above(int64_t m, const int64_t *child, const int64_t *cand, con
         }
     }
 }
+
+/* ---- guided matching: the candidates near epipolar lines and each side's two nearest ---- */
+
+/* One candidate (r, c) at distance d into the best / second-best of row r (ties: the lower column). */
+static inline void best_two_update(int64_t *best, double *bd, double *sd, int64_t k, int64_t other, double d)
+{
+    if (d < bd[k] || (d == bd[k] && other < best[k])) {
+        if (bd[k] < sd[k])
+            sd[k] = bd[k]; /* the old best becomes a second */
+        bd[k] = d;
+        best[k] = other;
+    } else if (d < sd[k]) {
+        sd[k] = d;
+    }
+}
+
+/* Exact squared distance of two uint8 rows (integer sums: every path gives the same value). */
+static inline int32_t sq_dist_u8_scalar(const uint8_t *x, const uint8_t *y, int64_t dim)
+{
+    int32_t acc = 0;
+    for (int64_t j = 0; j < dim; ++j) {
+        int32_t t = (int32_t)x[j] - (int32_t)y[j];
+        acc += t * t;
+    }
+    return acc;
+}
+
+#ifdef DQM_HAVE_AVX2_PATH
+/* The same with AVX2: 16 bytes widened to int16, differences squared and summed in pairs (madd). */
+__attribute__((target("avx2,fma")))
+static int32_t sq_dist_u8_avx2(const uint8_t *x, const uint8_t *y, int64_t dim)
+{
+    __m256i acc = _mm256_setzero_si256();
+    int64_t j = 0;
+    for (; j + 16 <= dim; j += 16) {
+        __m256i a = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(x + j)));
+        __m256i b = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(y + j)));
+        __m256i d = _mm256_sub_epi16(a, b);
+        acc = _mm256_add_epi32(acc, _mm256_madd_epi16(d, d));
+    }
+    __m128i h = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0x4E));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0xB1));
+    return _mm_cvtsi128_si32(h) + sq_dist_u8_scalar(x + j, y + j, dim - j);
+}
+#endif
+
+/* From p on, the first index below hi with key >= v (right = 0) or key > v (right = 1): the bound of a
+ * value no smaller than the one p was found for, so the sweep only moves forward. */
+static inline int64_t sweep_bound(const double *key, int64_t p, int64_t hi, double v, int right)
+{
+    if (right)
+        while (p < hi && key[p] <= v)
+            ++p;
+    else
+        while (p < hi && key[p] < v)
+            ++p;
+    return p;
+}
+
+/*
+ * One of the two searches of dqm/vision/guided.py's epipolar candidates, fused with the descriptor
+ * distances and each side's two nearest (the numpy version: consistent_pairs + _best_two there).
+ *
+ * The points of the searched image are in groups (rings of distance from the epipole, or one group
+ * when the lines are parallel); within a group, sorted by key (angle about the epipole in [0, period),
+ * or the offset along the lines' common normal when period == 0). Line k's candidates in group g are
+ * the points whose key lies within [center[k] - w[g], center[k] + w[g]] (modulo period; w[g] < 0:
+ * every point of the group). A candidate (line k, point p) is the pair (r, c) = (k, p) when
+ * rows_are_lines, else (p, k). With e = L[r] . (xb[c], 1) (L: image a's features' lines in image b),
+ * it is kept when |e| <= tol sqrt(nb[r]) is true (rows_are_lines) or false (the other search: the
+ * first one took those), and e^2 <= t2 (nb[r] + na[c]) (Sampson). A kept pair's distance is the exact
+ * Euclidean distance of the uint8 descriptors X_line[k] (line k's feature) and X_sorted[q] (the point at
+ * sorted position q: copies in that order keep a window's descriptors together in memory); it updates row r's and column c's best
+ * (lowest distance, ties to the lower index on the other side) and second-lowest distance.
+ * Returns the number of pairs kept.
+ */
+int64_t dqm_epipolar_scan(int64_t n_lines, const double *center, const int64_t *by_center, int64_t n_groups,
+                          const int64_t *group_start, const double *group_w, const double *key, const int64_t *point,
+                          double period, int32_t rows_are_lines, const double *L, const double *nb,
+                          const double *na, const double *xb, double tol, double t2, const uint8_t *X_line,
+                          const uint8_t *X_sorted, int64_t dim, int64_t *best_r, double *bd_r, double *sd_r,
+                          int64_t *best_c, double *bd_c, double *sd_c)
+{
+    int64_t kept = 0;
+    resolve_simd();
+    int simd = simd_level >= 1;
+    (void)simd;
+    for (int64_t g = 0; g < n_groups; ++g) {
+        int64_t gs = group_start[g], ge = group_start[g + 1];
+        if (gs == ge)
+            continue;
+        double w = group_w[g];
+        int whole = w < 0 || (period > 0 && 2 * w >= period);
+        /* the lines in order of center: every bound below only moves forward */
+        int64_t p_lo = gs, p_hi = gs, p_wlo = gs, p_whi = gs;
+        for (int64_t o = 0; o < n_lines; ++o) {
+            int64_t k = by_center[o];
+            int64_t span[4]; /* up to two ranges of sorted positions */
+            int n_span = 0;
+            if (whole) {
+                span[0] = gs;
+                span[1] = ge;
+                n_span = 1;
+            } else {
+                double lo = center[k] - w, hi = center[k] + w;
+                if (period > 0 && lo < 0) { /* wraps below 0: [lo + period, period) too */
+                    p_wlo = sweep_bound(key, p_wlo, ge, lo + period, 0);
+                    span[0] = p_wlo;
+                    span[1] = ge;
+                    n_span = 1;
+                    lo = 0;
+                } else if (period > 0 && hi >= period) { /* wraps past period: [0, hi - period] too */
+                    p_whi = sweep_bound(key, p_whi, ge, hi - period, 1);
+                    span[0] = gs;
+                    span[1] = p_whi;
+                    n_span = 1;
+                    hi = period;
+                }
+                p_lo = sweep_bound(key, p_lo, ge, lo, 0);
+                if (p_hi < p_lo)
+                    p_hi = p_lo;
+                p_hi = sweep_bound(key, p_hi, ge, hi, 1);
+                span[2 * n_span] = p_lo;
+                span[2 * n_span + 1] = p_hi;
+                ++n_span;
+            }
+            for (int s = 0; s < n_span; ++s) {
+                for (int64_t q = span[2 * s]; q < span[2 * s + 1]; ++q) {
+                    int64_t p = point[q];
+                    int64_t r = rows_are_lines ? k : p, c = rows_are_lines ? p : k;
+                    const double *l = L + 3 * r;
+                    double e = l[0] * xb[2 * c] + l[1] * xb[2 * c + 1] + l[2];
+                    int near = fabs(e) <= tol * sqrt(nb[r]);
+                    if (near != (rows_are_lines != 0))
+                        continue;
+                    if (!(e * e <= t2 * (nb[r] + na[c])))
+                        continue;
+                    const uint8_t *x = X_line + k * dim, *y = X_sorted + q * dim;
+#ifdef DQM_HAVE_AVX2_PATH
+                    int32_t acc = simd ? sq_dist_u8_avx2(x, y, dim) : sq_dist_u8_scalar(x, y, dim);
+#else
+                    int32_t acc = sq_dist_u8_scalar(x, y, dim);
+#endif
+                    double d = sqrt((double)acc);
+                    best_two_update(best_r, bd_r, sd_r, r, c, d);
+                    best_two_update(best_c, bd_c, sd_c, c, r, d);
+                    ++kept;
+                }
+            }
+        }
+    }
+    return kept;
+}

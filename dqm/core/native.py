@@ -115,6 +115,15 @@ def _load() -> Optional[ctypes.CDLL]:
         lib.dqm_simd_level.restype = ctypes.c_int32
         lib.dqm_set_simd_level.argtypes = [ctypes.c_int32]
         lib.dqm_set_simd_level.restype = ctypes.c_int32
+        try:  # a kernel built before it lacks it: guided matching then runs in numpy
+            es = lib.dqm_epipolar_scan
+        except AttributeError:
+            pass
+        else:
+            d, i64v = ctypes.c_double, ctypes.c_int64
+            es.argtypes = [i64v, f64, i64, i64v, i64, f64, f64, i64, d, ctypes.c_int32, f64, f64, f64, f64, d, d, u8,
+                           u8, i64v, i64, f64, f64, i64, f64, f64]
+            es.restype = ctypes.c_int64
         return lib
     return None
 
@@ -126,6 +135,8 @@ MAX_ROW = 1024
 #: how many times the native kernel rounds a kernel term in float32 before it reaches a
 #: float64 sum (the numpy version rounds it fewer times): the tile kernel's contract
 SUM_ROUNDINGS = int(_LIB.dqm_sum_roundings()) if _LIB is not None else 1
+#: whether the loaded kernel has guided matching's epipolar pass (one built before it has not)
+_HAS_EPIPOLAR = _LIB is not None and hasattr(_LIB, "dqm_epipolar_scan")
 
 
 def native_available() -> bool:
@@ -395,6 +406,29 @@ def sq_distances_u8(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> Optional[np.
     if len(a):
         _LIB.dqm_sq_dist_u8(X, X.shape[1], a, b, len(a), out)
     return out
+
+
+def epipolar_scan(windows, rows_are_lines: bool, lines: np.ndarray, norm_b: np.ndarray, norm_a: np.ndarray,
+                  xb: np.ndarray, tol: float, t2: float, X: np.ndarray, line_rows: np.ndarray,
+                  point_rows: np.ndarray, best_r: np.ndarray, bd_r: np.ndarray, sd_r: np.ndarray,
+                  best_c: np.ndarray, bd_c: np.ndarray, sd_c: np.ndarray) -> Optional[int]:
+    """One search of guided matching's epipolar candidates, fused with their descriptor distances and each
+    side's two nearest (``dqm_epipolar_scan`` in ``_tilekernel.c`` says what it computes; the numpy
+    version is :func:`dqm.vision.guided.consistent_pairs` with ``_best_two`` there). ``windows``: a
+    ``_LineWindows`` of dqm.vision.guided; ``X``: uint8 descriptors, rows ``line_rows`` those of the
+    lines' features, ``point_rows`` those of the points'; the six best / second arrays are updated in
+    place. Returns the pairs kept, or None without the native kernel or for other descriptors (the
+    caller's numpy path then)."""
+    if (not _HAS_EPIPOLAR or X.dtype != np.uint8 or X.ndim != 2 or X.shape[1] > 32768
+            or not X.flags.c_contiguous):
+        return None
+    f64, i64, c = np.float64, np.int64, np.ascontiguousarray
+    w = windows
+    return int(_LIB.dqm_epipolar_scan(
+        len(w.center), c(w.center, f64), np.argsort(w.center, kind="stable"), len(w.width),
+        c(w.group_start, i64), c(w.width, f64), c(w.key, f64), c(w.point, i64), float(w.period),
+        int(bool(rows_are_lines)), c(lines, f64), c(norm_b, f64), c(norm_a, f64), c(xb, f64), float(tol),
+        float(t2), X[line_rows], X[point_rows[w.point]], X.shape[1], best_r, bd_r, sd_r, best_c, bd_c, sd_c))
 
 
 def merge_roots(n: int, child: np.ndarray, parent: np.ndarray, d: np.ndarray, sigma: np.ndarray,

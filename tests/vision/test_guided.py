@@ -121,6 +121,63 @@ def test_candidates_equal_the_brute_force_test():
         assert len(r) == len(set(zip(r.tolist(), c.tolist())))  # no pair twice
 
 
+def _random_f(rng, case):
+    """A fundamental matrix of two 800 x 800 px views: epipoles inside (0), outside (1), at infinity (2)."""
+    from scipy.spatial.transform import Rotation
+
+    K = np.array([[500, 0, 400], [0, 500, 400], [0, 0, 1.0]])
+    Ki = np.linalg.inv(K)
+    R = np.eye(3) if case == 2 else Rotation.from_rotvec(rng.normal(0, 0.2, 3)).as_matrix()
+    t = {0: np.array([0.05, -0.03, 1.0]), 1: rng.normal(0, 1, 3), 2: np.array([1.0, 0.0, 0.0])}[case]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return PairModel(0, 1, "F", Ki.T @ tx @ R @ Ki, np.zeros((0, 2), int), np.zeros((0, 2), int))
+
+
+@pytest.mark.parametrize("case", [0, 1, 2])
+def test_native_epipolar_scan_equals_numpy_at_every_simd_level(case):
+    """The native kernel's fused pass (candidates, exact distances, each side's two nearest) gives the numpy
+    path's numbers (consistent_pairs, exact_sq_distances, _best_two) at every SIMD level, ties included."""
+    from dqm.core import native
+    from dqm.vision import guided
+
+    if not native._HAS_EPIPOLAR:
+        pytest.skip("the native kernel is not built")
+    rng = np.random.default_rng(case)
+    model = _random_f(rng, case)
+    n_a, n_b = 900, 800
+    kp = np.r_[rng.uniform(0, 800, (n_a, 2)), rng.uniform(0, 800, (n_b, 2))]
+    X = rng.integers(0, 4, (n_a + n_b, 130)).astype(np.uint8)  # few values: equal distances are common
+    X[n_a:n_a + 300] = X[:300]  # and zero distances
+    rows, cols = np.arange(n_a), np.arange(n_a, n_a + n_b)
+    xa, xb = kp[rows], kp[cols]
+    r, c = consistent_pairs(model, xa, xb, 30.0)
+    assert len(r) > 5 * (n_a + n_b)  # many candidates per feature, so the ranking is tested
+    d = np.sqrt(guided.exact_sq_distances(X, rows[r], cols[c]))
+    want = guided._best_two(r, c, d, n_a) + guided._best_two(c, r, d, n_b)
+    assert (want[1][want[0] >= 0] == want[2][want[0] >= 0]).any()  # ties between the best two exist
+    top = native.set_simd_level(99)
+    try:
+        for level in range(top, -1, -1):
+            assert native.set_simd_level(level) == level
+            got = guided._nearest_two(model, rows, cols, X, kp, 30.0)
+            for g, w, name in zip(got, want, ("best c", "d", "second", "best r", "d", "second")):
+                assert np.array_equal(g, w), (level, name)
+    finally:
+        native.set_simd_level(99)
+
+
+def test_best_two_breaks_ties_by_the_lower_index_whatever_the_order():
+    from dqm.vision.guided import _best_two
+
+    key, other, d = np.array([0, 0, 0, 1]), np.array([5, 2, 9, 3]), np.array([1.0, 1.0, 0.5, 2.0])
+    for perm in ([0, 1, 2, 3], [3, 2, 1, 0], [1, 3, 0, 2]):
+        best, bd, second = _best_two(key[perm], other[perm], d[perm], 3)
+        assert best.tolist() == [9, 3, -1] and bd.tolist() == [0.5, 2.0, np.inf]
+        assert second.tolist() == [1.0, np.inf, np.inf]
+    best, _, second = _best_two(np.array([0, 0]), np.array([7, 4]), np.array([1.0, 1.0]), 1)
+    assert best.tolist() == [4] and second.tolist() == [1.0]
+
+
 def test_guided_growth_refuses_bad_inputs(planar):
     _, D, ids, kp, r, _, _ = planar
     with pytest.raises(InputError, match="descriptors"):
