@@ -52,8 +52,9 @@ def add_arguments(p) -> None:
                    help="threads of the mapper (default 1: the same model bit for bit on every run; 0: all cores, "
                         "faster on large jobs, the model then varies in its last digits)")
     p.add_argument("--triangulate", action=argparse.BooleanOptionalAction, default=True,
-                   help="after mapping, match every two images that share points under the model's own geometry "
-                        "(0.5 px of its epipolar lines, mutual nearest descriptors, ratio 0.8) and triangulate with "
+                   help="after mapping, match each image with the 8 that share the most points with it under the "
+                        "model's own geometry (0.5 px of its epipolar lines, mutual nearest descriptors, ratio 0.8) "
+                        "and triangulate with "
                         "the cameras fixed: more 3-D points, the same cameras (default; --no-triangulate: the "
                         "mapper's model as it is)")
     p.add_argument("--gt", default=None, metavar="DIR",

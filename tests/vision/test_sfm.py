@@ -167,6 +167,34 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     assert total > 1000 and true / total > 0.9, (true, total)
 
 
+def test_covisible_partners_are_each_images_most_covisible_ones():
+    """The triangulation stage's pairs: every image with the k images that share the most points with it
+    (at least min_shared; ties by the lower id), the union of those choices, each pair once."""
+    from types import SimpleNamespace as NS
+
+    from dqm.vision.triangulation import covisible_pairs, covisible_partners
+
+    rng = np.random.default_rng(4)
+    points = []
+    shared = {}
+    for a in range(12):
+        for b in range(a + 1, 12):
+            n = int(rng.integers(0, 40)) if b - a < 6 else 0
+            shared[(a, b)] = n
+            points += [NS(track=NS(elements=[NS(image_id=a), NS(image_id=b), NS(image_id=b)]))] * n
+    rec = NS(points3D=dict(enumerate(points)))
+    assert covisible_pairs(rec, 15) == sorted(p for p, n in shared.items() if n >= 15)
+    for k in (1, 3, 20):
+        want = set()
+        for a in range(12):
+            mine = [(-n, p[1] if a == p[0] else p[0]) for p, n in shared.items() if a in p and n >= 15]
+            want |= {(min(a, b), max(a, b)) for _, b in sorted(mine)[:k]}
+        got = covisible_partners(rec, k, 15)
+        assert got == sorted(want) and len(set(got)) == len(got)
+    assert covisible_partners(rec, 20, 15) == covisible_pairs(rec, 15)  # enough partners: every covisible pair
+    assert len(covisible_partners(rec, 1, 15)) < len(covisible_partners(rec, 3, 15)) < len(covisible_pairs(rec, 15))
+
+
 def test_a_collection_of_two_scenes_gives_a_model_each_every_one_triangulated_and_reported(tmp_path, capsys):
     """Two generated scenes in one call (two folders): COLMAP's mapper makes a model of each; dqm sfm's last
     stage runs on every model (more points in each, cameras unchanged), sfm.json and the summary report
