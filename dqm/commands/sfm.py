@@ -54,16 +54,20 @@ def add_arguments(p) -> None:
     p.add_argument("--triangulate", action=argparse.BooleanOptionalAction, default=True,
                    help="after mapping, match each image with the 8 that share the most points with it under the "
                         "model's own geometry (0.5 px of its epipolar lines, mutual nearest descriptors, ratio 0.8) "
-                        "and triangulate with "
-                        "the cameras fixed: more 3-D points, the same cameras (default; --no-triangulate: the "
+                        "and triangulate with the cameras fixed: more 3-D points (default; --no-triangulate: the "
                         "mapper's model as it is)")
+    p.add_argument("--bundle-adjust", action=argparse.BooleanOptionalAction, default=True,
+                   help="after the triangulation, adjust the whole model once with COLMAP's bundle adjuster (poses, "
+                        "points, focal lengths, distortion): better cameras on every scene measured (default; "
+                        "--no-bundle-adjust: the mapper's cameras bit for bit)")
     p.add_argument("--gt", default=None, metavar="DIR",
                    help="ground-truth cameras (a folder of Strecha *.camera files, or a COLMAP model): print the "
                         "model's pose errors and pairwise pose AUC@1/2/5 degrees (docs/sfm.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads):
+def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads,
+                 bundle_adjust: bool):
     """The model with the points that matches under its own geometry add (:mod:`dqm.vision.triangulation`),
     written over the mapper's model in ``folder``."""
     import numpy as np
@@ -77,7 +81,7 @@ def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mappe
             rows = np.flatnonzero(fs.image_ids == by_name[image.name])
             keypoints[image_id], descriptors[image_id] = fs.keypoints[rows, :2], fs.descriptors[rows]
     return triangulate(rec, database, export.image_dir, folder, keypoints, descriptors, seed=seed,
-                       num_threads=mapper_threads, n_threads=threads)
+                       num_threads=mapper_threads, n_threads=threads, bundle_adjust=bundle_adjust)
 
 
 def _out_dir(path: str) -> Path:
@@ -196,12 +200,13 @@ def run(args) -> int:
         with stage("triangulate"):
             for m in models:  # every model (each scene of a mixed collection): their images are disjoint
                 m.rec, ts = _triangulate(m.rec, out / "database.db", s, fs, m.folder, args.seed, threads,
-                                         args.threads)
+                                         args.threads, args.bundle_adjust)
                 print(ts.summary() if len(models) == 1 else f"sparse/{m.folder.name}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": mapper, "seed": args.seed,
-        "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate)},
+        "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate),
+        "bundle_adjust": bool(args.triangulate and args.bundle_adjust)},
         "model": model_numbers(models[0].rec if models else None),
         "model_before_triangulation": mapped[0] if models else model_numbers(None),
         "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs,

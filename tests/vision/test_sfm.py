@@ -126,8 +126,9 @@ def test_the_strecha_cameras_of_the_shared_photos_are_read():
 
 def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_path, capsys):
     """dqm sfm's last stage: matches under the model's own geometry are true correspondences (checked
-    against the generated scene), the model gains points seen in 3+ images, and its cameras are the
-    mapper's, bit for bit (--no-triangulate gives the same poses)."""
+    against the generated scene), the model gains points seen in 3+ images; with --no-bundle-adjust its
+    cameras are the mapper's, bit for bit (--no-triangulate gives the same poses); by default one bundle
+    adjustment then moves them, lowering the reprojection error, and they stay as close to the truth."""
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
@@ -136,9 +137,12 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
 
     scene = generate_scene3d(seed=2, n_images=5)
     images = scene.save(tmp_path / "img")
-    assert main(["sfm", str(images), "--out", str(tmp_path / "plain"), "--no-triangulate", "--quiet"]) == 0
-    assert main(["sfm", str(images), "--out", str(tmp_path / "dense"), "--quiet"]) == 0
-    assert "model-guided triangulation:" in capsys.readouterr().out
+    gt = write_strecha(scene, tmp_path / "gt")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "plain"), "--no-triangulate", "--quiet",
+                 "--gt", str(gt)]) == 0
+    assert main(["sfm", str(images), "--out", str(tmp_path / "dense"), "--no-bundle-adjust", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "model-guided triangulation:" in out and "bundle adjustment" not in out
     plain = pycolmap.Reconstruction(str(tmp_path / "plain/sparse/0"))
     dense = pycolmap.Reconstruction(str(tmp_path / "dense/sparse/0"))
     assert dense.num_points3D() > plain.num_points3D()
@@ -149,6 +153,19 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     report = json.loads((tmp_path / "dense" / "sfm.json").read_text())
     assert report["model_before_triangulation"]["points"] == plain.num_points3D()
     assert report["model"]["points"] == dense.num_points3D() and "triangulate" in report["times"]
+    assert report["options"]["bundle_adjust"] is False
+
+    # the default adjusts the triangulated model once: the same points, cameras moved, a lower error
+    assert main(["sfm", str(images), "--out", str(tmp_path / "ba"), "--quiet", "--gt", str(gt)]) == 0
+    line = [ln for ln in capsys.readouterr().out.splitlines() if "bundle adjustment" in ln][0]
+    before, after = map(float, re.search(r"error ([0-9.]+) -> ([0-9.]+) px", line).groups())
+    assert after <= before, line  # the mapper adjusted this small clean scene already: equal to 3 digits
+    adjusted = pycolmap.Reconstruction(str(tmp_path / "ba/sparse/0"))
+    assert adjusted.num_points3D() == dense.num_points3D()
+    assert any(not np.array_equal(image.cam_from_world().matrix(), adjusted.images[i].cam_from_world().matrix())
+               for i, image in plain.images.items())
+    ba, mapped = (json.loads((tmp_path / d / "sfm.json").read_text())["poses"] for d in ("ba", "plain"))
+    assert ba["median_rotation_deg"] <= mapped["median_rotation_deg"] * 1.1 + 0.01, (ba, mapped)
 
     # the guided matches, checked against the scene: a match is true when the scene maps one keypoint
     # within 2 px of the other
