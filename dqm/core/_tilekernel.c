@@ -1384,17 +1384,41 @@ done:
 /*
  * Exact squared distances of uint8 rows: out[e] = |X[a[e]] - X[b[e]]|^2 (int32 sums: dim <= 32768).
  */
+/* Exact squared distance of two uint8 rows (integer sums: every path gives the same value). */
+static inline int32_t sq_dist_u8_scalar(const uint8_t *x, const uint8_t *y, int64_t dim)
+{
+    int32_t acc = 0;
+    for (int64_t j = 0; j < dim; ++j) {
+        int32_t t = (int32_t)x[j] - (int32_t)y[j];
+        acc += t * t;
+    }
+    return acc;
+}
+
+#ifdef DQM_HAVE_AVX2_PATH
+/* The same with AVX2: 16 bytes widened to int16, differences squared and summed in pairs (madd). */
+__attribute__((target("avx2,fma")))
+static int32_t sq_dist_u8_avx2(const uint8_t *x, const uint8_t *y, int64_t dim)
+{
+    __m256i acc = _mm256_setzero_si256();
+    int64_t j = 0;
+    for (; j + 16 <= dim; j += 16) {
+        __m256i a = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(x + j)));
+        __m256i b = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(y + j)));
+        __m256i d = _mm256_sub_epi16(a, b);
+        acc = _mm256_add_epi32(acc, _mm256_madd_epi16(d, d));
+    }
+    __m128i h = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0x4E));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0xB1));
+    return _mm_cvtsi128_si32(h) + sq_dist_u8_scalar(x + j, y + j, dim - j);
+}
+#endif
+
 void dqm_sq_dist_u8(const uint8_t *X, int64_t dim, const int64_t *a, const int64_t *b, int64_t m, double *out)
 {
-    for (int64_t e = 0; e < m; ++e) {
-        const uint8_t *x = X + a[e] * dim, *y = X + b[e] * dim;
-        int32_t acc = 0;
-        for (int64_t j = 0; j < dim; ++j) {
-            int32_t t = (int32_t)x[j] - (int32_t)y[j];
-            acc += t * t;
-        }
-        out[e] = (double)acc;
-    }
+    for (int64_t e = 0; e < m; ++e)
+        out[e] = (double)sq_dist_u8_scalar(X + a[e] * dim, X + b[e] * dim, dim);
 }
 
 /* v (column j) into the sorted run val / o of n <= t entries, after its equals; a full run drops its last. */
@@ -1557,37 +1581,6 @@ static inline void best_two_update(int64_t *best, double *bd, double *sd, int64_
         sd[k] = d;
     }
 }
-
-/* Exact squared distance of two uint8 rows (integer sums: every path gives the same value). */
-static inline int32_t sq_dist_u8_scalar(const uint8_t *x, const uint8_t *y, int64_t dim)
-{
-    int32_t acc = 0;
-    for (int64_t j = 0; j < dim; ++j) {
-        int32_t t = (int32_t)x[j] - (int32_t)y[j];
-        acc += t * t;
-    }
-    return acc;
-}
-
-#ifdef DQM_HAVE_AVX2_PATH
-/* The same with AVX2: 16 bytes widened to int16, differences squared and summed in pairs (madd). */
-__attribute__((target("avx2,fma")))
-static int32_t sq_dist_u8_avx2(const uint8_t *x, const uint8_t *y, int64_t dim)
-{
-    __m256i acc = _mm256_setzero_si256();
-    int64_t j = 0;
-    for (; j + 16 <= dim; j += 16) {
-        __m256i a = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(x + j)));
-        __m256i b = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(y + j)));
-        __m256i d = _mm256_sub_epi16(a, b);
-        acc = _mm256_add_epi32(acc, _mm256_madd_epi16(d, d));
-    }
-    __m128i h = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
-    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0x4E));
-    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0xB1));
-    return _mm_cvtsi128_si32(h) + sq_dist_u8_scalar(x + j, y + j, dim - j);
-}
-#endif
 
 /* From p on, the first index below hi with key >= v (right = 0) or key > v (right = 1): the bound of a
  * value no smaller than the one p was found for, so the sweep only moves forward. */

@@ -408,20 +408,25 @@ def sq_distances_u8(X: np.ndarray, a: np.ndarray, b: np.ndarray) -> Optional[np.
     return out
 
 
+def epipolar_scan_takes(X: np.ndarray) -> bool:
+    """Whether :func:`epipolar_scan` runs natively for these descriptors (the kernel has it; uint8 rows)."""
+    return (_HAS_EPIPOLAR and X.dtype == np.uint8 and X.ndim == 2 and X.shape[1] <= 32768
+            and X.flags.c_contiguous)
+
+
 def epipolar_scan(windows, rows_are_lines: bool, lines: np.ndarray, norm_b: np.ndarray, norm_a: np.ndarray,
                   xb: np.ndarray, tol: float, t2: float, X: np.ndarray, line_rows: np.ndarray,
                   point_rows: np.ndarray, best_r: np.ndarray, bd_r: np.ndarray, sd_r: np.ndarray,
-                  best_c: np.ndarray, bd_c: np.ndarray, sd_c: np.ndarray) -> Optional[int]:
+                  best_c: np.ndarray, bd_c: np.ndarray, sd_c: np.ndarray) -> int:
     """One search of guided matching's epipolar candidates, fused with their descriptor distances and each
     side's two nearest (``dqm_epipolar_scan`` in ``_tilekernel.c`` says what it computes; the numpy
     version is :func:`dqm.vision.guided.consistent_pairs` with ``_best_two`` there). ``windows``: a
     ``_LineWindows`` of dqm.vision.guided; ``X``: uint8 descriptors, rows ``line_rows`` those of the
     lines' features, ``point_rows`` those of the points'; the six best / second arrays are updated in
-    place. Returns the pairs kept, or None without the native kernel or for other descriptors (the
-    caller's numpy path then)."""
-    if (not _HAS_EPIPOLAR or X.dtype != np.uint8 or X.ndim != 2 or X.shape[1] > 32768
-            or not X.flags.c_contiguous):
-        return None
+    place. Returns the pairs kept. Only where :func:`epipolar_scan_takes` the descriptors (the caller's
+    numpy path otherwise)."""
+    if not epipolar_scan_takes(X):
+        raise ValueError("epipolar_scan: no native kernel for these descriptors (check epipolar_scan_takes)")
     f64, i64, c = np.float64, np.int64, np.ascontiguousarray
     w = windows
     return int(_LIB.dqm_epipolar_scan(

@@ -139,10 +139,10 @@ def _line_windows(lines: np.ndarray, pts: np.ndarray, tol: float) -> _LineWindow
     theta = np.mod(np.arctan2(v[:, 1], v[:, 0]), np.pi)
     ring = np.floor(np.log2(np.maximum(r, tol))).astype(np.int64)
     o = np.lexsort((np.arange(len(r)), theta, ring))  # by ring, then angle (ties by point index)
-    groups, first = np.unique(ring[o], return_index=True)
+    _, first = np.unique(ring[o], return_index=True)
     start = np.r_[first, len(o)].astype(np.int64)
     r_min = np.minimum.reduceat(r[o], first) if len(o) else np.zeros(0)
-    width = np.empty(len(groups))
+    width = np.empty(len(first))
     for g, rm in enumerate(r_min):
         # the epipole's neighbourhood (every line may pass near): the whole ring
         width[g] = -1.0 if rm <= tol * 1.0000001 else np.arcsin(min(1.0, tol / rm)) * (1 + 1e-9) + 1e-12
@@ -254,19 +254,18 @@ def _nearest_two(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nda
     For a fundamental matrix and uint8 descriptors the native kernel does it in one pass (the same
     numbers); otherwise numpy."""
     xa, xb = kp[rows, :2], kp[cols, :2]
-    if model.kind == "F":
+    if model.kind == "F" and native.epipolar_scan_takes(X):
         t = float(threshold)
         ep = _Epipolar(model, xa, xb, t)
         nr, nc = len(rows), len(cols)
         out = (np.full(nr, -1, np.int64), np.full(nr, np.inf), np.full(nr, np.inf),
                np.full(nc, -1, np.int64), np.full(nc, np.inf), np.full(nc, np.inf))
         with np.errstate(divide="ignore", invalid="ignore"):
-            first = native.epipolar_scan(_line_windows(ep.lines_b, xb, ep.tol), True, ep.lines_b, ep.norm_b,
-                                         ep.norm_a, xb, ep.tol, t * t, X, rows, cols, *out)
-            if first is not None:
-                native.epipolar_scan(_line_windows(ep.lines_a, xa, ep.tol), False, ep.lines_b, ep.norm_b,
-                                     ep.norm_a, xb, ep.tol, t * t, X, cols, rows, *out)
-                return out
+            native.epipolar_scan(_line_windows(ep.lines_b, xb, ep.tol), True, ep.lines_b, ep.norm_b, ep.norm_a,
+                                 xb, ep.tol, t * t, X, rows, cols, *out)
+            native.epipolar_scan(_line_windows(ep.lines_a, xa, ep.tol), False, ep.lines_b, ep.norm_b, ep.norm_a,
+                                 xb, ep.tol, t * t, X, cols, rows, *out)
+        return out
     r, c = consistent_pairs(model, xa, xb, threshold)
     d = np.sqrt(exact_sq_distances(X, rows[r], cols[c]))  # exact for integer descriptors (uint8 SIFT)
     return _best_two(r, c, d, len(rows)) + _best_two(c, r, d, len(cols))
