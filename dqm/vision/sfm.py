@@ -109,9 +109,9 @@ def clusters_across(labels, group) -> np.ndarray:
 
 def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
     """The registered images of a model (pycolmap's Reconstruction) in the groups that hold together by the 3-D
-    points they share (two images linked where they share ``least`` or more, as the triangulation stage links
-    them: chance matches between two scenes give a few points seen from both), largest first; an image linked to
-    none joins the largest group. One group where the model is one scene."""
+    points they share (two images linked where they share ``least`` or more, the least the triangulation stage
+    asks of an image pair it matches: chance matches between two scenes give a few points seen from both),
+    largest first; an image linked to none joins the largest group. One group where the model is one scene."""
     ids = sorted(rec.reg_image_ids())
     parent = {i: i for i in ids}
 
