@@ -5,9 +5,11 @@ a COLMAP database (its keypoints, descriptors and image names, read directly:
 no dqm import step; --image-dir names the folder its image names are relative
 to), or images: a folder, a glob pattern, or several image files, from which SIFT
 features are extracted first (OpenCV; --preset, --max-features; the default
-preset is dqm sfm's). --verify splits off the members that the image pairs'
-geometry rejects; --guided also grows the clusters along it (more complete
-clusters, but worse SfM cameras: docs/sfm.md).
+preset is dqm sfm's). Where the features have keypoints, the clusters are then
+verified and grown along the image pairs' geometry (guided growth: more complete
+clusters; --no-guided keeps QuickMatch's own). --verify only splits off the
+members that the geometry rejects. With --into-database nothing is grown by
+default: growth worsens the cameras of COLMAP's mapper (docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
     dqm match database.db --out clusters.npz --image-dir images/   # COLMAP's features
@@ -56,7 +58,7 @@ def add_arguments(p) -> None:
                         "two-view geometries of them into that database, as COLMAP's matchers do (its cameras and "
                         "features stay), so COLMAP's mapper runs next; one that already holds matches is refused "
                         "unless --overwrite (needs pycolmap)")
-    add_cluster_options(p)
+    add_cluster_options(p, "match")
     add_image_options(p, default_preset=SFM_PRESET)
     p.add_argument("--tracks-csv", default=None, metavar="CSV",
                    help="also write the multi-image tracks (clusters of 2+ features) with keypoints as CSV")
@@ -64,8 +66,9 @@ def add_arguments(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def add_cluster_options(p) -> None:
-    """QuickMatch's options and the geometric steps after it (shared with dqm sfm)."""
+def add_cluster_options(p, command: str = "match") -> None:
+    """QuickMatch's options and the geometric steps after it (shared with dqm sfm, whose ``command`` is "sfm":
+    no guided growth unless asked for)."""
     add_quickmatch_params(p, ("rho", "ratio_density", "kernel", "parent"), kernel_default=DEFAULT_KERNEL,
                           notes={"kernel": ": the reference code's Gaussian, or the finite quadratic one that dqm "
                                            "run and dqm stream use (docs/quickmatch.md)"})
@@ -90,14 +93,26 @@ def add_cluster_options(p) -> None:
                    help=f"neighbours per feature with --approximate (default {DEFAULT_NEIGHBORS})")
     p.add_argument("--verify", action="store_true",
                    help="geometric verification: per image pair, RANSAC (OpenCV USAC) on the matches the clusters "
-                        "imply, homography or fundamental matrix chosen as COLMAP does; members that the verified "
-                        "pairs reject are split off (C1 and C2 still hold; needs keypoints)")
-    p.add_argument("--guided", action=argparse.BooleanOptionalAction, default=False,
-                   help="geometry-guided growth (needs keypoints): the clusters are verified as with --verify, then "
-                        "each verified image pair links features that fit its model within 2 px and are mutual "
-                        "nearest descriptors among those (ratio 0.8, <= 1.5 sigma); clusters join along the links "
-                        "where C2 and every verified pair allow. More complete clusters (higher F1 on the image sets "
-                        "of docs/evaluation.md) but worse cameras in SfM, so off by default (docs/sfm.md)")
+                        "imply: a fundamental matrix and a homography, the inliers of the one with more, as COLMAP "
+                        "counts them; members that the verified pairs reject are split off (C1 and C2 still hold; "
+                        "needs keypoints; no guided growth then)")
+    p.add_argument("--guided", action=argparse.BooleanOptionalAction, default=None, help=GUIDED_HELP[command])
+    p.set_defaults(grow_by_default=command == "match")
+
+
+#: --guided's help per command: growth is dqm match's default and not dqm sfm's (docs/sfm.md, "One default?")
+GUIDED_HELP = {
+    "match": "geometry-guided growth: the clusters are verified as with --verify, then each verified image pair "
+             "links features that fit its geometry within 2 px (the homography of a planar pair, else the "
+             "fundamental matrix) and are mutual nearest descriptors among those (ratio 0.8, <= 1.5 sigma); "
+             "clusters join along the links where C2 and every verified pair allow. On by default wherever the "
+             "features have keypoints (more complete clusters: higher F1 on every image set of "
+             "docs/evaluation.md), except with --verify or --into-database (the matches then go to COLMAP's "
+             "mapper, whose cameras growth worsens); --no-guided: QuickMatch's clusters as they are",
+    "sfm": "geometry-guided growth before the mapper, as dqm match does it by default: off by default, because "
+           "it worsens the cameras (docs/sfm.md); the model-guided triangulation after the mapper adds matches "
+           "with the cameras known instead",
+}
 
 
 def engine_of(args) -> str:
@@ -219,13 +234,26 @@ def run(args) -> int:
     return 0
 
 
+def grows_by_default(args, fs: io.FeatureSet) -> bool:
+    """Whether the command grows the clusters by geometry when --guided / --no-guided is not given: dqm match
+    does where the features have keypoints, unless --verify asks for verification alone or --into-database
+    hands the matches to COLMAP's mapper; dqm sfm does not (:data:`GUIDED_HELP`)."""
+    if not args.grow_by_default or args.verify or getattr(args, "into_database", False):
+        return False
+    if fs.keypoints is None:
+        print("note: the features have no keypoints, so the clusters are not grown by geometry (--no-guided "
+              "silences this)")
+        return False
+    return True
+
+
 def cluster(args, fs: io.FeatureSet):
     """QuickMatch on the features with the command's options, then guided growth or verification when asked
     for; prints what each step did. Returns the result and its extra params."""
-    guided = bool(args.guided)
-    for flag, on in (("verify", args.verify), ("guided", guided)):
+    for flag, on in (("verify", args.verify), ("guided", args.guided)):
         if on and fs.keypoints is None:
             raise InputError(f"--{flag} needs keypoints: the FEATURES file has none (match images, or add 'keypoints')")
+    guided = grows_by_default(args, fs) if args.guided is None else bool(args.guided)
     bar = ProgressBar("quickmatch", force=False if args.quiet else None, unit="features")
     result = quickmatch(fs.descriptors, fs.image_ids, params=params_from(args), n_threads=args.threads,
                         progress=bar, max_memory=args.max_memory, approximate=args.approximate,
@@ -246,6 +274,6 @@ def cluster(args, fs: io.FeatureSet):
         labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True}
-        print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} by homography): "
+        print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} planar or panoramic): "
               f"{vs.n_inliers} of {vs.n_matches} implied matches are inliers; {vs.n_split} features split off")
     return result, extra

@@ -39,7 +39,7 @@ def add_arguments(p) -> None:
                    help="image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
     add_image_options(p, default_preset=SFM_PRESET)
-    add_cluster_options(p)
+    add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
     p.add_argument("--single-camera", action="store_true", help="one camera for all images (one size)")

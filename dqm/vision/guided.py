@@ -5,14 +5,15 @@ QuickMatch's clusters are precise but incomplete: a feature whose true match lie
 those near misses are real. :func:`grow_clusters` does, deterministically:
 
 1. **Verify** (as ``dqm match --verify``, :mod:`dqm.vision.verify`): per image pair, the matches the
-   clusters imply are fitted with USAC (a homography or a fundamental matrix, chosen as COLMAP
-   chooses); a pair with at least 15 inliers is *verified*; members that the verified pairs
-   reject are split off.
+   clusters imply are fitted with USAC (a fundamental matrix and a homography; the configuration
+   and the inliers chosen as COLMAP chooses them); a pair with at least 15 inliers is *verified*;
+   members that the verified pairs reject are split off.
 2. **Propose links**, per verified pair (a, b): only features of a whose cluster has no member in
    b, and of b whose cluster has no member in a, take part. A feature's *candidates* are the
-   other image's features that fit the pair's model within ``link_threshold`` (2 px, half the
-   verification's 4 px: forward transfer error for a homography, Sampson error for a fundamental
-   matrix, as COLMAP measures them). Link (i, j) is proposed when, among the candidates, j is i's nearest
+   other image's features that fit the pair's geometry (:meth:`PairModel.guide`: the homography
+   of a planar-or-panoramic pair, else the model whose inliers count) within ``link_threshold``
+   (2 px, half the verification's 4 px: forward transfer error for a homography, Sampson error
+   for a fundamental matrix, as COLMAP measures them). Link (i, j) is proposed when, among the candidates, j is i's nearest
    descriptor and i is j's (mutual), each by Lowe's ratio ``ratio`` (0.8, COLMAP's default)
    against the second nearest candidate on each side, and their distance is at most
    ``max_sigma`` (1.5) times the larger of the two features' sigma (QuickMatch's distance from a
@@ -22,7 +23,8 @@ those near misses are real. :func:`grow_clusters` does, deterministically:
    candidate in an empty band from being taken whatever its descriptor.
 3. **Merge**, links in order of increasing descriptor distance (ties by feature index): two
    clusters join when the union still has at most one feature per image (C2) and no member
-   pair of an image pair with a verified model contradicts it (residual above the 4 px).
+   pair of a verified image pair contradicts the model whose inliers it counts (residual above
+   the 4 px).
 
 The settings were chosen on sacre_coeur's SfM and the homography sets together (docs/sfm.md):
 links at 4 px gave the best F1 on the homography sets but a reprojection error more than
@@ -80,8 +82,8 @@ class GuidedStats:
 
     def summary(self) -> str:
         v = self.verify
-        return (f"guided growth: {v.n_verified} of {v.n_pairs} image pairs verified ({v.n_planar} by homography), "
-                f"{v.n_split} features split off; {self.n_proposed} links proposed by the geometry, "
+        return (f"guided growth: {v.n_verified} of {v.n_pairs} image pairs verified ({v.n_planar} planar or "
+                f"panoramic), {v.n_split} features split off; {self.n_proposed} links proposed by the geometry, "
                 f"{self.n_merged} joined clusters ({self.n_refused_images} refused as two features of one image, "
                 f"{self.n_refused_geometry} contradicted by a verified pair)")
 
@@ -274,11 +276,11 @@ def _nearest_two(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nda
 def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray,
                   kp: np.ndarray, sigma: np.ndarray, *, threshold: float, ratio: float,
                   max_sigma: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The links one verified pair proposes (module docstring, step 2): features (i in a, j in b), distance,
-    in the order of i's position in ``rows``."""
+    """The links one verified pair proposes (module docstring, step 2), searched along ``model.guide()``:
+    features (i in a, j in b), distance, in the order of i's position in ``rows``."""
     if len(rows) == 0 or len(cols) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    best_c, bd_r, sd_r, best_r, _, sd_c = _nearest_two(model, rows, cols, X, kp, threshold)
+    best_c, bd_r, sd_r, best_r, _, sd_c = _nearest_two(model.guide(), rows, cols, X, kp, threshold)
     r = np.flatnonzero(best_c >= 0)
     c = best_c[r]
     mutual = best_r[c] == r  # the pair is its row's nearest and its column's

@@ -2,11 +2,17 @@
 
 For every image pair, the matches the clusters imply (every two members of a cluster, see
 :func:`dqm.vision.colmap.cluster_pairs`) are fitted with OpenCV's USAC (MAGSAC++) twice: a
-fundamental matrix and a homography. The model is chosen the way COLMAP chooses: when the
-homography explains more than ``max_h_inlier_ratio`` (0.8) of the fundamental matrix's
-inliers, the pair is planar or a pure rotation and the homography's inliers count; otherwise
-the fundamental matrix's. A pair is *verified* when it has at least ``min_inliers`` (15,
-COLMAP's ``min_num_inliers``) inliers; the matches of unverified pairs carry no evidence.
+fundamental matrix and a homography. The pair's configuration and its inliers follow COLMAP's
+two-view model selection (``EstimateUncalibratedTwoViewGeometry``; dqm's features carry no
+intrinsics, so the calibrated case is not tried): when the homography explains more than
+``max_H_inlier_ratio`` (0.8) of the fundamental matrix's inliers, the pair is *planar or
+panoramic* (a dominant plane, or a pure rotation), otherwise *uncalibrated* (general 3-D); either
+way the inliers are those of the model that has more of them (the homography's only when it has
+more than the fundamental matrix's). A pair is *verified* when it has at least ``min_inliers``
+(15, COLMAP's ``min_num_inliers``) inliers; the matches of unverified pairs carry no evidence.
+Before this rule, a planar-or-panoramic pair counted the homography's inliers, fewer than the
+fundamental matrix's on a 3-D scene with a dominant plane (39 of entry-P10's 45 pairs): correct
+members off the plane were split off.
 
 Then, cluster by cluster, a member whose verified matches are outliers more than twice as often
 as inliers (``MARGIN``) is split off into a cluster of its own, the worst first (highest
@@ -19,8 +25,8 @@ per cluster (C2).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Tuple
+from dataclasses import dataclass, replace
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -31,6 +37,9 @@ from .colmap import cluster_pairs
 #: COLMAP's defaults (TwoViewGeometryOptions): min_num_inliers, max_H_inlier_ratio
 MIN_INLIERS = 15
 MAX_H_INLIER_RATIO = 0.8
+#: COLMAP's names of the two configurations dqm tells apart (TwoViewGeometry::ConfigurationType)
+PLANAR = "planar_or_panoramic"
+UNCALIBRATED = "uncalibrated"
 #: a member is split off when its verified matches are outliers more than MARGIN times as often as inliers
 MARGIN = 2
 
@@ -40,9 +49,11 @@ class PairModel:
     """The two-view model of a verified image pair ``a < b``.
 
     ``kind`` "H": ``matrix`` maps image a's points to image b's (``y ~ H x``); "F": the
-    fundamental matrix with ``y^T F x = 0`` (x in a, y in b). Pixel coordinates.
-    ``inliers`` / ``outliers``: the implied matches (m, 2: feature in a, feature in b)
-    the fit accepted and rejected.
+    fundamental matrix with ``y^T F x = 0`` (x in a, y in b); the model whose inliers count
+    (module docstring). Pixel coordinates. ``inliers`` / ``outliers``: the implied matches
+    (m, 2: feature in a, feature in b) that model accepted and rejected. ``config``:
+    :data:`PLANAR` or :data:`UNCALIBRATED`; ``homography``: the fitted homography (a to b) of a
+    planar-or-panoramic pair, None otherwise.
     """
 
     a: int
@@ -51,6 +62,15 @@ class PairModel:
     matrix: np.ndarray
     inliers: np.ndarray
     outliers: np.ndarray
+    config: str = UNCALIBRATED
+    homography: Optional[np.ndarray] = None
+
+    def guide(self) -> "PairModel":
+        """The model to search for new matches along: the homography of a planar-or-panoramic pair (a point
+        transfer: a disc of candidates, where the fundamental matrix leaves a band), else this one."""
+        if self.config == PLANAR and self.homography is not None and self.kind != "H":
+            return replace(self, kind="H", matrix=self.homography)
+        return self
 
     def sq_residuals(self, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
         """Squared residuals in px^2 of point pairs (xa in a, xb in b): the forward transfer error
@@ -83,7 +103,7 @@ def sq_residuals(kind: str, M: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np
 class VerifyStats:
     n_pairs: int  # image pairs with cluster matches
     n_verified: int  # pairs with >= min_inliers inliers
-    n_planar: int  # verified pairs decided by the homography
+    n_planar: int  # verified pairs in the planar-or-panoramic configuration
     n_matches: int
     n_inliers: int  # inlier matches of verified pairs
     n_outliers: int  # outlier matches of verified pairs
@@ -91,12 +111,13 @@ class VerifyStats:
 
 
 def _fit_pair(p: np.ndarray, q: np.ndarray, threshold: float, confidence: float):
-    """Inlier mask of the chosen two-view model, its kind ("H" or "F") and matrix (None: no fit)."""
+    """COLMAP's two-view model selection (module docstring): the inlier mask, the kind ("H" or "F") and
+    matrix of the model with more inliers (None: no fit), the configuration and the homography."""
     import cv2
 
     n = len(p)
     if n < 8:
-        return np.zeros(n, bool), "F", None
+        return np.zeros(n, bool), "F", None, UNCALIBRATED, None
     F, mf = cv2.findFundamentalMat(p, q, cv2.USAC_MAGSAC, threshold, confidence, 10000)
     if F is None or mf is None or F.shape != (3, 3):  # OpenCV may stack several solutions
         F, inl_f = None, np.zeros(n, bool)
@@ -104,9 +125,12 @@ def _fit_pair(p: np.ndarray, q: np.ndarray, threshold: float, confidence: float)
         inl_f = mf.ravel().astype(bool)
     H, mh = cv2.findHomography(p, q, cv2.USAC_MAGSAC, threshold, None, 10000, confidence)
     inl_h = mh.ravel().astype(bool) if H is not None and mh is not None else np.zeros(n, bool)
-    if inl_h.sum() > MAX_H_INLIER_RATIO * max(inl_f.sum(), 1):
-        return inl_h, "H", H
-    return inl_f, "F", F
+    n_f, n_h = int(inl_f.sum()), int(inl_h.sum())
+    planar = n_h > MAX_H_INLIER_RATIO * max(n_f, 1)
+    config, homography = (PLANAR, np.asarray(H, np.float64)) if planar else (UNCALIBRATED, None)
+    if n_h > n_f or F is None:
+        return inl_h, "H", H, config, homography
+    return inl_f, "F", F, config, homography
 
 
 def check_geometry_inputs(labels, image_ids, keypoints, threshold: float, confidence: float, min_inliers: int,
@@ -142,11 +166,11 @@ def fit_pairs(labels, image_ids, keypoints, *, threshold: float = 4.0, confidenc
     n_matches = 0
     for (a, b), m in sorted(pairs.items()):
         n_matches += len(m)
-        inl, kind, M = _fit_pair(kp[m[:, 0], :2].astype(np.float32), kp[m[:, 1], :2].astype(np.float32),
+        inl, kind, M, config, H = _fit_pair(kp[m[:, 0], :2].astype(np.float32), kp[m[:, 1], :2].astype(np.float32),
                                  threshold, confidence)
         if M is None or inl.sum() < min_inliers:
             continue
-        models[(a, b)] = PairModel(a, b, kind, np.asarray(M, np.float64), m[inl], m[~inl])
+        models[(a, b)] = PairModel(a, b, kind, np.asarray(M, np.float64), m[inl], m[~inl], config, H)
     return models, len(pairs), n_matches
 
 
@@ -182,7 +206,7 @@ def split_contradicted(labels: np.ndarray, models: dict) -> Tuple[np.ndarray, in
 
 def verify_stats(models: dict, n_pairs: int, n_matches: int, n_split: int) -> VerifyStats:
     """The counts of a verification from its fitted models."""
-    return VerifyStats(n_pairs, len(models), sum(m.kind == "H" for m in models.values()), n_matches,
+    return VerifyStats(n_pairs, len(models), sum(m.config == PLANAR for m in models.values()), n_matches,
                        sum(len(m.inliers) for m in models.values()), sum(len(m.outliers) for m in models.values()),
                        n_split)
 

@@ -21,11 +21,11 @@ MAX_FEATURES = 300
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    """A small generated scene on disk and its CLUSTERS files (plain and verified) made by dqm match."""
+    """A small generated scene on disk and its CLUSTERS files (plain, verified, grown) made by dqm match."""
     root = tmp_path_factory.mktemp("evalclusters")
     assert main(["scene", str(root / "scene"), "--images", "3", "--size", "240", "320", "--seed", "5"]) == 0
     # dqm evaluate's tables use the rootsift preset; dqm match on images defaults to sfm's
-    for name, extra in (("clusters.npz", []), ("verified.npz", ["--verify"]), ("guided.npz", ["--guided"])):
+    for name, extra in (("clusters.npz", ["--no-guided"]), ("verified.npz", ["--verify"]), ("guided.npz", [])):
         assert main(["match", str(root / "scene"), "--out", str(root / name), "--quiet", "--preset", "rootsift",
                      "--max-features", str(MAX_FEATURES), *extra]) == 0
     return root
