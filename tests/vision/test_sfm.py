@@ -111,6 +111,34 @@ def test_bench_sfm_small_with_ground_truth(tmp_path):
     assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000
 
 
+def test_points_gap_classifies_every_colmap_point(tmp_path):
+    """scripts/sfm_points_gap.py on a generated 4-image scene: every COLMAP point of 2+ images falls in one
+    class, the classes add up to COLMAP's points, and most of them are dqm's too (the same scene, both
+    pipelines register it); a second run reuses the kept pipelines (--work) and gives the same numbers."""
+    from generators.scenes3d import generate_scene3d
+
+    scene = generate_scene3d(seed=0, n_images=4)
+    saved = scene.save(tmp_path / "scene")
+    images = tmp_path / "images"
+    images.mkdir()
+    for p in sorted(saved.glob("img*.png")):
+        (images / p.name).symlink_to(p)
+    runs = []
+    for k in range(2):
+        out = tmp_path / f"gap{k}.json"
+        p = subprocess.run([sys.executable, "scripts/sfm_points_gap.py", "--images", str(images), "--work",
+                            str(tmp_path / "work"), "--json", str(out)], capture_output=True, text=True,
+                           timeout=600, cwd=ROOT)
+        assert p.returncode == 0, p.stderr[-2000:]
+        runs.append(json.loads(out.read_text()))
+    gap = runs[0]
+    classes = gap["classes"]
+    assert sum(c["points"] for c in classes.values()) == gap["colmap_points"] > 50
+    assert classes["ours too"]["share"] > 0.5, classes
+    assert gap["dqm_points"] > 0 and gap["colmap_model_points"] >= gap["colmap_points"]
+    assert runs[1] == runs[0]
+
+
 def test_the_strecha_cameras_of_the_shared_photos_are_read():
     """The ground truth the benchmark's real runs use (strecha/entry-P10): ten cameras, rotations."""
     from conftest import require_data
