@@ -13,8 +13,8 @@ those near misses are real. :func:`grow_clusters` does, deterministically:
    other image's features that fit the pair's geometry (:meth:`PairModel.guide`: the homography
    of a planar-or-panoramic pair, else the model whose inliers count) within ``link_threshold``
    (2 px, half the verification's 4 px: forward transfer error for a homography, Sampson error
-   for a fundamental matrix, as COLMAP measures them). Link (i, j) is proposed when, among the candidates, j is i's nearest
-   descriptor and i is j's (mutual), each by Lowe's ratio ``ratio`` (0.8, COLMAP's default)
+   for a fundamental matrix, as COLMAP measures them). Link (i, j) is proposed when, among the
+   candidates, j is i's nearest descriptor and i is j's (mutual), each by Lowe's ratio ``ratio`` (0.8, COLMAP's default)
    against the second nearest candidate on each side, and their distance is at most
    ``max_sigma`` (1.5) times the larger of the two features' sigma (QuickMatch's distance from a
    feature to the nearest other feature of its own image). The geometry narrows a feature's
