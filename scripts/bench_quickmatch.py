@@ -541,7 +541,7 @@ def real_section(folders, rows, brute_images, rates=True, repeat=4):
         t_bf = time.perf_counter() - t
         feats, clusters = work / "f-sub.npz", work / "c-sub.npz"
         timed(dqm_cli + ["import", "colmap", str(db), "--out", str(feats)])
-        t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet"])
+        t_match = timed(dqm_cli + ["match", str(feats), "--out", str(clusters), "--quiet", "--no-guided"])
         n = len(np.load(feats)["descriptors"])
         print(f"\nExact against exact, {brute_images} images ({n:,} features): COLMAP's brute-force matcher "
               f"(cpu_brute_force_matcher, with its verification) {t_bf:.2f} s, dqm match {t_match:.2f} s: "

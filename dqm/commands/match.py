@@ -8,8 +8,9 @@ features are extracted first (OpenCV; --preset, --max-features; the default
 preset is dqm sfm's). Where the features have keypoints, the clusters are then
 verified and grown along the image pairs' geometry (guided growth: more complete
 clusters; --no-guided keeps QuickMatch's own). --verify only splits off the
-members that the geometry rejects. With --into-database nothing is grown by
-default: growth worsens the cameras of COLMAP's mapper (docs/sfm.md).
+members that the geometry rejects. A COLMAP database as INPUT is not grown by
+default: its matches go back to COLMAP's mapper, whose cameras growth worsens
+(docs/sfm.md).
 
     dqm match features.npz --out clusters.npz
     dqm match database.db --out clusters.npz --image-dir images/   # COLMAP's features
@@ -107,8 +108,8 @@ GUIDED_HELP = {
              "fundamental matrix) and are mutual nearest descriptors among those (ratio 0.8, <= 1.5 sigma); "
              "clusters join along the links where C2 and every verified pair allow. On by default wherever the "
              "features have keypoints (more complete clusters: higher F1 on every image set of "
-             "docs/evaluation.md), except with --verify or --into-database (the matches then go to COLMAP's "
-             "mapper, whose cameras growth worsens); --no-guided: QuickMatch's clusters as they are",
+             "docs/evaluation.md), except with --verify or a COLMAP database as INPUT (its matches go back to "
+             "COLMAP's mapper, whose cameras growth worsens); --no-guided: QuickMatch's clusters as they are",
     "sfm": "geometry-guided growth before the mapper, as dqm match does it by default: off by default, because "
            "it worsens the cameras (docs/sfm.md); the model-guided triangulation after the mapper adds matches "
            "with the cameras known instead",
@@ -236,9 +237,12 @@ def run(args) -> int:
 
 def grows_by_default(args, fs: io.FeatureSet) -> bool:
     """Whether the command grows the clusters by geometry when --guided / --no-guided is not given: dqm match
-    does where the features have keypoints, unless --verify asks for verification alone or --into-database
-    hands the matches to COLMAP's mapper; dqm sfm does not (:data:`GUIDED_HELP`)."""
-    if not args.grow_by_default or args.verify or getattr(args, "into_database", False):
+    does where the features have keypoints, unless --verify asks for verification alone or the input is a
+    COLMAP database (its matches go back to COLMAP's mapper, with --into-database or dqm export colmap); dqm
+    sfm does not (:data:`GUIDED_HELP`)."""
+    from ..vision.colmap import is_database
+
+    if not args.grow_by_default or args.verify or any(is_database(p) for p in args.inputs):
         return False
     if fs.keypoints is None:
         print("note: the features have no keypoints, so the clusters are not grown by geometry (--no-guided "

@@ -135,7 +135,7 @@ def test_dqm_run_writes_clusters_that_plot_export_and_evaluate_read(tmp_path, ca
                  "--report", str(tmp_path / "run.json")]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
     central = tmp_path / "central.npz"
-    assert main(["match", str(feats), "--out", str(central), "--kernel", "quadratic", "--quiet"]) == 0
+    assert main(["match", str(feats), "--out", str(central), "--kernel", "quadratic", "--quiet", "--no-guided"]) == 0
     c, m = io.load_clusters(out), io.load_clusters(central)
     np.testing.assert_array_equal(c["labels"], m["labels"])
     # one traffic ledger: the runtime sent what the simulator meters, catalogs included

@@ -283,7 +283,9 @@ def test_match_reads_a_colmap_database_directly(scene, tmp_path, capsys):
     db = tmp_path / "db.db"
     assert main(["export", "colmap", str(c), "--database", str(db)]) == 0
     assert main(["import", "colmap", str(db), "--out", str(tmp_path / "f.npz")]) == 0
-    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "via_import.npz"), "--quiet"]) == 0
+    # a database is not grown by default (its matches go back to COLMAP), a FEATURES file is: --no-guided
+    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "via_import.npz"), "--quiet",
+                 "--no-guided"]) == 0
     direct = tmp_path / "direct.npz"
     assert main(["match", str(db), "--out", str(direct), "--quiet", "--image-dir", str(scene["folder"])]) == 0
     a, b = io.load_clusters(tmp_path / "via_import.npz"), io.load_clusters(direct)
@@ -406,8 +408,9 @@ def test_export_into_the_database_the_clusters_were_matched_from(scene, tmp_path
     for name in ("other.db", "renamed.db", "fewer.db"):
         shutil.copy(db, tmp_path / name)
     c = tmp_path / "c.npz"
-    # --into-database grows nothing by default (COLMAP's mapper comes next); --out's default grows
-    assert main(["match", str(db), "--out", str(c), "--quiet", "--image-dir", str(scene["folder"]), "--no-guided"]) == 0
+    # a database as INPUT is not grown by default: its matches go back to COLMAP's mapper, either way
+    assert main(["match", str(db), "--out", str(c), "--quiet", "--image-dir", str(scene["folder"])]) == 0
+    assert not io.load_clusters(c)["params"].get("guided", False)
     assert main(["export", "colmap", str(c), "--into-database", str(tmp_path / "other.db")]) == 0
     assert "verified pairs" in capsys.readouterr().out
     assert main(["match", str(db), "--into-database", "--quiet"]) == 0
