@@ -267,7 +267,8 @@ def cluster(args, fs: io.FeatureSet):
     if guided:
         from ..vision.guided import guided_labels
 
-        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors, n_threads=args.threads)
+        bar = ProgressBar("geometry (verify, then link)", force=False if args.quiet else None, unit="pairs")
+        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors, n_threads=args.threads, progress=bar)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True, "guided": True}
         sizes = np.bincount(labels)
@@ -275,7 +276,8 @@ def cluster(args, fs: io.FeatureSet):
     elif args.verify:
         from ..vision.verify import verify_clusters
 
-        labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints)
+        bar = ProgressBar("verification", force=False if args.quiet else None, unit="pairs")
+        labels, vs = verify_clusters(result.labels, fs.image_ids, fs.keypoints, progress=bar)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True}
         print(f"verified {vs.n_verified} of {vs.n_pairs} image pairs ({vs.n_planar} planar or panoramic): "

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
@@ -313,7 +313,8 @@ def _residual_ok(kind: str, M: tuple, xu: tuple, xv: tuple, t2: float) -> bool:
 def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, threshold: float = 4.0,
                   ratio: float = DEFAULT_RATIO, max_sigma: float = DEFAULT_MAX_SIGMA, confidence: float = 0.999,
                   min_inliers: int = MIN_INLIERS, seed: int = 0, link_threshold: float = DEFAULT_LINK_THRESHOLD,
-                  n_threads: Optional[int] = None) -> Tuple[np.ndarray, GuidedStats]:
+                  n_threads: Optional[int] = None,
+                  progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, GuidedStats]:
     """Clusters verified and grown by the image pairs' geometry (module docstring), and what was done.
 
     ``labels``: QuickMatch's (or any partition with at most one feature per image per cluster);
@@ -322,7 +323,8 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
     ``threshold``: the verification's residual in pixels (COLMAP's 4 px); ``link_threshold``: a
     proposed link's; ``ratio``: Lowe's ratio among the geometry's candidates; ``max_sigma``: the
     distance bound in units of sigma; ``seed``: USAC's;
-    ``n_threads``: image pairs handled at once (default: all cores; the result does not depend on it).
+    ``n_threads``: image pairs handled at once (default: all cores; the result does not depend on it);
+    ``progress(done, total)``: image pairs done, twice (verification, then the links; ``done`` restarts at 0).
     Returns labels numbered by each cluster's lowest feature index, as quickmatch numbers them.
     """
     labels, ids, kp = check_geometry_inputs(labels, image_ids, keypoints, threshold, confidence, min_inliers,
@@ -351,19 +353,19 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
 
     t0 = time.perf_counter()
     labels, models, vstats = fit_and_split(labels, ids, kp, threshold=threshold, confidence=confidence,
-                                           min_inliers=min_inliers, seed=seed)
+                                           min_inliers=min_inliers, seed=seed, progress=progress)
     t1 = time.perf_counter()
     by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
     workers = max(1, default_threads() if n_threads is None else int(n_threads))
     li, lj, ld = _propose_all(labels, by_image, models, X, kp, sigma, float(link_threshold), ratio, max_sigma,
-                              workers)
+                              workers, progress)
     t2 = time.perf_counter()
     labels, merged, refused_c2, refused_geo = _merge(labels, ids, kp, models, li, lj, ld, float(threshold) ** 2)
     stats = GuidedStats(vstats, len(li), merged, refused_c2, refused_geo, t1 - t0, t2 - t1, time.perf_counter() - t2)
     return labels, stats
 
 
-def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_sigma, workers):
+def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_sigma, workers, progress=None):
     """The links of every verified pair (features whose cluster lacks the other image), in pair order."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -379,8 +381,14 @@ def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_s
         return propose_links(models[pair], A[~in_b[labels[A]]], B[~in_a[labels[B]]], X, kp, sigma,
                              threshold=threshold, ratio=ratio, max_sigma=max_sigma)
 
+    found = []
     with ThreadPoolExecutor(workers) as pool:
-        found = list(pool.map(links_of, sorted(models)))  # in pair order whatever the threads do
+        for links in pool.map(links_of, sorted(models)):  # in pair order whatever the threads do
+            if progress is not None:
+                progress(len(found), len(models))
+            found.append(links)
+    if progress is not None:
+        progress(len(found), len(models))
     if not found:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     return tuple(np.concatenate(x) for x in zip(*found))

@@ -26,7 +26,7 @@ per cluster (C2).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
@@ -151,11 +151,12 @@ def check_geometry_inputs(labels, image_ids, keypoints, threshold: float, confid
 
 
 def fit_pairs(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
-              min_inliers: int = MIN_INLIERS, seed: int = 0) -> Tuple[dict, int, int]:
+              min_inliers: int = MIN_INLIERS, seed: int = 0,
+              progress: Optional[Callable[[int, int], None]] = None) -> Tuple[dict, int, int]:
     """The verified image pairs' models, ``{(a, b): PairModel}``, from the matches the clusters imply.
 
     Also returns the number of image pairs with matches and of matches. Inputs as in
-    :func:`verify_clusters` (already checked arrays).
+    :func:`verify_clusters` (already checked arrays); ``progress(done, total)`` after each image pair.
     """
     import cv2
 
@@ -164,13 +165,17 @@ def fit_pairs(labels, image_ids, keypoints, *, threshold: float = 4.0, confidenc
     kp = keypoints
     models = {}
     n_matches = 0
-    for (a, b), m in sorted(pairs.items()):
+    for k, ((a, b), m) in enumerate(sorted(pairs.items())):
+        if progress is not None:
+            progress(k, len(pairs))
         n_matches += len(m)
         inl, kind, M, config, H = _fit_pair(kp[m[:, 0], :2].astype(np.float32), kp[m[:, 1], :2].astype(np.float32),
                                  threshold, confidence)
         if M is None or inl.sum() < min_inliers:
             continue
         models[(a, b)] = PairModel(a, b, kind, np.asarray(M, np.float64), m[inl], m[~inl], config, H)
+    if progress is not None:
+        progress(len(pairs), len(pairs))
     return models, len(pairs), n_matches
 
 
@@ -212,23 +217,26 @@ def verify_stats(models: dict, n_pairs: int, n_matches: int, n_split: int) -> Ve
 
 
 def fit_and_split(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
-                  min_inliers: int = MIN_INLIERS, seed: int = 0) -> Tuple[np.ndarray, dict, VerifyStats]:
+                  min_inliers: int = MIN_INLIERS, seed: int = 0,
+                  progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, dict, VerifyStats]:
     """:func:`fit_pairs` then :func:`split_contradicted` on checked arrays: the split labels, the
     verified pairs' models and the counts (what :func:`verify_clusters` and guided growth share)."""
     models, n_pairs, n_matches = fit_pairs(labels, image_ids, keypoints, threshold=threshold, confidence=confidence,
-                                           min_inliers=min_inliers, seed=seed)
+                                           min_inliers=min_inliers, seed=seed, progress=progress)
     out, n_split = split_contradicted(labels, models)
     return out, models, verify_stats(models, n_pairs, n_matches, n_split)
 
 
 def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
-                    min_inliers: int = MIN_INLIERS, seed: int = 0) -> Tuple[np.ndarray, VerifyStats]:
+                    min_inliers: int = MIN_INLIERS, seed: int = 0,
+                    progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, VerifyStats]:
     """Labels with geometrically unsupported members split off, and what was done (module docstring).
 
     ``keypoints``: (n, >= 2) pixel coordinates; ``threshold``: the RANSAC residual in pixels
-    (COLMAP's ``max_error`` is 4 px); ``seed`` seeds OpenCV's RNG so the result repeats.
+    (COLMAP's ``max_error`` is 4 px); ``seed`` seeds OpenCV's RNG so the result repeats;
+    ``progress(done, total)``: after each image pair fitted.
     """
     labels, ids, kp = check_geometry_inputs(labels, image_ids, keypoints, threshold, confidence, min_inliers)
     out, _, stats = fit_and_split(labels, ids, kp, threshold=threshold, confidence=confidence,
-                                  min_inliers=min_inliers, seed=seed)
+                                  min_inliers=min_inliers, seed=seed, progress=progress)
     return out, stats

@@ -80,6 +80,14 @@ def test_guided_growth_is_deterministic_whatever_the_threads(planar):
     # sigma computed when not given: QuickMatch's own
     third, _ = grow_clusters(r.labels, ids, kp, D)
     assert np.array_equal(third, labels)
+    # progress: image pairs verified, then image pairs linked, each stage counted up to its total
+    calls = []
+    fourth, _ = grow_clusters(r.labels, ids, kp, D, r.sigma, progress=lambda d, t: calls.append((d, t)))
+    assert np.array_equal(fourth, labels)
+    restart = next(k for k in range(1, len(calls)) if calls[k][0] < calls[k - 1][0])
+    verify, link = calls[:restart], calls[restart:]
+    assert verify[-1] == (stats.verify.n_pairs,) * 2 and link[-1] == (stats.verify.n_verified,) * 2
+    assert all(b[0] >= a[0] for stage in (verify, link) for a, b in zip(stage, stage[1:]))
 
 
 def test_guided_growth_on_random_inputs_keeps_c1_c2():
