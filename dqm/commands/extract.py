@@ -43,6 +43,9 @@ def add_image_options(p, default_preset: str = DEFAULT_PRESET) -> None:
              "rootsift": "OpenCV's SIFT with RootSIFT descriptors (Hellinger-normalised, as COLMAP stores them; "
                          "better F1 than plain SIFT on every dataset of docs/evaluation.md)",
              "colmap": "pycolmap's own SIFT with COLMAP's defaults (needs pycolmap; about 4x the extraction time)",
+             "budget": "OpenCV's SIFT at contrast threshold 0.02, each image's 8,192 strongest locations (every "
+                       "orientation kept: COLMAP's budget), RootSIFT descriptors (more 3-D points on small scenes, "
+                       "fewer on large ones: docs/sfm.md)",
              "opencv": "OpenCV's plain SIFT",
              "paper": "the seed paper's settings (nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, "
                       "sigma=1.0)"}

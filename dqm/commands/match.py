@@ -101,7 +101,8 @@ def add_cluster_options(p, command: str = "match") -> None:
     p.set_defaults(grow_by_default=command == "match")
 
 
-#: --guided's help per command: growth is dqm match's default and not dqm sfm's (docs/sfm.md, "One default?")
+#: --guided's help per command: growth is dqm match's default, not dqm sfm's (docs/sfm.md, "One default for
+#: matching, another for SfM")
 GUIDED_HELP = {
     "match": "geometry-guided growth: the clusters are verified as with --verify, then each verified image pair "
              "links features that fit its geometry within 2 px (the homography of a planar pair, else the "

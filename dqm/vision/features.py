@@ -31,7 +31,14 @@ PRESETS: dict[str, dict[str, float]] = {
     # RootSIFT with a lower contrast threshold: about 1.3x the features; the best cameras in
     # scripts/bench_sfm.py (docs/sfm.md), so dqm sfm's default
     "sfm": {"contrastThreshold": 0.03},
+    # COLMAP's feature budget with OpenCV's SIFT: contrast threshold 0.02, then each image's
+    # LOCATION_BUDGET strongest locations with all their orientations (docs/sfm.md, "Where COLMAP's
+    # points go")
+    "budget": {"contrastThreshold": 0.02},
 }
+#: presets that keep each image's N strongest keypoint locations (every orientation of each), as COLMAP's
+#: SiftExtractionOptions.max_num_features counts them
+LOCATION_BUDGET = {"budget": 8192}
 #: presets made by another library: pycolmap's SIFT with COLMAP's default options (L1-root
 #: normalised, i.e. RootSIFT, stored x512 as uint8; peak threshold 0.02/3, up-sampled first
 #: octave, 8192 features per image unless --max-features says otherwise)
@@ -45,7 +52,7 @@ DEFAULT_PRESET = "rootsift"
 #: the default of ``dqm sfm``: RootSIFT at contrast threshold 0.03 (docs/sfm.md, "Which default")
 SFM_PRESET = "sfm"
 #: presets whose descriptors are RootSIFT (:func:`root_sift`) rather than plain SIFT
-ROOT_PRESETS = frozenset({"rootsift", "sfm"})
+ROOT_PRESETS = frozenset({"rootsift", "sfm", "budget"})
 
 
 def root_sift(descriptors) -> np.ndarray:
@@ -323,6 +330,25 @@ def _kp_array(kps) -> np.ndarray:
     return np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float32).reshape(-1, 4)
 
 
+def strongest_locations(keypoints, n: int) -> list:
+    """The keypoints at the ``n`` locations of highest response (a location's response: its strongest
+    keypoint's; OpenCV gives a location one keypoint per orientation), every orientation kept, in the input's
+    order; ties between locations go to the earlier."""
+    kps = list(keypoints)
+    if not kps:
+        return kps
+    pts = np.array([k.pt for k in kps], np.float64)
+    _, loc = np.unique(pts, axis=0, return_inverse=True)
+    loc = loc.ravel()
+    best = np.full(int(loc.max()) + 1, -np.inf)
+    np.maximum.at(best, loc, np.array([k.response for k in kps], np.float64))
+    first = np.full(len(best), len(kps))
+    np.minimum.at(first, loc, np.arange(len(kps)))
+    rank = np.empty(len(best), np.int64)
+    rank[np.lexsort((first, -best))] = np.arange(len(best))
+    return [k for k, r in zip(kps, rank[loc]) if r < n]
+
+
 def extract(image, preset: str = DEFAULT_PRESET, max_features: int = 0) -> ImageFeatures:
     """Detect and describe SIFT features of an image (path or array)."""
     if preset in EXTERNAL_PRESETS:
@@ -330,7 +356,12 @@ def extract(image, preset: str = DEFAULT_PRESET, max_features: int = 0) -> Image
         D, _, kp = extract_colmap([image], max_features)
         return ImageFeatures(kp, D)
     img = as_gray(image)
-    kps, desc = create_sift(preset, max_features).detectAndCompute(img, None)
+    sift = create_sift(preset, max_features)
+    if preset in LOCATION_BUDGET:
+        kps = strongest_locations(sift.detect(img, None), LOCATION_BUDGET[preset])
+        kps, desc = sift.compute(img, kps) if kps else ((), None)
+    else:
+        kps, desc = sift.detectAndCompute(img, None)
     if desc is None:
         desc = np.zeros((0, 128), np.float32)
     if max_features and len(kps) > max_features:

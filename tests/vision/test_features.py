@@ -40,6 +40,34 @@ def test_max_features_and_presets(scene_dir):
         features.extract_images(scene_dir, max_features=-1)
 
 
+def test_strongest_locations_keep_every_orientation_of_the_best_locations():
+    cv2 = pytest.importorskip("cv2")
+    kps = [cv2.KeyPoint(1, 1, 2, 10, 0.5), cv2.KeyPoint(5, 5, 2, 0, 0.9), cv2.KeyPoint(1, 1, 2, 200, 0.2),
+           cv2.KeyPoint(7, 3, 2, 0, 0.5), cv2.KeyPoint(9, 9, 2, 0, 0.1)]
+    # locations by their best response: (5, 5) 0.9, (1, 1) 0.5 and (7, 3) 0.5 (a tie: the earlier), (9, 9)
+    assert features.strongest_locations(kps, 1) == [kps[1]]
+    assert features.strongest_locations(kps, 2) == kps[:3]  # (1, 1) with both its orientations
+    assert features.strongest_locations(kps, 3) == kps[:4]
+    assert features.strongest_locations(kps, 9) == kps and features.strongest_locations([], 3) == []
+
+
+def test_budget_preset_keeps_the_strongest_locations(scene_dir, monkeypatch):
+    """The budget preset: contrast 0.02 (more features than the sfm preset's 0.03), then each image's
+    strongest LOCATION_BUDGET locations with every orientation; RootSIFT descriptors."""
+    budget = features.extract_images(scene_dir, preset="budget")
+    sfm = features.extract_images(scene_dir, preset="sfm")
+    assert len(budget) > len(sfm)
+    monkeypatch.setitem(features.LOCATION_BUDGET, "budget", 100)
+    few = features.extract_images(scene_dir, preset="budget")
+    for k in range(3):
+        xy = few.keypoints[few.image_ids == k, :2]
+        assert len(np.unique(xy, axis=0)) == 100 and len(xy) >= 100
+        full = budget.keypoints[budget.image_ids == k, :2]
+        assert {tuple(p) for p in xy.tolist()} <= {tuple(p) for p in full.tolist()}
+    norms = np.linalg.norm(few.descriptors.astype(float), axis=1)
+    assert np.allclose(norms, 512, rtol=0.02)  # RootSIFT: unit L2 x 512
+
+
 def test_collect_images_folder_glob_list_natural_order(tmp_path, scene_dir):
     import shutil
 
