@@ -48,9 +48,11 @@ def fault_pause_from_env() -> Optional[Callable[[int, str], None]]:
     def pause(agent: int, state: str) -> None:
         if spec != f"{agent}:{state}":
             return
-        if marker:
-            with open(marker, "w") as fh:
+        if marker:  # written whole, then renamed: a test that sees the file reads the pid, never an empty file
+            part = f"{marker}.{os.getpid()}.part"
+            with open(part, "w") as fh:
                 fh.write(f"{os.getpid()}\n")
+            os.replace(part, marker)
         end = time.monotonic() + seconds
         while time.monotonic() < end and (not marker or os.path.exists(marker)):
             time.sleep(0.05)
