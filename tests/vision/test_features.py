@@ -68,6 +68,33 @@ def test_budget_preset_keeps_the_strongest_locations(scene_dir, monkeypatch):
     assert np.allclose(norms, 512, rtol=0.02)  # RootSIFT: unit L2 x 512
 
 
+def test_images_are_extracted_in_parallel_with_the_same_features(scene_dir, monkeypatch):
+    """One image per core at a time (OpenCV's own threads at 1 meanwhile, restored after): the same arrays as
+    one image at a time, an unreadable image in the middle still left out in its place."""
+    cv2 = pytest.importorskip("cv2")
+    paths = sorted(str(p) for p in scene_dir.glob("img*.png"))
+    bad = scene_dir.parent / "broken.png"
+    bad.write_bytes(b"not a png")
+    images = [paths[0], str(bad), *paths[1:]]
+    before = cv2.getNumThreads()
+    runs = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("DQM_THREADS", threads)
+        failed = []
+        runs.append((features.extract_many(images, "sfm", failed=failed), failed))
+        assert cv2.getNumThreads() == before
+    (D, ids, kp), failed = runs[0]
+    assert failed == [1] and sorted(set(ids.tolist())) == [0, 1, 2]
+    for (D2, ids2, kp2), failed2 in runs[1:]:
+        assert failed2 == failed
+        np.testing.assert_array_equal(D, D2)
+        np.testing.assert_array_equal(ids, ids2)
+        np.testing.assert_array_equal(kp, kp2)
+    with pytest.raises(InputError):
+        features.extract_many(images, "sfm")
+    assert cv2.getNumThreads() == before
+
+
 def test_collect_images_folder_glob_list_natural_order(tmp_path, scene_dir):
     import shutil
 
