@@ -57,21 +57,25 @@ def _dqm_points(rec, names: list[str], rows: list[np.ndarray], n: int) -> np.nda
 
 def _verified(database: Path, names: list[str], rows: list[np.ndarray]) -> set[tuple[int, int]]:
     """The feature pairs (lower index first) that are inliers of a two-view geometry in dqm's database."""
-    import pycolmap
+    from sfm_match_truth import verified_matches  # this folder's: the database's verified inlier matches
 
     index = {Path(nm).name: k for k, nm in enumerate(names)}
     out = set()
-    with pycolmap.Database.open(str(database)) as db:
-        images = {im.image_id: index[im.name] for im in db.read_all_images()}
-        ids, geoms = db.read_two_view_geometries()
-        for pair_id, g in zip(ids, geoms):
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            m = np.asarray(g.inlier_matches)
-            if len(m) == 0:
-                continue
-            fa, fb = rows[images[a]][m[:, 0]], rows[images[b]][m[:, 1]]
-            out.update(zip(np.minimum(fa, fb).tolist(), np.maximum(fa, fb).tolist()))
+    for (a, b), (_, _, m) in verified_matches(database).items():
+        fa, fb = rows[index[a]][m[:, 0]], rows[index[b]][m[:, 1]]
+        out.update(zip(np.minimum(fa, fb).tolist(), np.maximum(fa, fb).tolist()))
     return out
+
+
+def _largest_model(sparse: Path):
+    """The largest of the models in a mapper's output folder (``sparse/0``, ``sparse/1``, ...), as dqm sfm
+    and the benchmark rank them (:func:`dqm.vision.sfm.largest`)."""
+    import pycolmap
+
+    from dqm.vision.sfm import largest
+
+    recs = {p.name: pycolmap.Reconstruction(str(p)) for p in sorted(sparse.iterdir()) if p.is_dir()}
+    return recs[largest(recs)]
 
 
 def classify(colmap_rec, keypoints, image_ids, names, labels, point, verified, radius: float) -> dict:
@@ -137,8 +141,6 @@ def main() -> int:
                                                   "(default: a temporary folder)")
     args = ap.parse_args()
 
-    import pycolmap
-
     from dqm import io
     from dqm.vision.sfm import colmap_pipeline
 
@@ -152,16 +154,15 @@ def main() -> int:
         keypoints, image_ids, labels = np.asarray(c["keypoints"]), np.asarray(c["image_ids"]), np.asarray(c["labels"])
         names = [str(x) for x in c["image_names"]]
         rows = _feature_rows(image_ids)
-        rec = pycolmap.Reconstruction(str(work / "dqm" / "sparse" / "0"))
+        rec = _largest_model(work / "dqm" / "sparse")
         point = _dqm_points(rec, names, rows, len(labels))
         verified = _verified(work / "dqm" / "database.db", names, rows)
-        if (work / "colmap" / "sparse" / "0").exists():
-            models = [type("Model", (), {"rec": pycolmap.Reconstruction(str(work / "colmap" / "sparse" / "0"))})]
-        else:
-            models, _ = colmap_pipeline(args.images, work / "colmap", seed=args.seed)
-        result = classify(models[0].rec, keypoints, image_ids, names, labels, point, verified, args.radius)
+        if not (work / "colmap" / "sparse").exists():
+            colmap_pipeline(args.images, work / "colmap", seed=args.seed)
+        colmap_rec = _largest_model(work / "colmap" / "sparse")
+        result = classify(colmap_rec, keypoints, image_ids, names, labels, point, verified, args.radius)
     result.update(images=args.images, dqm_options=args.dqm_options, seed=args.seed, radius=args.radius,
-                  dqm_points=len(rec.points3D), colmap_model_points=len(models[0].rec.points3D))
+                  dqm_points=len(rec.points3D), colmap_model_points=len(colmap_rec.points3D))
     print(f"{args.images}: COLMAP {result['colmap_model_points']:,} points, dqm {result['dqm_points']:,}; "
           f"COLMAP's points by what dqm made of them (counterparts within {args.radius:g} px):")
     print("| class | COLMAP points | share | mean track |\n|---|---|---|---|")
