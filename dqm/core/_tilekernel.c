@@ -1381,9 +1381,6 @@ done:
     return code;
 }
 
-/*
- * Exact squared distances of uint8 rows: out[e] = |X[a[e]] - X[b[e]]|^2 (int32 sums: dim <= 32768).
- */
 /* Exact squared distance of two uint8 rows (integer sums: every path gives the same value). */
 static inline int32_t sq_dist_u8_scalar(const uint8_t *x, const uint8_t *y, int64_t dim)
 {
@@ -1415,6 +1412,9 @@ static int32_t sq_dist_u8_avx2(const uint8_t *x, const uint8_t *y, int64_t dim)
 }
 #endif
 
+/*
+ * Exact squared distances of uint8 rows: out[e] = |X[a[e]] - X[b[e]]|^2 (int32 sums: dim <= 32768).
+ */
 void dqm_sq_dist_u8(const uint8_t *X, int64_t dim, const int64_t *a, const int64_t *b, int64_t m, double *out)
 {
     for (int64_t e = 0; e < m; ++e)
