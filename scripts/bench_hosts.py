@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 from dqm import evaluation, synthetic  # noqa: E402
 from dqm.core.pairs import pair_cpu_s_here  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
+from dqm.distributed.config import DISTRIBUTED_ENGINES  # noqa: E402
 from dqm.runtime.launcher import Processes, work_folder, write_agent_files  # noqa: E402
 from dqm.runtime.multihost import (  # noqa: E402
     HOST_MODES,
@@ -89,7 +90,7 @@ def _canonical(labels: np.ndarray) -> np.ndarray:
 
 
 def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, log, rows: list, save,
-          repeats: int = 1) -> list:
+          repeats: int = 1, engine: str = "exact") -> list:
     """Run every mode at every rate on M emulated hosts, ``repeats`` times in turn (the first round in the
     order given, gather first; each later round starts one mode further on, so that no mode always runs
     first or after the same one). Each mode's row is its run of median time so far (of an even count, the
@@ -100,7 +101,7 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
     files = write_agent_files(X, ids, m, workdir)
     raw = X.size * X.dtype.itemsize
     cpu = 2.0 / m
-    cfg = DQMConfig(agents=m, seed=1, job=f"hosts{m}").validated(len(X))
+    cfg = DQMConfig(agents=m, seed=1, job=f"hosts{m}", engine=engine).validated(len(X))
     # this machine's all-pairs kernel: scripts/fit_costmodel.py scales each row's pair work by it
     kernel = pair_cpu_s_here(X.shape[1], X.dtype)
 
@@ -111,7 +112,7 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
         out = []
         for mode in [mode for mode in modes if mode in failed or mode in median]:
             row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                   "mode": mode, "kernel_cpu_s": kernel}
+                   "mode": mode, "engine": engine, "kernel_cpu_s": kernel}
             if mode in failed:
                 row.update(error=failed[mode][0], seconds=failed[mode][1])
             else:
@@ -180,18 +181,24 @@ def table(rows) -> str:
     out = ["| data | M | link Mbit/s | mode | time to result s | speed-up over gather | after start-up s | "
            "speed-up over gather | bytes / raw | labels vs gather | auto picked | auto / best |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    ref = {(r["data"], r["m"], r["rate_mbit"]): r for r in rows if r["mode"] == "gather"}
+    def key(r: dict) -> tuple:
+        return r["data"], r["m"], r["rate_mbit"], r.get("engine", "exact")
+
+    def shown(r: dict) -> str:  # the mode, and the engine where it is not the exact one
+        return r["mode"] + ("" if r.get("engine", "exact") == "exact" else f" ({r['engine']})")
+
+    ref = {key(r): r for r in rows if r["mode"] == "gather"}
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | failed after "
+            out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {shown(r)} | failed after "
                        f"{r['seconds']:.0f} s: {r['error']} | | | | | | | |")
             continue
         agree = "" if "identical" not in r else ("identical" if r["identical"] else f"F1 {r['f1']:.4f}")
         speed = f"{r['speedup_over_gather']:.2f}" if "speedup_over_gather" in r else ""
-        g = ref.get((r["data"], r["m"], r["rate_mbit"]))
+        g = ref.get(key(r))
         g = g if g is not None and "error" not in g else None
         warm = f"{after_start_up(g) / after_start_up(r):.2f}" if g else ""
-        out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {r['seconds']:.1f} | {speed} | "
+        out.append(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {shown(r)} | {r['seconds']:.1f} | {speed} | "
                    f"{after_start_up(r):.1f} | {warm} | {r['bytes_over_raw']:.2f} | {agree} | {r.get('picked', '')} | "
                    f"{auto_over_best(r, rows)} |")
     return "\n".join(out)
@@ -235,6 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds one mode may take")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of every mode at every rate, in turn; each row is the run of median time")
+    ap.add_argument("--engine", default="exact", choices=DISTRIBUTED_ENGINES,
+                    help="every mode's engine (gather's dqm.quickmatch included): rows compare like with like")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--figure", help="write the figure (PNG) here")
     ap.add_argument("--keep", help="keep the work folder (files, logs) here")
@@ -273,7 +282,7 @@ def main(argv=None) -> int:
                     bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
                           lambda text: print(text, file=sys.stderr, flush=True), rows,
                           lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)),
-                          repeats=args.repeats)
+                          repeats=args.repeats, engine=args.engine)
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2

@@ -165,8 +165,8 @@ def run(args) -> int:
         from ..distributed.simulator import simulate
 
         # gather ran dqm.quickmatch: check it against balanced's simulation (its clusters with the quadratic
-        # kernel), or against dqm.quickmatch itself with another kernel
-        central = mode == "gather" and cfg.kernel != "quadratic"
+        # kernel and the exact engine), or against dqm.quickmatch itself with another kernel or the fast engine
+        central = mode == "gather" and (cfg.kernel != "quadratic" or cfg.fast)
         what, name = (("dqm.quickmatch in this process", "dqm.quickmatch") if central
                       else ("the in-process simulator", "In-process simulator"))
         print(f"Checking: the same job ({len(labels)} features, {cfg.agents} agents, {mode} mode) in {what}; this "
@@ -175,7 +175,7 @@ def run(args) -> int:
         if central:
             import dqm
 
-            reference = dqm.quickmatch(X, ids, params=cfg.params).labels
+            reference = dqm.quickmatch(X, ids, params=cfg.params, engine=cfg.engine).labels
         else:
             reference = simulate(X, ids, cfg.but(mode="balanced" if mode == "gather" else mode)).labels
         same = np.array_equal(reference, labels)

@@ -73,7 +73,7 @@ class BalancedCore:
         self.m = cfg.agents
         self.rule = cfg.ghost_rule
         self.ships = ghosts.orientation(self.m, self.rule)  # ships[a, b]: a sends copies to b
-        self.space = space if (space is not None and space.k > 0 and cfg.sketch_dims > 0) else None
+        self.space = space if (space is not None and space.k > 0 and cfg.sketches) else None
         self.E = np.full((self.m, self.m), np.inf)
         self.S = np.full((self.m, self.m), np.inf)
         self.failures = 0  # arrival and consistency checks that did not hold
@@ -171,6 +171,11 @@ class BalancedCore:
         rest of the sketch can pay for itself."""
         self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
         out = {}
+        if self.cfg.fast:  # no certificate: the copies a pair likely needs (no sketches, no request)
+            for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"),
+                                                  ghosts.copy_budget(self.m)).items():
+                self.plan[b] = (idx, np.ones(len(idx), bool), False)
+            return out
         for b in self.recipients("offer"):
             idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
                                                   self.rule))
@@ -254,7 +259,10 @@ class BalancedCore:
         H = boundary.bisector_lower_bounds(Xg, self.seeds, np.full(len(Xg), a), self.weights)[:, self.me]
         R = ghosts.reach(p["sigma"], self.cfg.rho)
         tol = 1e-9 * (1.0 + R + H)
-        ok = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
+        if self.cfg.fast:
+            ok = ghosts.likely_mask(H - tol, R + tol)
+        else:
+            ok = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
         if self.space is not None and self.requested.get(a):  # a filtered with the whole sketch
             sample = np.flatnonzero(sketch.hashed_subset(p["ids"], 4))
             hit = np.zeros(len(sample), bool)

@@ -36,15 +36,17 @@ from .shard import Shard
 
 
 def cluster_shard(shard: Shard, mode: str, rho: float = DEFAULT_RHO, kernel: str = "quadratic",
-                  n_threads: Optional[int] = None) -> Tuple[Optional[QuickMatchResult], np.ndarray]:
-    """Local QuickMatch of a shard; returns (result, sigma used). Empty shards give (None, [])."""
+                  n_threads: Optional[int] = None,
+                  engine: str = "exact") -> Tuple[Optional[QuickMatchResult], np.ndarray]:
+    """Local QuickMatch of a shard with ``engine`` (dqm.quickmatch's); returns (result, sigma used). Empty
+    shards give (None, [])."""
     if len(shard) == 0:
         return None, np.zeros(0)
     sigma = None if mode == "paper" else shard.sigma
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a cell holding one image is fine here
         r = quickmatch(shard.descriptors, shard.image_ids, rho=rho, kernel=kernel, sigma=sigma,
-                       n_threads=n_threads)
+                       n_threads=n_threads, engine=engine)
     return r, r.sigma
 
 
@@ -208,7 +210,8 @@ class CascadeCore:
         return np.stack([self._H[i] for i in shard.ids.tolist()])
 
     def _cluster(self, shard: Shard) -> Optional[QuickMatchResult]:
-        (res, sig), tc = timed(cluster_shard, shard, self.cfg.mode, self.cfg.rho, self.cfg.kernel)
+        (res, sig), tc = timed(cluster_shard, shard, self.cfg.mode, self.cfg.rho, self.cfg.kernel,
+                                 engine=self.cfg.engine)
         self.time_cluster += tc
         self.pairs_computed += len(shard) * (len(shard) - 1) // 2
         self.max_held = max(self.max_held, len(shard))

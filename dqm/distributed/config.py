@@ -32,6 +32,7 @@ import hashlib
 from dataclasses import Field, dataclass, field, fields, replace
 from typing import Dict, List, Optional, Tuple, get_type_hints
 
+from ..core.clustering import FAST_FROM
 from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
 from ..validation import InputError, check_choice, check_positive
 from . import keys, partition
@@ -52,6 +53,13 @@ GHOST_RULES = ("one-way", "two-way")
 DEFAULT_SEED = 1
 #: the default dimension of the lower-bound sketches (docs/distributed.md, frontier table)
 DEFAULT_SKETCH_DIMS = 48
+#: the engines a distributed job runs (``dqm match``'s vocabulary; docs/distributed.md "The fast engine"):
+#: ``exact`` (every pair within reach; balanced mode's labels are the centralized ones bit for bit) or ``fast``
+#: (gather, lean, paper: dqm.quickmatch's fast engine where they cluster; balanced: copies travel only where a
+#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`, and each cell's pairs are found by inverted
+#: lists)
+DISTRIBUTED_ENGINES = ("exact", "fast")
+DEFAULT_ENGINE = "exact"
 
 
 def _check_int(value, name: str, low: int) -> int:
@@ -133,6 +141,12 @@ class DQMConfig:
         "balanced: dimension of the lower-bound sketch pre-filter (0 = off)", "--sketch-dims", 11))
     balance_rounds: int = field(default=12, metadata=_meta(
         "most rounds of cell-weight refinement", "--balance-rounds", 12))
+    engine: str = field(default=DEFAULT_ENGINE, metadata=_meta(
+        "exact (default: every pair within reach; balanced gives dqm.quickmatch's labels bit for bit) or fast "
+        "(dqm match's fast engine, its default from {:,} features: gather, lean and paper cluster with it; "
+        "balanced sends copies only where a pair is likely and finds each cell's pairs by inverted lists; "
+        "clusters as the fast engine's, not bit for bit); docs/distributed.md".format(FAST_FROM),
+        "--engine", 13, choices=DISTRIBUTED_ENGINES))
     auto_modes: str = field(default=",".join(AUTO_MODES), metadata=_meta(
         "--mode auto: the modes the coordinator may pick, comma-separated (of gather, balanced, lean; not shared: "
         "only the coordinator picks)", "--auto-modes", None))
@@ -159,9 +173,20 @@ class DQMConfig:
         return self.mode != "paper"
 
     @property
+    def fast(self) -> bool:
+        """Whether the job runs the fast engine (:data:`DISTRIBUTED_ENGINES`)."""
+        return self.engine == "fast"
+
+    @property
+    def sketches(self) -> bool:
+        """Whether the balanced rounds exchange lower-bound sketches (exact balanced with ``sketch_dims`` > 0;
+        the fast engine's copies follow :func:`dqm.distributed.ghosts.likely_copies` and need none)."""
+        return self.mode == "balanced" and self.sketch_dims > 0 and not self.fast
+
+    @property
     def needs_sample(self) -> bool:
         """Whether agents send descriptor samples to agent 0 at set-up."""
-        return self.partition == "kmeans" or self.weighted or (self.mode == "balanced" and self.sketch_dims > 0)
+        return self.partition == "kmeans" or self.weighted or self.sketches
 
     def validated(self, n_features: Optional[int] = None, runtime: bool = False) -> "DQMConfig":
         """Self, after checking every field (one clear line naming it). ``runtime``: also accept the modes
@@ -186,6 +211,7 @@ class DQMConfig:
                               engine="a --mode auto job that may pick balanced (--auto-modes)" if may_balance
                               else f"a {self.mode}-mode distributed job")
         check_choice(self.ghost_rule, "ghost_rule", GHOST_RULES)
+        check_choice(self.engine, "engine", DISTRIBUTED_ENGINES)
         check_positive(self.halo, "halo")
         check_positive(self.seed_norm, "seed_norm")
         _check_int(self.samples_per_agent, "samples_per_agent", 1)

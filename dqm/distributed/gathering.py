@@ -83,18 +83,18 @@ class GatheredParts:
 
 def match_gathered(ids: np.ndarray, image_ids: np.ndarray, descriptors: np.ndarray,
                    params: Optional[QuickMatchParams] = None, approximate: bool = False,
-                   n_threads: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+                   n_threads: Optional[int] = None, engine: str = "exact") -> Tuple[np.ndarray, np.ndarray]:
     """:func:`dqm.quickmatch` of the gathered features (in feature-id order, as :meth:`GatheredParts.features`
     gives them) with ``params`` (default: the quadratic kernel, the rest QuickMatch's defaults; a distributed
-    job's :attr:`~dqm.distributed.config.DQMConfig.params`) on ``n_threads`` threads (None: the default):
-    ``(ids, labels)``, labels numbered canonically. Feature ids must be unique."""
+    job's :attr:`~dqm.distributed.config.DQMConfig.params`) with ``engine`` (a job's ``--engine``) on ``n_threads``
+    threads (None: the default): ``(ids, labels)``, labels numbered canonically. Feature ids must be unique."""
     import dqm
 
     if has_repeats(ids):
         raise ValueError("two sources sent the same feature id (feature ids must be unique across the job: give "
                          "each FEATURES file its own feature_ids, or none)")
     r = dqm.quickmatch(descriptors, image_ids, params=params or QuickMatchParams(kernel=FINITE_KERNEL),
-                       approximate=approximate, n_threads=n_threads)
+                       approximate=approximate, n_threads=n_threads, engine=engine)
     return assemble_labels([(ids, r.labels)])
 
 
@@ -184,7 +184,7 @@ class GatherDriver:
         t = time.monotonic()
         try:
             ids, labels = match_gathered(*self.gathered.features(own=self.features), self.cfg.params,
-                                         n_threads=self.match_threads)
+                                         n_threads=self.match_threads, engine=self.cfg.engine)
         except ValueError as exc:  # InputError included: duplicate ids, mixed types, over the memory budget
             reason = f"the gathered features cannot be matched: {exc}"
             self.bus.send_single(self.me, COORDINATOR, "refuse", reason=reason[:1000], param="")

@@ -131,7 +131,7 @@ class Leader:
         self.weights = weights
         self.step = np.full(self.m, 0.25 * partition.margin_scale(pooled, seeds))
         self.sign = np.zeros(self.m)
-        if cfg.mode == "balanced" and cfg.sketch_dims > 0:
+        if cfg.sketches:
             basis = sketch.basis_from_sample(pooled, seeds.mean(axis=0), cfg.sketch_dims)
         else:
             basis = np.zeros((0, self.dim), np.int8)

@@ -37,6 +37,7 @@ from typing import List, Optional
 
 from ..core.params import FINITE_KERNEL, QuickMatchParams
 from ..distributed import keys, messages, protocol
+from ..distributed.config import DISTRIBUTED_ENGINES
 from ..distributed.gathering import GatheredParts, gather_payload, match_gathered
 from ..validation import InputError
 
@@ -144,6 +145,8 @@ def _main(argv=None) -> int:
     p.add_argument("--out", help="receive: the result JSON (ids, labels, timings, bytes)")
     p.add_argument("--approximate", action="store_true", help="receive: approximate QuickMatch (faiss)")
     p.add_argument("--kernel", default=FINITE_KERNEL)
+    p.add_argument("--engine", default="exact", choices=DISTRIBUTED_ENGINES,
+                   help="receive: dqm.quickmatch's engine (a distributed job's --engine)")
     p.add_argument("--timeout", type=float, default=600.0)
     args = p.parse_args(argv)
     t_start = time.monotonic()
@@ -169,7 +172,7 @@ def _main(argv=None) -> int:
             g.close()
         t_gathered = time.monotonic()
         ids, labels = match_gathered(*g.features(own), QuickMatchParams(kernel=args.kernel),
-                                     approximate=args.approximate)
+                                     approximate=args.approximate, engine=args.engine)
         out = {"ids": ids.tolist(), "labels": labels.tolist(), "features": int(len(ids)),
                "bytes": g.bytes, "rejected": g.rejected, "gather_s": t_gathered - t_start,
                "match_s": time.monotonic() - t_gathered}

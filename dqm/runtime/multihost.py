@@ -431,7 +431,7 @@ def run_on_hosts(nss: "EmulatedHosts", mode: str, cfg: DQMConfig, files: Sequenc
         gather = "dqm.runtime.gather"
         recv = procs.start(["receive", "--sources", str(m), "--connect", connect(0), "--job", cfg.job,
                             "--out", str(out), "--timeout", str(timeout_s), str(files[0])]
-                           + (["--approximate"] if mode == "gather-approx" else []),
+                           + (["--approximate"] if mode == "gather-approx" else ["--engine", cfg.engine]),
                            workdir / f"{tag}receive.log", prefix=nss.host_prefix(0), module=gather)
         senders = [procs.start(["send", "--id", str(h), "--connect", connect(h), "--job", cfg.job,
                                 "--timeout", str(timeout_s), str(files[h])],

@@ -22,10 +22,12 @@ def data():
     return job_data()
 
 
-@pytest.mark.parametrize("mode,partition", [("balanced", "kmeans"), ("balanced", "seeded"), ("lean", "kmeans")])
-def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition):
+@pytest.mark.parametrize("mode,partition,engine", [("balanced", "kmeans", "exact"), ("balanced", "seeded", "exact"),
+                                                   ("lean", "kmeans", "exact"), ("balanced", "kmeans", "fast")])
+def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition, engine):
     X, ids = data
-    cfg = DQMConfig(agents=3, seed=2, partition=partition, mode=mode, job=f"eq-{mode}-{partition}")
+    cfg = DQMConfig(agents=3, seed=2, partition=partition, mode=mode, job=f"eq-{mode}-{partition}-{engine}",
+                    engine=engine)
     rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
     sim = simulate(X, ids, cfg)
     np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))

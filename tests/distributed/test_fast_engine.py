@@ -1,0 +1,109 @@
+"""The fast engine in distributed jobs (``DQMConfig(engine="fast")``, ``--engine fast``): gather, lean and paper
+cluster with dqm.quickmatch's fast engine; balanced sends copies only where a pair is likely
+(dqm.distributed.ghosts.likely_copies). Clusters are measured against the exact engine's, bytes against the
+exact mode's."""
+import numpy as np
+import pytest
+
+import dqm
+from dqm import InputError, evaluation
+from dqm.distributed import DQMConfig, boundary, forest, ghosts, simulate
+from dqm.distributed.config import config_args, params_hash
+from dqm.distributed.gathering import match_gathered
+from dqm.synthetic import sized
+
+
+@pytest.fixture(scope="module")
+def generated():
+    ds = sized(12_000, features_per_image=1_000, seed=3)
+    return ds.descriptors, ds.image_ids
+
+
+def test_engine_is_a_shared_parameter_checked_once():
+    cfg = DQMConfig(agents=3, engine="fast").validated(100)
+    assert "engine='fast'" in cfg.params_text()
+    assert params_hash(cfg.params_text()) != params_hash(cfg.but(engine="exact").params_text())
+    assert "--engine=fast" in config_args(cfg)
+    assert cfg.fast and not cfg.sketches and DQMConfig(agents=3).sketches
+    with pytest.raises(InputError, match="engine must be one of 'exact', 'fast'; got 'quick'"):
+        DQMConfig(agents=3, engine="quick").validated(100)
+
+
+@pytest.mark.parametrize("m", [4, 8])
+def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, m):
+    X, ids = generated
+    exact = simulate(X, ids, DQMConfig(agents=m, seed=1))
+    fast = simulate(X, ids, DQMConfig(agents=m, seed=1, engine="fast"))
+    central = dqm.quickmatch(X, ids, kernel="quadratic")
+    np.testing.assert_array_equal(exact.labels, central.labels)
+    f1 = evaluation.comembership_scores(fast.labels, central.labels).f1
+    assert f1 >= 0.99, f1
+    # fewer copies and bytes than the exact mode, within the budget; no sketches travel
+    assert fast.stats["ghosts_per_feature"] <= ghosts.copy_budget(m) + 1e-9
+    assert fast.stats["ghosts_per_feature"] < 0.6 * exact.stats["ghosts_per_feature"]
+    assert fast.stats["bytes_over_raw"] < 0.7 * exact.stats["bytes_over_raw"]
+    assert fast.traffic.total("sketch") == 0 and fast.traffic.total("request") == 0
+    assert fast.stats["arrival_check_failures"] == 0
+    # every copy passed the likely rule (the receiver's check agrees: no failures above)
+    H = boundary.bisector_lower_bounds(X.astype(np.float64), fast.sites, fast.cells, fast.weights)
+    R = ghosts.reach(central.sigma, fast.config.rho)
+    f, b = fast.copies[:, 0], fast.copies[:, 1]
+    assert (H[f, b] < ghosts.LIKELY_SHARE * R[f] * (1 + 1e-9)).all()
+    # deterministic
+    again = simulate(X, ids, DQMConfig(agents=m, seed=1, engine="fast"))
+    np.testing.assert_array_equal(again.labels, fast.labels)
+
+
+def test_likely_copies_keep_the_nearest_within_the_budget():
+    H = np.array([[0.1, 0.0, 0.05], [0.2, 0.0, 0.9], [0.01, 0.0, 0.02], [0.0, 0.0, 0.0]])
+    R = np.array([1.0, 1.0, 1.0, 0.0])  # the last: an exact duplicate (reach 0), never sent
+    got = ghosts.likely_copies(H, R, [0, 2], budget=10.0)
+    assert got[0].tolist() == [0, 1, 2] and got[2].tolist() == [0, 2]
+    # budget 1 copy per feature: 4 features, 4 copies, the smallest H / R first (0.01, 0.02, 0.05, 0.1)
+    got = ghosts.likely_copies(H, R, [0, 2], budget=1.0)
+    assert got[0].tolist() == [0, 2] and got[2].tolist() == [0, 2]
+    assert ghosts.likely_mask(H[:, 0], R).tolist() == [True, True, True, False]
+    assert ghosts.copy_budget(8) > ghosts.copy_budget(4)
+
+
+@pytest.mark.parametrize("mode", ["lean", "paper"])
+def test_lean_and_paper_cluster_cells_with_the_fast_engine(generated, mode, monkeypatch):
+    X, ids = generated
+    engines = []
+    real = dqm.distributed.cascade.quickmatch
+
+    def spy(*args, **kwargs):
+        engines.append(kwargs.get("engine"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(dqm.distributed.cascade, "quickmatch", spy)
+    r = simulate(X, ids, DQMConfig(agents=3, seed=1, mode=mode, engine="fast"))
+    assert engines and set(engines) == {"fast"}
+    central = dqm.quickmatch(X, ids, kernel="quadratic")
+    assert evaluation.comembership_scores(r.labels, central.labels).f1 > 0.9
+
+
+def test_gather_matches_with_the_jobs_engine(generated):
+    X, ids = generated
+    fid = np.arange(len(X))
+    for engine in ("exact", "fast"):
+        _, labels = match_gathered(fid, ids, X, DQMConfig(agents=2).params, engine=engine)
+        ref = dqm.quickmatch(X, ids, kernel="quadratic", engine=engine).labels
+        assert evaluation.comembership_scores(labels, ref).f1 == 1.0
+
+
+def test_components_equal_scipys_on_random_forests():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(0)
+    for k, e in [(1, 0), (5, 0), (50, 30), (400, 390), (2000, 500)]:
+        u, v = rng.integers(0, k, e), rng.integers(0, k, e)
+        got = forest.components(k, u, v)
+        _, ref = connected_components(coo_matrix((np.ones(e), (u, v)), shape=(k, k)), directed=False)
+        # the same partition, each labelled by its lowest node
+        lowest = np.full(k, k)
+        np.minimum.at(lowest, ref, np.arange(k))
+        np.testing.assert_array_equal(got, lowest[ref])
+    chain = np.arange(999)
+    assert (forest.components(1000, chain[::-1], chain[::-1] + 1) == 0).all()  # a long path, any order
