@@ -18,8 +18,10 @@ for every number of agents m and every mode, and records:
 
 Modes: ``balanced`` (one-way rule + sketch pre-filter, the default), ``one-way``
 (balanced without sketches), ``two-way`` (balanced with the plain two-way
-bisector halo, the baseline of the byte target), ``lean`` (the cascade) and
-``paper``. The paper mode's exact cell distances (a QP per feature and cell)
+bisector halo, the baseline of the byte target), ``lean`` (the cascade),
+``paper`` and ``fast`` (balanced with ``engine="fast"``: copies only where a pair
+is likely, dqm.distributed.ghosts.likely_copies; its F1 is against the exact
+centralized clusters). The paper mode's exact cell distances (a QP per feature and cell)
 take hours on the large sets at large m; rows above ``--paper-max`` (n * m) are
 listed as not run.
 
@@ -27,6 +29,7 @@ listed as not run.
     python scripts/dqm_frontier.py --out docs               # regenerate docs/dqm_frontier.md + figure
     python scripts/dqm_frontier.py --data graf --agents 2,8 --modes balanced,two-way
     python scripts/dqm_frontier.py --data features.npz --agents 4,8 --modes balanced   # your own photos
+    python scripts/dqm_frontier.py --out docs --data graf,100000,sacre_coeur --agents 4,8 --modes balanced,fast
 
 Rows already in the output's JSON are reused (``--fresh`` recomputes the
 selected ones; rows of other modes or m are kept), so an interrupted run
@@ -59,20 +62,26 @@ MODES = {
     "two-way": {"mode": "balanced", "ghost_rule": "two-way", "sketch_dims": 0},
     "lean": {"mode": "lean"},
     "paper": {"mode": "paper"},
+    "fast": {"mode": "balanced", "engine": "fast"},
 }
+#: the fast balanced mode's targets (issue 62): F1 against exact, bytes / raw at m = 4 and 8, busiest features
+FAST_F1 = 0.995
+FAST_BYTES = {4: 1.5, 8: 2.0}
+FAST_SHARE = 2.0
 
 
 def load(name: str, shared: Path):
     """(descriptors, image_ids) of a named data set, or None when its files are absent."""
-    if name in ("graf", "wall"):
+    if name in ("graf", "wall", "sacre_coeur"):
         from dqm.vision import datasets, features
 
-        path = shared / "data" / "oxford" / name
+        path = shared / "data" / ("oxford" if name != "sacre_coeur" else "") / name
         if not path.exists():
             print(f"skipping {name}: {path} is absent", file=sys.stderr)
             return None
-        seq = datasets.load_homography_sequence(path)
-        X, ids, _ = features.extract_many(seq.image_paths)
+        images = (datasets.load_homography_sequence(path).image_paths if name != "sacre_coeur"
+                  else sorted(path.glob("*.jpg")))
+        X, ids, _ = features.extract_many(images)  # OpenCV's SIFT at its defaults
         return X, ids
     if name.endswith(".npz"):  # a FEATURES file (dqm extract): real photos of one's own
         from dqm import io
@@ -86,7 +95,7 @@ def load(name: str, shared: Path):
 def label(name: str, n: int) -> str:
     if name.endswith(".npz"):
         return f"{Path(name).stem} ({n})"
-    return f"{name} ({n})" if name in ("graf", "wall") else f"generated {n}"
+    return f"{name} ({n})" if name in ("graf", "wall", "sacre_coeur") else f"generated {n}"
 
 
 def measure(X, ids, m: int, mode: str, central, central_cpu: float, seed: int) -> dict:
@@ -145,6 +154,15 @@ def targets(results: dict) -> str:
             b, t = rows[("balanced", 8)]["bytes_over_raw"], rows[("two-way", 8)]["bytes_over_raw"]
             parts.append(f"bytes at m=8: {b:.2f}x raw vs plain two-way halo {t:.2f}x: "
                          f"{100 * (1 - b / t):.0f}% below (target >= 40%)")
+        fast = sorted((r for (mode, _), r in rows.items() if mode == "fast"), key=lambda r: r["m"])
+        if fast:
+            parts.append("fast balanced " + ", ".join(
+                f"m={r['m']}: F1 {r['f1']:.4f} {'>=' if r['f1'] >= FAST_F1 else '<'} {FAST_F1}, "
+                f"{r['bytes_over_raw']:.2f}x raw"
+                + (f" {'<=' if r['bytes_over_raw'] <= FAST_BYTES[r['m']] else '>'} {FAST_BYTES[r['m']]}"
+                   if r["m"] in FAST_BYTES else "")
+                + f", busiest features {r['max_features_share'] * r['m']:.2f}/m "
+                f"{'<=' if r['max_features_share'] * r['m'] <= FAST_SHARE else '>'} {FAST_SHARE}/m" for r in fast))
         cells = max(r["largest_cell_share"] for r in bal)
         parts.append(f"largest cell <= {cells:.2f} n/m (target 1.25)")
         lines.append(f"* **{data}** (centralized {d['central_cpu_s']:.1f} CPU s): " + "; ".join(parts) + ".")
@@ -154,7 +172,8 @@ def targets(results: dict) -> str:
 def summary_table(results: dict) -> str:
     """The compact frontier table of docs/distributed.md: balanced against lean and the two-way halo."""
     head = ("| data | m | balanced: bytes / raw | pair share | CPU / centralized | lean: bytes / raw | pair share "
-            "| CPU / centralized | two-way halo: bytes / raw | one-way without sketch: bytes / raw |")
+            "| CPU / centralized | two-way halo: bytes / raw | one-way without sketch: bytes / raw "
+            "| fast: bytes / raw | F1 | CPU / centralized |")
     out = [head, "|" + "---|" * (head.count("|") - 1)]
     for data, d in results.items():
         rows = {(r["mode"], r["m"]): r for r in d["rows"] if not r.get("skipped")}
@@ -164,14 +183,33 @@ def summary_table(results: dict) -> str:
                 return ["–"] * len(fields) if r is None else [f"{r[f]:.2f}" for f in fields]
             b = cell("balanced", "bytes_over_raw", "max_pair_share", "cpu_over_central")
             lean = cell("lean", "bytes_over_raw", "max_pair_share", "cpu_over_central")
+            fast = cell("fast", "bytes_over_raw", "f1", "cpu_over_central")
+            if rows.get(("fast", m)):
+                fast[1] = f"{rows[('fast', m)]['f1']:.4f}"
             out.append(f"| {data} | {m} | " + " | ".join(b + lean + cell("two-way", "bytes_over_raw")
-                                                          + cell("one-way", "bytes_over_raw")) + " |")
+                                                          + cell("one-way", "bytes_over_raw") + fast) + " |")
     return "\n".join(out)
 
 
-def update_block(path: Path, text: str) -> None:
-    """Replace what stands between the frontier markers in ``path`` (if it has them)."""
-    begin, end = "<!-- frontier: written by scripts/dqm_frontier.py -->", "<!-- /frontier -->"
+def fast_table(results: dict) -> str:
+    """docs/distributed.md's table of the fast balanced mode, beside the exact mode's bytes and copies."""
+    head = ("| data | M | F1 | bytes / raw (exact balanced) | busiest agent's features | copies per feature (exact) |")
+    out = [head, "|" + "---|" * (head.count("|") - 1)]
+    for data, d in results.items():
+        rows = {(r["mode"], r["m"]): r for r in d["rows"] if not r.get("skipped")}
+        for m in sorted(m for (mode, m) in rows if mode == "fast"):
+            f, b = rows[("fast", m)], rows.get(("balanced", m))
+            exact = (lambda key, b=b: "" if b is None else f" ({b[key]:.2f})")  # noqa: E731
+            over = "**" if m in FAST_BYTES and f["bytes_over_raw"] > FAST_BYTES[m] else ""
+            out.append(f"| {data} | {m} | {f['f1']:.4f} | {over}{f['bytes_over_raw']:.2f}{over}"
+                       f"{exact('bytes_over_raw')} | {f['max_features_share'] * m:.2f} / M | "
+                       f"{f['ghosts_per_feature']:.2f}{exact('ghosts_per_feature')} |")
+    return "\n".join(out)
+
+
+def update_block(path: Path, text: str, name: str = "frontier") -> None:
+    """Replace what stands between the ``name`` markers in ``path`` (if it has them)."""
+    begin, end = f"<!-- {name}: written by scripts/dqm_frontier.py -->", f"<!-- /{name} -->"
     if not path.exists():
         return
     doc = path.read_text()
@@ -188,7 +226,7 @@ def figure(results: dict, path: Path) -> None:
     data = list(results)
     fig, axes = plt.subplots(2, len(data), figsize=(4.2 * len(data), 7.5), squeeze=False)
     styles = {"balanced": ("o-", "C0"), "one-way": ("^--", "C1"), "two-way": ("v:", "C2"), "lean": ("s-", "C3"),
-              "paper": ("D-.", "C4")}
+              "paper": ("D-.", "C4"), "fast": ("P-", "C5")}
     for j, name in enumerate(data):
         rows = [r for r in results[name]["rows"] if not r.get("skipped")]
         top, bottom = axes[0, j], axes[1, j]
@@ -243,7 +281,8 @@ def write(results: dict, out: Path, argv) -> None:
         "invocation, single-threaded. Modes: "
         "`balanced` (one-way rule + 48-dim sketch pre-filter, where a pilot shows it can pay), `one-way` "
         "(no sketch), `two-way` (the plain "
-        "two-way bisector halo: the byte target's baseline), `lean` (cascade), `paper`. "
+        "two-way bisector halo: the byte target's baseline), `lean` (cascade), `paper`, `fast` (balanced with the "
+        "fast engine: copies only where a pair is likely; F1 against the exact clusters). "
         "How to read it: docs/distributed.md.",
         "",
         targets(results),
@@ -254,6 +293,7 @@ def write(results: dict, out: Path, argv) -> None:
     ]
     (out / "dqm_frontier.md").write_text("\n".join(text) + "\n")
     update_block(out / "distributed.md", targets(results) + "\n\n" + summary_table(results))
+    update_block(out / "distributed.md", fast_table(results), "frontier-fast")
 
 
 def main(argv=None):
