@@ -184,8 +184,9 @@ def table(rows) -> str:
     def key(r: dict) -> tuple:
         return r["data"], r["m"], r["rate_mbit"], r.get("engine", "exact")
 
-    def shown(r: dict) -> str:  # the mode, and the engine where it is not the exact one
-        return r["mode"] + ("" if r.get("engine", "exact") == "exact" else f" ({r['engine']})")
+    def shown(r: dict) -> str:  # the mode, and the engine where it is not the exact one (gather-approx: faiss)
+        fast = r.get("engine", "exact") != "exact" and r["mode"] != "gather-approx"
+        return r["mode"] + (f" ({r['engine']})" if fast else "")
 
     ref = {key(r): r for r in rows if r["mode"] == "gather"}
     for r in rows:

@@ -172,8 +172,8 @@ class BalancedCore:
         self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
         out = {}
         if self.cfg.fast:  # no certificate: the copies a pair likely needs (no sketches, no request)
-            for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"),
-                                                  ghosts.copy_budget(self.m)).items():
+            for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"), ghosts.copy_budget(self.m),
+                                                  -self.S[:, self.me]).items():
                 self.plan[b] = (idx, np.ones(len(idx), bool), False)
             return out
         for b in self.recipients("offer"):
@@ -260,7 +260,7 @@ class BalancedCore:
         R = ghosts.reach(p["sigma"], self.cfg.rho)
         tol = 1e-9 * (1.0 + R + H)
         if self.cfg.fast:
-            ok = ghosts.likely_mask(H - tol, R + tol)
+            ok = ghosts.likely_mask(H - tol, R + tol, -self.S[self.me, a] + tol.max(initial=0.0))
         else:
             ok = ghosts.ship_mask(H - tol, R + tol, self.E[self.me, a], self.S[self.me, a], self.rule)
         if self.space is not None and self.requested.get(a):  # a filtered with the whole sketch

@@ -56,8 +56,7 @@ DEFAULT_SKETCH_DIMS = 48
 #: the engines a distributed job runs (``dqm match``'s vocabulary; docs/distributed.md "The fast engine"):
 #: ``exact`` (every pair within reach; balanced mode's labels are the centralized ones bit for bit) or ``fast``
 #: (gather, lean, paper: dqm.quickmatch's fast engine where they cluster; balanced: copies travel only where a
-#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`, and each cell's pairs are found by inverted
-#: lists)
+#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`; each cell's own pairs stay exact)
 DISTRIBUTED_ENGINES = ("exact", "fast")
 DEFAULT_ENGINE = "exact"
 
@@ -144,8 +143,8 @@ class DQMConfig:
     engine: str = field(default=DEFAULT_ENGINE, metadata=_meta(
         "exact (default: every pair within reach; balanced gives dqm.quickmatch's labels bit for bit) or fast "
         "(dqm match's fast engine, its default from {:,} features: gather, lean and paper cluster with it; "
-        "balanced sends copies only where a pair is likely and finds each cell's pairs by inverted lists; "
-        "clusters as the fast engine's, not bit for bit); docs/distributed.md".format(FAST_FROM),
+        "balanced sends copies only where a pair is likely, without a certificate; clusters close to the exact "
+        "ones, not bit for bit); docs/distributed.md".format(FAST_FROM),
         "--engine", 13, choices=DISTRIBUTED_ENGINES))
     auto_modes: str = field(default=",".join(AUTO_MODES), metadata=_meta(
         "--mode auto: the modes the coordinator may pick, comma-separated (of gather, balanced, lean; not shared: "

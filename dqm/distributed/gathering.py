@@ -189,7 +189,8 @@ class GatherDriver:
             reason = f"the gathered features cannot be matched: {exc}"
             self.bus.send_single(self.me, COORDINATOR, "refuse", reason=reason[:1000], param="")
             raise JobAborted(reason) from None
-        self.core_stats = {"match_s": time.monotonic() - t, "gathered": float(len(ids))}
+        self.core_stats = {"match_s": time.monotonic() - t, "gathered": float(len(ids)),
+                           "fast_engine": float(self.cfg.fast)}  # which engine matched, for the report
         self.gathered = None  # the parts are no longer needed
         self.bus.send_single(self.me, COORDINATOR, "result", ids=ids, labels=labels)
         self._enter("wait_acks")

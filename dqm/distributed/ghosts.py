@@ -28,7 +28,7 @@ sketched feature of the receiver can reach.
 
 The fast engine (``engine="fast"``) needs no certificate, as the centralized fast
 engine needs none, and sends the copies a pair is *likely* to need
-(:func:`likely_copies`): x goes to b only when ``h(x, b) < LIKELY_SHARE * R_x``,
+(:func:`likely_copies`): x goes to b only when ``h(x, b) < LIKELY_SHARE * max(R_x, -s[b, a])``,
 at most :func:`copy_budget` copies per feature of the cell, those nearest to a
 boundary (relative to their reach) first. On generated SIFT-like features nearly
 every feature lies within reach of several bisectors (the bound's rule ships 3.5
@@ -113,21 +113,24 @@ def sketch_mask(h_to_a: np.ndarray, R: np.ndarray, e_ab: float, s_ab: float, rul
     return h < np.maximum(R - e_ab, -s_ab)
 
 
-def likely_copies(H: np.ndarray, R: np.ndarray, to: Sequence[int], budget: float,
+def likely_copies(H: np.ndarray, R: np.ndarray, to: Sequence[int], budget: float, their_reach: np.ndarray,
                   share: float = LIKELY_SHARE) -> Dict[int, np.ndarray]:
     """The fast engine's copies: for every cell b in ``to``, the indices (ascending) of this cell's features
-    whose bisector distance ``H[:, b]`` is below ``share * R`` (their reach), at most ``budget`` copies per
-    feature of the cell in all, kept by the smallest ``H / R`` (ties: the lower cell, then the lower
-    index). Deterministic, and a receiver can check every copy it gets against the first test
-    (:func:`likely_mask`). A feature whose reach is 0 (an exact duplicate) never travels."""
+    whose bisector distance ``H[:, b]`` is below ``share`` of the reach that matters, ``max(R_x,
+    their_reach[b])`` (``their_reach[b] = -s[b, a]``, the most any feature of b reaches past the bisector:
+    under the one-way rule a pair is met only where x travels, so b's reach counts as the exact rule counts
+    it), at most ``budget`` copies per feature of the cell in all, kept by the smallest ratio (ties: the
+    lower cell, then the lower index). Deterministic, and a receiver can check every copy it gets against
+    the first test (:func:`likely_mask`)."""
     n = len(R)
     R = np.asarray(R, np.float64)
     to = [int(b) for b in to]
     if n == 0 or not to:
         return {b: np.zeros(0, np.int64) for b in to}
+    reach = np.maximum(R[:, None], np.asarray(their_reach, np.float64)[None, to])
     with np.errstate(divide="ignore", invalid="ignore"):
-        score = np.asarray(H, np.float64)[:, to] / R[:, None]
-    score[~(R > 0)] = np.inf
+        score = np.asarray(H, np.float64)[:, to] / reach
+    score[~(reach > 0)] = np.inf
     rows, cols = np.nonzero(score < share)
     cap = int(budget * n)
     if len(rows) > cap:
@@ -136,7 +139,8 @@ def likely_copies(H: np.ndarray, R: np.ndarray, to: Sequence[int], budget: float
     return {b: np.sort(rows[cols == k]).astype(np.int64) for k, b in enumerate(to)}
 
 
-def likely_mask(h_to_b: np.ndarray, R: np.ndarray, share: float = LIKELY_SHARE) -> np.ndarray:
-    """Features (bisector distances ``h_to_b`` to cell b, reach ``R``) that :func:`likely_copies` may send to b."""
-    R = np.asarray(R, np.float64)
-    return (np.asarray(h_to_b, np.float64) < share * R) & (R > 0)
+def likely_mask(h_to_b: np.ndarray, R: np.ndarray, their_reach: float, share: float = LIKELY_SHARE) -> np.ndarray:
+    """Features (bisector distances ``h_to_b`` to cell b, reach ``R``; b's ``their_reach``) that
+    :func:`likely_copies` may send to b."""
+    reach = np.maximum(np.asarray(R, np.float64), float(their_reach))
+    return (np.asarray(h_to_b, np.float64) < share * reach) & (reach > 0)

@@ -49,6 +49,20 @@ def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition, engi
         assert all(st["consistency_failures"] == 0 for st in rep["per_agent"].values())
 
 
+def test_a_gather_job_matches_with_the_jobs_engine(data):
+    import dqm
+
+    X, ids = data
+    for engine in ("fast", "exact"):
+        cfg = DQMConfig(agents=3, seed=2, mode="gather", job=f"gather-{engine}", engine=engine)
+        rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120))
+        np.testing.assert_array_equal(np.asarray(rep["labels"]),
+                                      dqm.quickmatch(X, ids, kernel="quadratic", engine=engine).labels)
+        # the gathering agent says which engine matched (the quadratic kernel's clusters are the same here)
+        gatherer = [st for st in rep["per_agent"].values() if "match_s" in st]
+        assert len(gatherer) == 1 and gatherer[0]["fast_engine"] == float(engine == "fast"), rep["per_agent"]
+
+
 def test_runtime_agrees_sigma_of_single_feature_images(data):
     """Images with one feature take the median sigma of all agents' features (the fill rounds)."""
     import dqm

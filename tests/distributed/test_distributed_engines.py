@@ -9,7 +9,6 @@ import dqm
 from dqm import InputError, evaluation
 from dqm.distributed import DQMConfig, boundary, forest, ghosts, simulate
 from dqm.distributed.config import config_args, params_hash
-from dqm.distributed.gathering import match_gathered
 from dqm.synthetic import sized
 
 
@@ -44,11 +43,21 @@ def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, m):
     assert fast.stats["bytes_over_raw"] < 0.7 * exact.stats["bytes_over_raw"]
     assert fast.traffic.total("sketch") == 0 and fast.traffic.total("request") == 0
     assert fast.stats["arrival_check_failures"] == 0
-    # every copy passed the likely rule (the receiver's check agrees: no failures above)
+    # every copy lies within the likely share of the reach that matters (the receiver's check agrees: no
+    # failures above); the bound's rule would have sent far more
     H = boundary.bisector_lower_bounds(X.astype(np.float64), fast.sites, fast.cells, fast.weights)
     R = ghosts.reach(central.sigma, fast.config.rho)
     f, b = fast.copies[:, 0], fast.copies[:, 1]
-    assert (H[f, b] < ghosts.LIKELY_SHARE * R[f] * (1 + 1e-9)).all()
+    a = fast.cells[f]
+    their = np.full((m, m), -np.inf)  # their[b, a]: the most a feature of cell b reaches past the bisector with a
+    for cb in range(m):
+        for ca in range(m):
+            inside = fast.cells == cb
+            if ca != cb and inside.any():
+                their[cb, ca] = (R[inside] - H[inside, ca]).max()
+    reach = np.maximum(R[f], their[b, a])
+    assert (H[f, b] < ghosts.LIKELY_SHARE * reach * (1 + 1e-6) + 1e-9).all()
+    assert len(f) < 0.6 * len(exact.copies)
     # deterministic
     again = simulate(X, ids, DQMConfig(agents=m, seed=1, engine="fast"))
     np.testing.assert_array_equal(again.labels, fast.labels)
@@ -56,13 +65,19 @@ def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, m):
 
 def test_likely_copies_keep_the_nearest_within_the_budget():
     H = np.array([[0.1, 0.0, 0.05], [0.2, 0.0, 0.9], [0.01, 0.0, 0.02], [0.0, 0.0, 0.0]])
-    R = np.array([1.0, 1.0, 1.0, 0.0])  # the last: an exact duplicate (reach 0), never sent
-    got = ghosts.likely_copies(H, R, [0, 2], budget=10.0)
-    assert got[0].tolist() == [0, 1, 2] and got[2].tolist() == [0, 2]
+    R = np.array([1.0, 1.0, 1.0, 0.0])  # the last: an exact duplicate (reach 0)
+    none = np.full(3, -np.inf)  # no feature of the receivers reaches past the bisector
+    got = ghosts.likely_copies(H, R, [0, 2], budget=10.0, their_reach=none)
+    assert got[0].tolist() == [0, 1, 2] and got[2].tolist() == [0, 2]  # the duplicate reaches nothing
     # budget 1 copy per feature: 4 features, 4 copies, the smallest H / R first (0.01, 0.02, 0.05, 0.1)
-    got = ghosts.likely_copies(H, R, [0, 2], budget=1.0)
+    got = ghosts.likely_copies(H, R, [0, 2], budget=1.0, their_reach=none)
     assert got[0].tolist() == [0, 2] and got[2].tolist() == [0, 2]
-    assert ghosts.likely_mask(H[:, 0], R).tolist() == [True, True, True, False]
+    # a receiver whose features reach 4 past the bisector: x travels within 0.3 * 4 of it (the duplicate too)
+    far = np.array([4.0, -np.inf, -np.inf])
+    got = ghosts.likely_copies(H + np.array([[1.0, 0, 0]]), R, [0, 2], budget=10.0, their_reach=far)
+    assert got[0].tolist() == [0, 2, 3]  # 1.1, 1.01, 1.0 < 1.2; not 1.2
+    assert ghosts.likely_mask(H[:, 0] + 1.0, R, 4.0).tolist() == [True, False, True, True]
+    assert ghosts.likely_mask(H[:, 0], R, -np.inf).tolist() == [True, True, True, False]
     assert ghosts.copy_budget(8) > ghosts.copy_budget(4)
 
 
@@ -81,15 +96,6 @@ def test_lean_and_paper_cluster_cells_with_the_fast_engine(generated, mode, monk
     assert engines and set(engines) == {"fast"}
     central = dqm.quickmatch(X, ids, kernel="quadratic")
     assert evaluation.comembership_scores(r.labels, central.labels).f1 > 0.9
-
-
-def test_gather_matches_with_the_jobs_engine(generated):
-    X, ids = generated
-    fid = np.arange(len(X))
-    for engine in ("exact", "fast"):
-        _, labels = match_gathered(fid, ids, X, DQMConfig(agents=2).params, engine=engine)
-        ref = dqm.quickmatch(X, ids, kernel="quadratic", engine=engine).labels
-        assert evaluation.comembership_scores(labels, ref).f1 == 1.0
 
 
 def test_components_equal_scipys_on_random_forests():
