@@ -166,7 +166,7 @@ def run(args) -> int:
 
         # gather ran dqm.quickmatch: check it against balanced's simulation (its clusters with the quadratic
         # kernel and the exact engine), or against dqm.quickmatch itself with another kernel or the fast engine
-        central = mode == "gather" and (cfg.kernel != "quadratic" or cfg.fast)
+        central = mode == "gather" and (cfg.kernel != "quadratic" or cfg.engine != "exact")
         what, name = (("dqm.quickmatch in this process", "dqm.quickmatch") if central
                       else ("the in-process simulator", "In-process simulator"))
         print(f"Checking: the same job ({len(labels)} features, {cfg.agents} agents, {mode} mode) in {what}; this "

@@ -54,10 +54,12 @@ DEFAULT_SEED = 1
 #: the default dimension of the lower-bound sketches (docs/distributed.md, frontier table)
 DEFAULT_SKETCH_DIMS = 48
 #: the engines a distributed job runs (``dqm match``'s vocabulary; docs/distributed.md "The fast engine"):
-#: ``exact`` (every pair within reach; balanced mode's labels are the centralized ones bit for bit) or ``fast``
+#: ``auto`` (the coordinator picks exact below FAST_FROM features in all, fast from there, as dqm match does,
+#: and its ``go`` names the pick), ``exact`` (every pair within reach; balanced mode's labels are the
+#: centralized ones bit for bit) or ``fast``
 #: (gather, lean, paper: dqm.quickmatch's fast engine where they cluster; balanced: copies travel only where a
 #: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`; each cell's own pairs stay exact)
-DISTRIBUTED_ENGINES = ("exact", "fast")
+DISTRIBUTED_ENGINES = ("exact", "fast", "auto")
 DEFAULT_ENGINE = "exact"
 
 
@@ -141,10 +143,11 @@ class DQMConfig:
     balance_rounds: int = field(default=12, metadata=_meta(
         "most rounds of cell-weight refinement", "--balance-rounds", 12))
     engine: str = field(default=DEFAULT_ENGINE, metadata=_meta(
-        "exact (default: every pair within reach; balanced gives dqm.quickmatch's labels bit for bit) or fast "
+        "exact (default: every pair within reach; balanced gives dqm.quickmatch's labels bit for bit), fast "
         "(dqm match's fast engine, its default from {:,} features: gather, lean and paper cluster with it; "
         "balanced sends copies only where a pair is likely, without a certificate; clusters close to the exact "
-        "ones, not bit for bit); docs/distributed.md".format(FAST_FROM),
+        "ones, not bit for bit) or auto (the coordinator picks fast from {:,} features in all, as dqm match "
+        "does); docs/distributed.md".format(FAST_FROM, FAST_FROM),
         "--engine", 13, choices=DISTRIBUTED_ENGINES))
     auto_modes: str = field(default=",".join(AUTO_MODES), metadata=_meta(
         "--mode auto: the modes the coordinator may pick, comma-separated (of gather, balanced, lean; not shared: "
@@ -175,6 +178,13 @@ class DQMConfig:
     def fast(self) -> bool:
         """Whether the job runs the fast engine (:data:`DISTRIBUTED_ENGINES`)."""
         return self.engine == "fast"
+
+    def engine_for(self, n_features: int) -> str:
+        """The engine a job of ``n_features`` features in all runs: :attr:`engine`, or for ``auto`` exact below
+        :data:`~dqm.core.clustering.FAST_FROM` features and fast from there (``dqm match``'s rule)."""
+        if self.engine != "auto":
+            return self.engine
+        return "fast" if n_features >= FAST_FROM else "exact"
 
     @property
     def sketches(self) -> bool:

@@ -223,6 +223,8 @@ class CoordinatorCore:
                     self.fail(JobFailed(f"agent {p} holds descriptors of {name} {self.ready[p][field]}, agent "
                                         f"{hosts[0]} of {name} {ref[field]}", p, "start",
                                         "Give every agent FEATURES of the same descriptor type.", refused=True))
+        if self.requested.engine == "auto":  # the features in all decide, as in dqm match; go names the pick
+            self.cfg = self.cfg.but(engine=self.requested.engine_for(self.job_shape().n))
         if self.requested.mode == "auto" and self.auto is None:
             self.phase = "probe"  # the shell calls decide_unmeasured(), and if that cannot, times the links
             return
@@ -230,8 +232,11 @@ class CoordinatorCore:
 
     def _go(self) -> None:
         """Every process is ready: run. In the epoch where ``--mode auto`` measured, ``go`` names the
-        mode it picked, and the processes make that mode's drivers (no second start)."""
+        mode it picked, and with ``--engine auto`` the engine (from the features in all), and the processes
+        make those drivers (no second start)."""
         fields = {"mode": self.cfg.mode} if self.requested.mode == "auto" else {}
+        if self.requested.engine == "auto":
+            fields["engine"] = self.cfg.engine
         for p in self.hosts():
             self.outbox.append((p, "go", fields))
         self.phase = "running"
@@ -416,7 +421,7 @@ class CoordinatorCore:
                 probe_s: float, pairs: Dict[int, list], cores: float, gather_cores: float, n: int,
                 kernel_cpu_s: Optional[float], at_least: Sequence[int] = ()) -> None:
         hosts = self.hosts()
-        self.cfg = self.requested.but(mode=mode)
+        self.cfg = self.cfg.but(mode=mode)
         self.auto = {
             "rates_bytes_s": {str(p): round(rates[p], 1) for p in hosts if p in rates},
             "rates_at_least": [str(p) for p in hosts if p in at_least],

@@ -28,7 +28,7 @@ from typing import Callable, Dict, List, Optional, Protocol
 
 import numpy as np
 
-from .config import DQMConfig, differing_param, params_hash, parse_params
+from .config import DISTRIBUTED_ENGINES, DQMConfig, differing_param, params_hash, parse_params
 from .costmodel import AUTO_MODES
 from .driver import AgentDriver, JobAborted, Transport, ready_fields
 from .gathering import GatherDriver
@@ -111,11 +111,17 @@ class ProcessHost:
     def job_config(self, params: str) -> DQMConfig:
         """This process's configuration for a ``start`` whose parameter text is ``params``: its own, except
         that a process started with mode auto takes the mode the coordinator names (auto while it measures,
-        then gather, lean or balanced); the parameter check that follows compares everything else."""
-        if self.cfg.mode != "auto":
-            return self.cfg
-        theirs = parse_params(params).get("mode", "").strip("'\"")
-        return self.cfg.but(mode=theirs) if theirs in AUTO_MODES + ("auto",) else self.cfg
+        then gather, lean or balanced), and one started with engine auto the engine it names; the parameter
+        check that follows compares everything else."""
+        cfg = self.cfg
+        theirs = parse_params(params)
+        if cfg.mode == "auto":
+            mode = theirs.get("mode", "").strip("'\"")
+            cfg = cfg.but(mode=mode) if mode in AUTO_MODES + ("auto",) else cfg
+        if cfg.engine == "auto":  # a later epoch's start names the engine the coordinator picked
+            engine = theirs.get("engine", "").strip("'\"")
+            cfg = cfg.but(engine=engine) if engine in DISTRIBUTED_ENGINES else cfg
+        return cfg
 
     def _refuse(self, reason: str, param: str = "") -> None:
         self.bus.send_single(self.home, COORDINATOR, "refuse", reason=reason, param=param)
@@ -129,8 +135,8 @@ class ProcessHost:
         if kind == "start":
             self._start(msg)
         elif kind == "go" and msg["epoch"] == self.epoch:
-            if self.job_cfg.mode == "auto":
-                self._pick(msg.get("mode", ""))
+            if self.job_cfg.mode == "auto" or self.job_cfg.engine == "auto":
+                self._pick(msg.get("mode", ""), msg.get("engine", ""))
             for slot in self.slots.values():
                 slot.begin(self.seed)
         elif kind == "takeover":
@@ -180,7 +186,7 @@ class ProcessHost:
             log.info("epoch %d: mode %s", self.epoch, cfg.mode)
         self.catalog = bool(msg["catalog"])
         self.hosted = hosted
-        if cfg.mode == "auto":  # the coordinator measures the links, then its go names the mode it picked
+        if "auto" in (cfg.mode, cfg.engine):  # the coordinator picks, then its go names the mode or engine
             self.slots = {}
         else:
             self._make_drivers()
@@ -194,13 +200,21 @@ class ProcessHost:
         self.slots = {a: self._driver(a, self._features(a), first) for a in self.hosted}
         self.ran = True
 
-    def _pick(self, mode: str) -> None:
-        """``go`` of an auto epoch: the mode the coordinator picked; make its drivers (no second start)."""
-        if mode not in AUTO_MODES:
-            raise JobAborted(f"the coordinator's go names no mode of {', '.join(AUTO_MODES)} in a --mode auto job "
-                             f"(got {mode!r})")
-        self.job_cfg = self.job_cfg.but(mode=mode)
-        log.info("epoch %d: mode %s", self.epoch, mode)
+    def _pick(self, mode: str, engine: str) -> None:
+        """``go`` of an auto epoch: the mode (``--mode auto``) and the engine (``--engine auto``) the
+        coordinator picked; make their drivers (no second start)."""
+        if self.job_cfg.mode == "auto":
+            if mode not in AUTO_MODES:
+                raise JobAborted(f"the coordinator's go names no mode of {', '.join(AUTO_MODES)} in a --mode auto "
+                                 f"job (got {mode!r})")
+            self.job_cfg = self.job_cfg.but(mode=mode)
+            log.info("epoch %d: mode %s", self.epoch, mode)
+        if self.job_cfg.engine == "auto":
+            if engine not in ("exact", "fast"):
+                raise JobAborted(f"the coordinator's go names no engine (exact or fast) in an --engine auto job "
+                                 f"(got {engine!r})")
+            self.job_cfg = self.job_cfg.but(engine=engine)
+            log.info("epoch %d: engine %s", self.epoch, engine)
         self._make_drivers()
         early, self.early = self.early, []
         for dst, msg in early:

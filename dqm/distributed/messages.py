@@ -107,7 +107,7 @@ SCHEMAS: Dict[str, Dict[str, str]] = {
     "refuse": {"reason": "str", "param": "str"},
     # coordinator -> agent processes: every process is ready, run the protocol of this epoch; mode: in a
     # --mode auto job, the mode the coordinator picked (the processes make its drivers now); "" otherwise
-    "go": {"mode": "str"},
+    "go": {"mode": "str", "engine": "str"},
     # coordinator -> every live agent process, after a process was lost while the job ran: the process now
     # hosting each agent (the lost process's agents moved to the next live one), takeover number ``round``
     # (1, 2, ... within the epoch); each process answers ``taken`` once it addresses them there
@@ -217,8 +217,8 @@ CHANGE_OPS = ("add", "remove")
 #: fields a message of the kind may lack (sent by an older sender of the same schema version): their value
 #: when absent. An older receiver ignores them (decode keeps only the fields it knows), so adding one
 #: keeps the version
-OPTIONAL_FIELDS: Dict[str, Dict[str, Any]] = {"image": {"name": ""}, "changes": {"name": ""}, "go": {"mode": ""},
-                                              "start": {"catalog": 0}}
+OPTIONAL_FIELDS: Dict[str, Dict[str, Any]] = {"image": {"name": ""}, "changes": {"name": ""},
+                                              "go": {"mode": "", "engine": ""}, "start": {"catalog": 0}}
 #: longest ``image.name`` / ``changes.name`` (characters); control characters are refused
 MAX_NAME_CHARS = 4096
 

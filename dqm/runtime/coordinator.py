@@ -341,7 +341,8 @@ class Coordinator:
         traffic = ledger.report()
         agents = {str(a): TrafficLedger.strip_stats(st) for a, st in core.stats.items()}
         out = {
-            "job": self.job, "agents": self.m, "seed": self.seed, "mode": self.cfg.mode, "features": int(len(ids)),
+            "job": self.job, "agents": self.m, "seed": self.seed, "mode": self.cfg.mode, "engine": self.cfg.engine,
+            "features": int(len(ids)),
             "clusters": int(labels.max() + 1) if len(labels) else 0,
             "ids": ids.tolist(), "labels": labels.tolist(),
             "time_ready_s": t_ready, "time_run_s": t_run,
@@ -381,8 +382,8 @@ def _write_json(path: Path, obj: dict) -> None:
 
 def clusters_params(cfg: DQMConfig) -> dict:
     """The ``params`` of a distributed job's CLUSTERS file: what made the clusters."""
-    return {"distributed": True, "mode": cfg.mode, "agents": cfg.agents, "seed": cfg.seed, "job": cfg.job,
-            "partition": cfg.partition, "rho": cfg.rho, "kernel": cfg.kernel, "parent": "any"}
+    return {"distributed": True, "mode": cfg.mode, "engine": cfg.engine, "agents": cfg.agents, "seed": cfg.seed,
+            "job": cfg.job, "partition": cfg.partition, "rho": cfg.rho, "kernel": cfg.kernel, "parent": "any"}
 
 
 def main_coordinator(cfg: DQMConfig, endpoint: str, out: Optional[str], tls: Optional[dict] = None,

@@ -24,7 +24,7 @@ def test_engine_is_a_shared_parameter_checked_once():
     assert params_hash(cfg.params_text()) != params_hash(cfg.but(engine="exact").params_text())
     assert "--engine=fast" in config_args(cfg)
     assert cfg.fast and not cfg.sketches and DQMConfig(agents=3).sketches
-    with pytest.raises(InputError, match="engine must be one of 'exact', 'fast'; got 'quick'"):
+    with pytest.raises(InputError, match="engine must be one of 'exact', 'fast', 'auto'; got 'quick'"):
         DQMConfig(agents=3, engine="quick").validated(100)
 
 
@@ -113,3 +113,22 @@ def test_components_equal_scipys_on_random_forests():
         np.testing.assert_array_equal(got, lowest[ref])
     chain = np.arange(999)
     assert (forest.components(1000, chain[::-1], chain[::-1] + 1) == 0).all()  # a long path, any order
+
+
+def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, monkeypatch):
+    X, ids = generated
+    assert DQMConfig(agents=2, engine="auto").engine_for(49_999) == "exact"
+    assert DQMConfig(agents=2, engine="auto").engine_for(50_000) == "fast"
+    assert DQMConfig(agents=2, engine="fast").engine_for(10) == "fast"
+    # below the threshold: the exact clusters; the coordinator's go named the engine, every agent ran it
+    small = simulate(X, ids, DQMConfig(agents=4, seed=1, engine="auto"))
+    assert small.config.engine == "exact"
+    np.testing.assert_array_equal(small.labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
+    # from the threshold (lowered here): the fast job, copy for copy
+    monkeypatch.setattr(dqm.distributed.config, "FAST_FROM", len(X))
+    picked = simulate(X, ids, DQMConfig(agents=4, seed=1, engine="auto"))
+    fast = simulate(X, ids, DQMConfig(agents=4, seed=1, engine="fast"))
+    assert picked.config.engine == "fast"
+    np.testing.assert_array_equal(picked.labels, fast.labels)
+    np.testing.assert_array_equal(picked.copies, fast.copies)
+    assert picked.traffic.total("ghost") == fast.traffic.total("ghost") < small.traffic.total("ghost")

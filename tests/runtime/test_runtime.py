@@ -23,7 +23,8 @@ def data():
 
 
 @pytest.mark.parametrize("mode,partition,engine", [("balanced", "kmeans", "exact"), ("balanced", "seeded", "exact"),
-                                                   ("lean", "kmeans", "exact"), ("balanced", "kmeans", "fast")])
+                                                   ("lean", "kmeans", "exact"), ("balanced", "kmeans", "fast"),
+                                                   ("balanced", "kmeans", "auto")])
 def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition, engine):
     X, ids = data
     cfg = DQMConfig(agents=3, seed=2, partition=partition, mode=mode, job=f"eq-{mode}-{partition}-{engine}",
@@ -32,6 +33,7 @@ def test_runtime_equals_simulator_and_meters_traffic(data, mode, partition, engi
     sim = simulate(X, ids, cfg)
     np.testing.assert_array_equal(np.asarray(rep["ids"]), np.arange(len(X)))
     np.testing.assert_array_equal(np.asarray(rep["labels"]), sim.labels)
+    assert rep["engine"] == sim.config.engine == cfg.engine_for(len(X))  # auto: the coordinator's go named it
     assert rep["agent_exit_codes"] == [0, 0, 0]
     # metered bytes against the kernel's TCP counters of the router's sockets
     wire = rep["wire_bytes_received_by_router"]
