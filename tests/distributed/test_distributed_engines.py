@@ -132,3 +132,16 @@ def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, monkeyp
     np.testing.assert_array_equal(picked.labels, fast.labels)
     np.testing.assert_array_equal(picked.copies, fast.copies)
     assert picked.traffic.total("ghost") == fast.traffic.total("ghost") < small.traffic.total("ghost")
+
+
+@pytest.mark.parametrize("recovery", ["takeover", "restart"])
+def test_engine_auto_survives_a_lost_process(generated, monkeypatch, recovery):
+    from dqm.distributed.network import FaultPlan, LoseProcess
+
+    X, ids = generated
+    monkeypatch.setattr(dqm.distributed.config, "FAST_FROM", len(X))  # auto picks fast
+    cfg = DQMConfig(agents=3, seed=1, engine="auto")
+    clean = simulate(X, ids, cfg)
+    lost = simulate(X, ids, cfg, faults=FaultPlan([LoseProcess(1, "wait_ghost")]), recovery=recovery)
+    assert lost.lost and clean.config.engine == lost.config.engine == "fast"
+    np.testing.assert_array_equal(lost.labels, clean.labels)
