@@ -166,10 +166,11 @@ class BalancedCore:
         return out
 
     def _round_request(self, inputs) -> Dict[int, Payload]:
-        """For every cell this one ships to: the geometric candidates, those already known to
-        travel (without sketches: all; with: those the pilot proves plausible), and whether the
-        rest of the sketch can pay for itself."""
+        """For every cell this one ships to: the geometric candidates and whether the rest of the
+        sketch can pay for itself (estimated on an eighth of them; the pilot then filters them all in
+        :meth:`_round_offer` where the rest is asked for)."""
         self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
+        self.pilots: Dict[int, Payload] = {}
         out = {}
         if self.cfg.fast:  # no certificate: the copies a pair likely needs (no sketches, no request)
             for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"), ghosts.copy_budget(self.m),
@@ -183,11 +184,16 @@ class BalancedCore:
             if not self._sketch_ok(pilot):
                 self.plan[b] = (idx, np.ones(len(idx), bool), False)
             else:
-                hit = sketch.plausible(self.space, self.X[idx], self.R[idx], pilot,
+                # whether the rest can pay, from a deterministic eighth of the candidates (the pilot's test of
+                # all of them is needed only where the rest is asked for: else every candidate travels)
+                some = np.flatnonzero(sketch.hashed_subset(self.own.ids[idx], 3))
+                hit = sketch.plausible(self.space, self.X[idx[some]], self.R[idx[some]], pilot,
                                        use_their_reach=self.rule == "one-way")
+                unhit = int(round((~hit).sum() * len(idx) / max(1, len(some))))
                 copy_bytes = self.X.shape[1] * self.own.descriptors.itemsize + 40  # ids, image, sigma, sum, density
-                want = sketch.worth_the_rest(int((~hit).sum()), int(pilot["pending"]), copy_bytes, self.space.k + 5)
-                self.plan[b] = (idx, hit, want)
+                want = sketch.worth_the_rest(unhit, int(pilot["pending"]), copy_bytes, self.space.k + 5)
+                self.plan[b] = (idx, np.ones(len(idx), bool), want)
+                self.pilots[b] = pilot
         for b in self.recipients("request"):
             out[b] = {"want": int(self.plan[b][2])}
         return out
@@ -215,9 +221,11 @@ class BalancedCore:
             cand, hit, want = self.plan[b]
             geometric += len(cand)
             if want and self._sketch_ok(inputs.get(b)):
+                one_way = self.rule == "one-way"
+                hit = sketch.plausible(self.space, self.X[cand], self.R[cand], self.pilots[b], use_their_reach=one_way)
                 unhit = np.flatnonzero(~hit)
                 hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], inputs[b],
-                                              use_their_reach=self.rule == "one-way")
+                                              use_their_reach=one_way)
             else:
                 hit[:] = True  # no sketch, one not worth its rest, or a missing rest: every candidate travels
             idx = cand[hit]
