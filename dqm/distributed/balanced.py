@@ -173,7 +173,7 @@ class BalancedCore:
         self.pilots: Dict[int, Payload] = {}
         out = {}
         if self.cfg.fast:  # no certificate: the copies a pair likely needs (no sketches, no request)
-            for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"), ghosts.copy_budget(self.m),
+            for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"), self.cfg.copies_per_feature,
                                                   -self.S[:, self.me]).items():
                 self.plan[b] = (idx, np.ones(len(idx), bool), False)
             return out

@@ -35,7 +35,7 @@ from typing import Dict, List, Optional, Tuple, get_type_hints
 from ..core.clustering import FAST_FROM
 from ..core.params import DEFAULT_RATIO_DENSITY, DEFAULT_RHO, FINITE_KERNEL, KERNELS, QuickMatchParams
 from ..validation import InputError, check_choice, check_positive
-from . import keys, partition
+from . import ghosts, keys, partition
 from .costmodel import AUTO_MODES
 
 #: the distributed algorithms (the simulator runs these)
@@ -149,6 +149,10 @@ class DQMConfig:
         "ones, not bit for bit) or auto (the coordinator picks fast from {:,} features in all, as dqm match "
         "does); docs/distributed.md".format(FAST_FROM, FAST_FROM),
         "--engine", 13, choices=DISTRIBUTED_ENGINES))
+    copy_budget: float = field(default=0.0, metadata=_meta(
+        "fast balanced: the most copies a cell sends per feature it owns, the nearest to a boundary first (0: the "
+        "default, 0.2 + M/8; more copies, closer to the exact clusters, more bytes); docs/distributed.md",
+        "--copy-budget", 14))
     auto_modes: str = field(default=",".join(AUTO_MODES), metadata=_meta(
         "--mode auto: the modes the coordinator may pick, comma-separated (of gather, balanced, lean; not shared: "
         "only the coordinator picks)", "--auto-modes", None))
@@ -185,6 +189,12 @@ class DQMConfig:
         if self.engine != "auto":
             return self.engine
         return "fast" if n_features >= FAST_FROM else "exact"
+
+    @property
+    def copies_per_feature(self) -> float:
+        """Fast balanced: the most copies a cell sends per own feature (:attr:`copy_budget`, or for 0 the
+        default :func:`dqm.distributed.ghosts.copy_budget` of the agents)."""
+        return float(self.copy_budget) if self.copy_budget > 0 else ghosts.copy_budget(self.agents)
 
     @property
     def sketches(self) -> bool:
@@ -226,6 +236,9 @@ class DQMConfig:
         _check_int(self.samples_per_agent, "samples_per_agent", 1)
         _check_int(self.sketch_dims, "sketch_dims", 0)
         _check_int(self.balance_rounds, "balance_rounds", 0)
+        if isinstance(self.copy_budget, bool) or not isinstance(self.copy_budget, (int, float)) or \
+                not 0 <= self.copy_budget < float("inf"):
+            raise InputError(f"copy_budget must be a number >= 0 (0: the default), got {self.copy_budget!r}")
         if self.cell_weights is not None and not isinstance(self.cell_weights, bool):
             raise InputError(f"cell_weights must be True, False or None, got {self.cell_weights!r}")
         return self

@@ -89,7 +89,8 @@ def test_config_shares_the_vocabulary():
 #: between processes, and its hash travels in the start message)
 WIRE_ORDER = ("agents", "mode", "partition", "kernel", "rho", "halo", "samples_per_agent", "seed_norm",
               "cell_weights", "ghost_rule", "sketch_dims", "balance_rounds",
-              "engine")  # added last (issue 62): a process without it is refused ("engine differs: (absent)")
+              "engine", "copy_budget")  # added last (issue 62): a process without them is refused
+              # ("engine differs: (absent)")
 
 CONFIGS = [
     DQMConfig(agents=1),

@@ -145,3 +145,18 @@ def test_engine_auto_survives_a_lost_process(generated, monkeypatch, recovery):
     lost = simulate(X, ids, cfg, faults=FaultPlan([LoseProcess(1, "wait_ghost")]), recovery=recovery)
     assert lost.lost and clean.config.engine == lost.config.engine == "fast"
     np.testing.assert_array_equal(lost.labels, clean.labels)
+
+
+def test_the_copy_budget_trades_bytes_for_the_exact_clusters(generated):
+    X, ids = generated
+    central = dqm.quickmatch(X, ids, kernel="quadratic")
+    runs = {b: simulate(X, ids, DQMConfig(agents=8, seed=1, engine="fast", copy_budget=b)) for b in (0.3, 3.0)}
+    few, many = runs[0.3], runs[3.0]
+    assert few.stats["ghosts_per_feature"] <= 0.3 + 1e-9 < many.stats["ghosts_per_feature"]
+    assert few.stats["bytes_over_raw"] < many.stats["bytes_over_raw"]
+    f1 = {b: evaluation.comembership_scores(r.labels, central.labels).f1 for b, r in runs.items()}
+    assert f1[0.3] < f1[3.0]
+    assert DQMConfig(agents=8).copies_per_feature == ghosts.copy_budget(8)
+    for bad in (-1.0, float("inf"), "2", True):
+        with pytest.raises(InputError, match="copy_budget must be a number >= 0"):
+            DQMConfig(agents=8, copy_budget=bad).validated(100)
