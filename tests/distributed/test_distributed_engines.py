@@ -134,6 +134,20 @@ def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, monkeyp
     assert picked.traffic.total("ghost") == fast.traffic.total("ghost") < small.traffic.total("ghost")
 
 
+def test_fast_copies_survive_lost_duplicated_and_late_messages(generated):
+    from dqm.distributed.network import Delay, Drop, Duplicate, FaultPlan
+
+    X, ids = generated
+    cfg = DQMConfig(agents=3, seed=1, engine="fast")
+    clean = simulate(X, ids, cfg)
+    plan = FaultPlan([Drop("ghost", src=1, nth=1), Drop("ack", src=2, dst=0, nth=1), Duplicate("grant", nth=2),
+                      Delay("offer", src=0, nth=1)])
+    r = simulate(X, ids, cfg, faults=plan)
+    assert len(plan.struck) == 4
+    np.testing.assert_array_equal(r.labels, clean.labels)
+    assert r.stats["arrival_check_failures"] == 0 and r.traffic.counters()[2] >= 2  # resends
+
+
 @pytest.mark.parametrize("recovery", ["takeover", "restart"])
 def test_engine_auto_survives_a_lost_process(generated, monkeypatch, recovery):
     from dqm.distributed.network import FaultPlan, LoseProcess
