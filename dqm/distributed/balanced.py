@@ -169,20 +169,20 @@ class BalancedCore:
         """For every cell this one ships to: the geometric candidates and whether the rest of the
         sketch can pay for itself (estimated on an eighth of them; the pilot then filters them all in
         :meth:`_round_offer` where the rest is asked for)."""
-        self.plan: Dict[int, Tuple[np.ndarray, np.ndarray, bool]] = {}
+        self.plan: Dict[int, Tuple[np.ndarray, bool]] = {}  # cell -> (geometric candidates, rest asked for)
         self.pilots: Dict[int, Payload] = {}
         out = {}
         if self.cfg.fast:  # no certificate: the copies a pair likely needs (no sketches, no request)
             for b, idx in ghosts.likely_copies(self.H, self.R, self.recipients("offer"), self.cfg.copies_per_feature,
                                                   -self.S[:, self.me]).items():
-                self.plan[b] = (idx, np.ones(len(idx), bool), False)
+                self.plan[b] = (idx, False)
             return out
         for b in self.recipients("offer"):
             idx = np.flatnonzero(ghosts.ship_mask(self.H[:, b], self.R, self.E[b, self.me], self.S[b, self.me],
                                                   self.rule))
             pilot = inputs.get(b) if self.space is not None else None
             if not self._sketch_ok(pilot):
-                self.plan[b] = (idx, np.ones(len(idx), bool), False)
+                self.plan[b] = (idx, False)
             else:
                 # whether the rest can pay, from a deterministic eighth of the candidates (the pilot's test of
                 # all of them is needed only where the rest is asked for: else every candidate travels)
@@ -192,10 +192,10 @@ class BalancedCore:
                 unhit = int(round((~hit).sum() * len(idx) / max(1, len(some))))
                 copy_bytes = self.X.shape[1] * self.own.descriptors.itemsize + 40  # ids, image, sigma, sum, density
                 want = sketch.worth_the_rest(unhit, int(pilot["pending"]), copy_bytes, self.space.k + 5)
-                self.plan[b] = (idx, np.ones(len(idx), bool), want)
+                self.plan[b] = (idx, want)
                 self.pilots[b] = pilot
         for b in self.recipients("request"):
-            out[b] = {"want": int(self.plan[b][2])}
+            out[b] = {"want": int(self.plan[b][1])}
         return out
 
     def _round_sketch_rest(self, inputs) -> Dict[int, Payload]:
@@ -218,7 +218,7 @@ class BalancedCore:
         out = {}
         geometric = 0
         for b in self.recipients("offer"):
-            cand, hit, want = self.plan[b]
+            cand, want = self.plan[b]
             geometric += len(cand)
             if want and self._sketch_ok(inputs.get(b)):
                 one_way = self.rule == "one-way"
@@ -227,14 +227,14 @@ class BalancedCore:
                 hit[unhit] = sketch.plausible(self.space, self.X[cand[unhit]], self.R[cand[unhit]], inputs[b],
                                               use_their_reach=one_way)
             else:
-                hit[:] = True  # no sketch, one not worth its rest, or a missing rest: every candidate travels
+                hit = np.ones(len(cand), bool)  # no sketch, one not worth its rest, or a missing rest: all travel
             idx = cand[hit]
             self.shipped[b] = idx
             self.shipped_to[idx, b] = True
             out[b] = {"count": len(idx)}
         self.stats.update(ghosts_geometric=float(geometric),
                           ghosts_sent=float(sum(len(v) for v in self.shipped.values())),
-                          sketch_rests_asked=float(sum(p[2] for p in self.plan.values())))
+                          sketch_rests_asked=float(sum(want for _, want in self.plan.values())))
         return out
 
     def copies(self, b: int, offset: int, count: int) -> Payload:

@@ -52,11 +52,7 @@ def components(k: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         low = np.minimum(label[u], label[v])
         np.minimum.at(label, label[u], low)  # a root takes the lowest label its edges reach
         np.minimum.at(label, label[v], low)
-        while True:  # every node points at its root
-            nxt = label[label]
-            if np.array_equal(nxt, label):
-                break
-            label = nxt
+        label = fragment_roots(label)  # every node points at its root (a root points at itself)
         if np.array_equal(label, before):
             return label
 
