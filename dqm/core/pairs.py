@@ -565,11 +565,16 @@ def kernel_pass(
 #: rows of :func:`pair_cpu_s_here`'s generated block: three 1024-row tiles, 3-4 ms of CPU a pass on AVX-512 VNNI
 #: (uint8, 128 dimensions), 15-20 ms in portable C
 PROBE_ROWS = 2048
+#: :func:`pair_cpu_s_here` stops timing passes once they have taken this much CPU: four passes on AVX-512 VNNI,
+#: one on a machine whose kernel is 10x slower (a 2-core AMD EPYC with AVX2 only: 27 ms a pass, and four of them
+#: with the warm-up cost ``--mode auto`` 0.6 s at a quarter core, 10-15% of graf's balanced job at M = 8)
+PROBE_CPU_S = 0.012
 
 
 def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 4, kernel: str = "quadratic") -> float:
     """CPU-seconds per pair-dimension of :func:`kernel_pass` on one thread, measured here: the least of
-    ``repeats`` passes (after one to warm up) over ``rows`` generated rows of ``dim`` elements of ``dtype``
+    ``repeats`` passes (after one tile to warm up; fewer once they took :data:`PROBE_CPU_S`) over ``rows``
+    generated rows of ``dim`` elements of ``dtype``
     (uint8 or float32), on a thread of its own timed by that thread's CPU clock (a CPU quota's throttling and the
     process's other threads do not count; the process's clock where BLAS cannot be made single-threaded in
     one thread, whose workers would otherwise go uncounted).
@@ -604,11 +609,15 @@ def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 4, k
     def run() -> None:  # in a thread of its own: its CPU clock counts this work only, its BLAS single-threaded
         try:
             clock = time.thread_time if native.single_threaded_blas_in_this_thread() else time.process_time
-            for _ in range(max(1, int(repeats)) + 1):  # the first pass warms up (operands, pages): not counted
+            a, a1, b, b1 = tiles[0]  # warm-up (the operands, made whole on first use; pages): one tile, not counted
+            pass_tile(aug, a, a1, b, b1, a == b, w, active, kernel, rad2, fused)
+            for _ in range(max(1, int(repeats))):  # passes until PROBE_CPU_S is spent (a slow machine: one)
                 t = clock()
                 for a, a1, b, b1 in tiles:
                     pass_tile(aug, a, a1, b, b1, a == b, w, active, kernel, rad2, fused)
                 times.append(clock() - t)
+                if sum(times) >= PROBE_CPU_S:
+                    break
         except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread, whatever it is
             failed.append(exc)
 
@@ -617,7 +626,7 @@ def pair_cpu_s_here(dim: int, dtype, rows: int = PROBE_ROWS, repeats: int = 4, k
     worker.join()
     if failed:
         raise failed[0]
-    best = min(times[1:])
+    best = min(times)
     return max(best, 1e-9) / (n * (n - 1) / 2.0 * X.shape[1])
 
 
