@@ -29,13 +29,35 @@ from scipy.optimize import nnls
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dqm.distributed import costmodel  # noqa: E402
+from dqm.distributed import DQMConfig, costmodel  # noqa: E402
 from dqm.distributed.costmodel import CostConstants, Hosts, JobShape  # noqa: E402
 
-DEFAULT_JSON = [ROOT / "docs" / "bench_hosts_graf.json", ROOT / "docs" / "bench_hosts_100k.json"]
+DEFAULT_JSON = [ROOT / "docs" / "bench_hosts_graf.json", ROOT / "docs" / "bench_hosts_100k.json",
+                # the fast engine's rows (its constants are fitted on these alone; the exact ones above):
+                # a 2-core Intel Xeon with AVX-512 VNNI and a 2-core AMD EPYC with AVX2 only, whose pair kernels
+                # differ 10x while the fast engine's other work does not
+                ROOT / "docs" / "bench_hosts_100k_fast.json", ROOT / "docs" / "bench_hosts_graf_fast.json",
+                ROOT / "docs" / "bench_hosts_100k_engine_auto.json"]
 #: the modes auto picks from, as the benchmark names them
 MODES = ("gather", "balanced", "lean")
 DIM = 128  # every benchmark row: uint8 SIFT
+
+
+def read_rows(paths) -> List[dict]:
+    """The rows of bench_hosts.py's JSON files, each with the index of its file (``file``): rows of one
+    invocation are compared with each other only (the files may come from different machines)."""
+    return [{**r, "file": k} for k, f in enumerate(paths) for r in json.loads(Path(f).read_text())]
+
+
+def engine_of(r: dict) -> str:
+    """The engine a row ran (``auto`` resolved as the job resolves it, from its features)."""
+    e = r.get("engine", "exact")
+    return DQMConfig(agents=int(r["m"]), engine=e).engine_for(int(r["n"])) if e == "auto" else e
+
+
+def shown(mode: str, engine: str) -> str:
+    """A mode as the tables show it: with its engine where that is not the exact one."""
+    return mode if engine == "exact" else f"{mode} ({engine})"
 
 
 def bytes_s(r: dict) -> float:
@@ -43,7 +65,7 @@ def bytes_s(r: dict) -> float:
 
 
 def job_of(r: dict) -> JobShape:
-    return JobShape(n=int(r["n"]), agents=int(r["m"]), dim=DIM, itemsize=1)
+    return JobShape(n=int(r["n"]), agents=int(r["m"]), dim=DIM, itemsize=1, engine=engine_of(r))
 
 
 def reference_kernel(rows: List[dict]) -> float:
@@ -69,6 +91,49 @@ def relative_nnls(A, b):
 
 
 def fit(rows: List[dict]) -> CostConstants:
+    """The exact engine's constants fitted on its rows, then the fast engine's on its own (:func:`fit_fast`)."""
+    exact = fit_exact([r for r in rows if engine_of(r) == "exact"])
+    fast = [r for r in rows if engine_of(r) == "fast" and "error" not in r]
+    return fit_fast(fast, exact) if fast else exact
+
+
+def fit_fast(rows: List[dict], k: CostConstants) -> CostConstants:
+    """The fast engine's constants, the exact engine's ``k`` kept (start-up, links and rounds are the modes'):
+
+    * its centralized match (gather rows): ``match_s * cores = (fast_kernel_cpu_s * speed + fast_other_cpu_s)
+      * (n / 1e5) ** fast_exponent``, ``speed`` the row's kernel over the fit's: the exponent on a grid,
+      the two parts by non-negative least squares (machines of different pair kernels tell them apart);
+    * fast balanced's busiest agent: its time after start-up less the fixed seconds and the link time,
+      ``(fast_balanced_imbalance * pair_cpu_s * speed * cell_pair_work + fast_balanced_other_cpu_s * n / M / 1e4
+      + fast_balanced_fixed_cpu_s) / cores``;
+      its bytes: ``gather_bytes * (M - 1) / M + fast_copy_bytes * copies``;
+    * lean: ``lean_work_share`` of the fast match at agent 0 (as for the exact engine: not fitted again).
+    """
+    ref = k.kernel_cpu_s
+    g = [r for r in rows if r["mode"] == "gather"]
+    best = None
+    for p in np.arange(1.0, 1.61, 0.01):
+        grow = [(r["n"] / 1e5) ** p for r in g]
+        (kern, other), res = relative_nnls([[speed(r, ref) * x, x] for r, x in zip(g, grow)],
+                                           [r["match_s"] * r["cpu_per_host"] for r in g])
+        if best is None or res < best[0] - 1e-12:
+            best = (res, float(p), float(kern), float(other))
+    _, p, kern, other = best
+    bal = [r for r in rows if r["mode"] == "balanced"]
+    pair = k.pair_cpu_s
+    left = [r["job_s"] - k.balanced_fixed_s - k.balanced_link_factor * r["bytes"] / r["m"] / bytes_s(r) for r in bal]
+    (imb, other_b, fixed), _ = relative_nnls([[pair * speed(r, ref) * job_of(r).cell_pair_work / r["cpu_per_host"],
+                                               r["n"] / r["m"] / 1e4 / r["cpu_per_host"], 1 / r["cpu_per_host"]]
+                                              for r in bal], left)
+    copy_bytes = float(np.mean([(r["bytes_over_raw"] - k.gather_bytes * (r["m"] - 1) / r["m"])
+                                / job_of(r).copies_per_feature for r in bal]))
+    return replace(k, fast_kernel_cpu_s=kern, fast_other_cpu_s=other, fast_exponent=round(p, 2),
+                   fast_balanced_imbalance=float(imb), fast_balanced_other_cpu_s=float(other_b),
+                   fast_balanced_fixed_cpu_s=float(fixed),
+                   fast_copy_bytes=copy_bytes)
+
+
+def fit_exact(rows: List[dict]) -> CostConstants:
     """Non-negative least squares per mechanism on what the rows measured (pair work scaled by each row's
     measured kernel over the reference: rows of several machines fit one model)."""
     ref = reference_kernel(rows)
@@ -134,17 +199,17 @@ def report(rows: List[dict], k: CostConstants) -> bool:
         meas = "failed" if "error" in r else f"{r['seconds']:.1f}"
         ratio = "" if "error" in r else f"{p.seconds / r['seconds']:.2f}"
         avail = "" if p.available else " (unavailable)"
-        print(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {r['mode']} | {meas} | {p.seconds:.1f}{avail} | "
-              f"{ratio} | {parts} |")
+        print(f"| {r['data']} | {r['m']} | {r['rate_mbit']:g} | {shown(r['mode'], engine_of(r))} | {meas} | "
+              f"{p.seconds:.1f}{avail} | {ratio} | {parts} |")
     groups: Dict[tuple, Dict[str, dict]] = {}
     for r in rows:
         if r["mode"] in MODES:
-            groups.setdefault((r["data"], r["m"], r["rate_mbit"]), {})[r["mode"]] = r
+            groups.setdefault((r["data"], r["m"], r["rate_mbit"], engine_of(r), r.get("file")), {})[r["mode"]] = r
     print("\n| data | M | Mbit/s | measured best | pick (as benchmarked) | pick / best | within 10% | "
           "coordinator's pick (started) | after start-up: pick / best | within 10% |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     ok_all = True
-    for (data, m, rate), by_mode in groups.items():
+    for (data, m, rate, engine, _), by_mode in groups.items():  # rows of one invocation (one file) together
         ran = {mode: r for mode, r in by_mode.items() if "error" not in r}
         if not ran:
             continue
@@ -163,8 +228,8 @@ def report(rows: List[dict], k: CostConstants) -> bool:
             w_text, w_ok = f"{w_ratio:.2f}", ("yes" if w_ratio <= 1.10 else "NO")
         else:
             w_text, w_ok = ("failed" if coord not in ran else "n/a"), ("NO" if coord not in ran else "n/a")
-        print(f"| {data} | {m} | {rate:g} | {best} {ran[best]['seconds']:.1f} s | {pick} | {ratio:.2f} | "
-              f"{'yes' if ok else 'NO'} | {coord} | {w_text} | {w_ok} |")
+        print(f"| {data} | {m} | {rate:g} | {shown(best, engine)} {ran[best]['seconds']:.1f} s | {pick} | "
+              f"{ratio:.2f} | {'yes' if ok else 'NO'} | {coord} | {w_text} | {w_ok} |")
     return ok_all
 
 
@@ -176,7 +241,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", nargs="+", default=[str(p) for p in DEFAULT_JSON], help="bench_hosts.py rows")
     args = ap.parse_args(argv)
-    rows = [r for f in args.json for r in json.loads(Path(f).read_text())]
+    rows = read_rows(args.json)
     k = fit(rows)
     print("CostConstants fitted (paste into dqm/distributed/costmodel.py):")
     print(constants_text(k))

@@ -345,7 +345,8 @@ class CoordinatorCore:
         ref = self.ready[hosts[0]]
         n = int(sum(self.ready[p]["features"] for p in hosts))
         return costmodel.JobShape(n=max(1, n), agents=self.m, dim=int(ref["dim"]),
-                                  itemsize=np.dtype(ref["dtype"]).itemsize)
+                                  itemsize=np.dtype(ref["dtype"]).itemsize, engine=self.cfg.engine_for(n),
+                                  copies=self.cfg.copies_per_feature)
 
     def decide_unmeasured(self, cores: float, gather_cores: float, kernel_cpu_s: Optional[float] = None) -> bool:
         """``--mode auto`` from cheap facts: when the cost model predicts one mode within
@@ -377,6 +378,7 @@ class CoordinatorCore:
         how = "the fastest" if worst <= 1 + 1e-9 else f"within {100 * (worst - 1):.1f}% of the fastest"
         reason = (f"{mode} without timing the links: {how} at every link rate from {lo_s} to {hi_s} Mbit/s "
                   f"(predicted {seconds(least)} to {seconds(most)}; {job.n} features on {self.m} agents, "
+                  f"{job.engine} engine, "
                   f"cores per host {cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
         self._picked(mode, {}, {mode: round(most, 3)}, reason, 0.0, {}, cores, gather_cores, job.n, kernel_cpu_s)
         return True
@@ -412,7 +414,8 @@ class CoordinatorCore:
             floor, mode = self.settled
             reason = (f"{mode}: every link measured at least {costmodel.mbit_text(enough)} Mbit/s, and {mode} is "
                       f"predicted within {100 * (costmodel.CLEAR_WITHIN - 1):.0f}% of the fastest at every rate from "
-                      f"{costmodel.mbit_text(floor)} Mbit/s up ({job.n} features on {self.m} agents, cores per host "
+                      f"{costmodel.mbit_text(floor)} Mbit/s up ({job.n} features on {self.m} agents, "
+                      f"{job.engine} engine, cores per host "
                       f"{cores:.3g}{costmodel.speed_text(kernel_cpu_s)})")
         self._picked(mode, rates, choice.predicted_s, reason, probe_s, pairs or {}, cores,
                      gather_cores, job.n, kernel_cpu_s, at_least)
@@ -425,7 +428,7 @@ class CoordinatorCore:
         self.auto = {
             "rates_bytes_s": {str(p): round(rates[p], 1) for p in hosts if p in rates},
             "rates_at_least": [str(p) for p in hosts if p in at_least],
-            "picked": mode, "predicted_s": predicted_s, "reason": reason,
+            "picked": mode, "engine": self.cfg.engine, "predicted_s": predicted_s, "reason": reason,
             "probe_s": probe_s,
             "probe_pairs": {str(p): [list(x) for x in pairs.get(p, [])] for p in hosts if p in pairs},
             "cores_per_host": cores, "gather_cores": gather_cores, "features": n, "kernel_cpu_s": kernel_cpu_s,

@@ -1,4 +1,4 @@
-"""Predicted time to result of gather, lean and balanced: what ``--mode auto`` picks from.
+"""Predicted time to result of gather, lean and balanced, on either engine: what ``--mode auto`` picks from.
 
 Pure (numpy only, no I/O). The coordinator of a ``--mode auto`` job knows, once every agent process
 is ready, the number of features ``n``, the agents ``M``, the descriptor dimension and item size; it
@@ -27,6 +27,23 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   + (lean_work_share * pair_cpu_s * W + lean_fixed_cpu_s) / c_0`` with ``l`` its bytes over raw
   (``lean_bytes * (M - 1) / M`` unless given), into agent 0's link ``r_0`` (its rate, at most the
   median).
+
+**The fast engine** (``JobShape.engine == "fast"``: ``--engine fast``, or ``auto`` from
+:data:`~dqm.core.clustering.FAST_FROM` features) changes the compute terms and fast balanced's bytes:
+
+* the centralized match (gather; lean's agent 0 at ``lean_work_share`` of it) is
+  ``(fast_kernel_cpu_s * speed + fast_other_cpu_s) * (n / 1e5) ** fast_exponent``: the part that scales with the
+  host's measured pair kernel (``speed``, below: the candidates' exact distances) and the part that does not
+  (k-means, lists, scans), told apart by rows of machines whose kernels differ 10x;
+* fast balanced's busiest agent pays its cell's own pairs and its copies' (``JobShape.cell_pair_work``,
+  ``(n/M)^2 (1/2 + copies) dim``, ``copies`` the copy budget) times ``fast_balanced_imbalance``, plus
+  ``fast_balanced_other_cpu_s`` per 10,000 features of its cell and ``fast_balanced_fixed_cpu_s``; its bytes are
+  the routed features and ``fast_copy_bytes`` per copy.
+
+The engine is not the model's to choose: ``--engine auto`` is ``dqm match``'s quality rule (the fast engine
+from ``FAST_FROM`` features; below it the exact clusters cost little), and the model picks the mode for that
+engine. A speed rule would pick the fast engine at every size (it is never slower), and give approximate
+clusters where the exact ones were cheap.
 
 ``pair_cpu_s`` is the fit machine's; a job measures its own host's all-pairs kernel
 (:func:`dqm.core.pairs.pair_cpu_s_here`, a few milliseconds) and the model scales ``pair_cpu_s`` by it over
@@ -58,6 +75,7 @@ from typing import Callable, Dict, Optional, Sequence, Tuple
 import numpy as np
 
 from ..validation import InputError
+from .ghosts import copy_budget
 
 #: the modes :func:`choose` picks from, in the order that breaks an exact tie
 AUTO_MODES = ("gather", "balanced", "lean")
@@ -129,6 +147,22 @@ class CostConstants:
     lean_bytes: float = 1.637
     #: balanced is unavailable when one link's share of its bytes takes longer than this (seconds)
     starve_s: float = 16
+    #: the fast engine's centralized match of 100,000 features (CPU-seconds at one core): the part that scales
+    #: with the measured pair kernel (its exact distances of the candidates) ...
+    fast_kernel_cpu_s: float = 1.049
+    #: ... and the part that does not (k-means, lists, scans, the tree)
+    fast_other_cpu_s: float = 3.594
+    #: the fast engine's match grows as ``n ** fast_exponent``
+    fast_exponent: float = 1.01
+    #: fast balanced: the busiest agent's pair work over one cell's (:attr:`JobShape.cell_pair_work`)
+    fast_balanced_imbalance: float = 0.9601
+    #: CPU-seconds of a fast balanced agent beyond its pairs per 10,000 features of its cell (routing, the copies'
+    #: choice, densities and parents: numpy work that does not scale with the pair kernel) ...
+    fast_balanced_other_cpu_s: float = 0.8248
+    #: ... and per agent (set-up, the rounds)
+    fast_balanced_fixed_cpu_s: float = 0.2397
+    #: fast balanced bytes over raw: the routed features (``gather_bytes * (M - 1) / M``) and this per copy
+    fast_copy_bytes: float = 1.091
 
 
 #: the fitted constants (see :class:`CostConstants`)
@@ -143,6 +177,22 @@ class JobShape:
     agents: int  #: agents M
     dim: int  #: descriptor dimension
     itemsize: int = 1  #: bytes per descriptor element (1: uint8, 4: float32)
+    #: the engine the job runs (:data:`dqm.distributed.config.DISTRIBUTED_ENGINES`, ``auto`` already resolved)
+    engine: str = "exact"
+    #: fast balanced: copies per own feature at most (None: :func:`dqm.distributed.ghosts.copy_budget`)
+    copies: Optional[float] = None
+
+    @property
+    def copies_per_feature(self) -> float:
+        """Fast balanced's copy budget per own feature."""
+        return copy_budget(self.agents) if self.copies is None else float(self.copies)
+
+    @property
+    def cell_pair_work(self) -> float:
+        """Fast balanced: pair-dimensions of one cell, its own pairs and its copies' with them (cells of n/M
+        features, as many copies received as sent): ``(n/M)^2 (1/2 + copies) dim``."""
+        cell = self.n / self.agents
+        return cell * cell * (0.5 + self.copies_per_feature) * self.dim
 
     @property
     def raw_bytes(self) -> float:
@@ -257,12 +307,32 @@ def check_job(job: JobShape) -> JobShape:
     _count(job.agents, "agents", 1)
     _count(job.dim, "dim", 1)
     _count(job.itemsize, "itemsize", 1)
+    if job.engine not in ("exact", "fast"):
+        raise InputError(f"the cost model predicts the exact or the fast engine, got engine {job.engine!r}")
+    if job.copies is not None:
+        _positive(job.copies, "copies per feature")
     return job
 
 
 def default_balanced_bytes(agents: int, constants: CostConstants = FITTED) -> float:
     """Balanced bytes over raw at M agents (about ``balanced_bytes_per_agent * M`` on the benchmark)."""
     return constants.balanced_bytes_per_agent * agents if agents > 1 else 0.0
+
+
+def default_fast_balanced_bytes(job: JobShape, constants: CostConstants = FITTED) -> float:
+    """Fast balanced bytes over raw: the routed features and the copies (``gather_bytes * (M - 1) / M +
+    fast_copy_bytes * copies``)."""
+    m = job.agents
+    if m < 2:
+        return 0.0
+    return constants.gather_bytes * (m - 1) / m + constants.fast_copy_bytes * job.copies_per_feature
+
+
+def fast_match_cpu_s(n: int, speed: float, constants: CostConstants = FITTED) -> float:
+    """CPU-seconds of the fast engine's centralized match of ``n`` features on a host whose pair kernel takes
+    ``speed`` times the fit machine's time."""
+    k = constants
+    return (k.fast_kernel_cpu_s * speed + k.fast_other_cpu_s) * (n / 1e5) ** k.fast_exponent
 
 
 def default_lean_bytes(agents: int, constants: CostConstants = FITTED) -> float:
@@ -301,11 +371,15 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     r_min, c_min, r0, c0 = float(rates.min()), float(cores.min()), min(float(rates[0]), r_mid), float(cores[0])
     c_g = hosts.gather_cores or c0
     r_g = hosts.gather_rate or r0  # agent 0's link
-    b_bal = default_balanced_bytes(m, k) if balanced_bytes_over_raw is None else \
+    fast = job.engine == "fast"
+    b_bal = (default_fast_balanced_bytes(job, k) if fast else default_balanced_bytes(m, k)) \
+        if balanced_bytes_over_raw is None else \
         _nonnegative(balanced_bytes_over_raw, "balanced_bytes_over_raw")
     b_lean = default_lean_bytes(m, k) if lean_bytes_over_raw is None else \
         _nonnegative(lean_bytes_over_raw, "lean_bytes_over_raw")
     run_start = 0.0 if started else k.run_start_cpu_s / c0
+    # the centralized match on one core: all pairs, or the fast engine's lists
+    match_cpu = fast_match_cpu_s(job.n, pair / k.pair_cpu_s, k) if fast else pair * W + k.match_fixed_cpu_s
 
     # gather: the other sources' rows into agent 0's link, then the centralized pass on its cores
     g_all = k.gather_bytes if gather_bytes_over_raw is None else \
@@ -315,15 +389,20 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     g_parts = {"start": 0.0 if started else k.gather_start_cpu_s / c_g,
                "fixed": k.gather_skew_cpu_s / c_g if not started and m > 1 else 0.0,
                "transfer": k.gather_link_factor * max(g_bytes / r_g, per_source),
-               "compute": (pair * W + k.match_fixed_cpu_s) / c_g}
+               "compute": match_cpu / c_g}
     out = {"gather": Prediction("gather", sum(g_parts.values()), g_parts, g_bytes)}
 
     # balanced: 1/M of the pairs per agent (times the imbalance), the bytes spread over M links
     per_link = b_bal * raw / m
     busiest = math.ceil(m / procs)
+    if fast:  # the cells' own pairs and their copies', the exact kernel's
+        b_cpu = (k.fast_balanced_imbalance * pair * job.cell_pair_work
+                 + k.fast_balanced_other_cpu_s * job.n / m / 1e4) * busiest + k.fast_balanced_fixed_cpu_s
+    else:
+        b_cpu = k.balanced_imbalance * pair * W / m * busiest + k.balanced_fixed_cpu_s
     b_parts = {"start": run_start, "fixed": k.balanced_fixed_s,
                "transfer": k.balanced_link_factor * per_link / r_min,
-               "compute": (k.balanced_imbalance * pair * W / m * busiest + k.balanced_fixed_cpu_s) / c_min}
+               "compute": b_cpu / c_min}
     starve = per_link / r_min
     why = "" if starve <= k.starve_s else (
         f"its {per_link / 1e6:.1f} MB per link take {starve:.1f} s at {r_min / 1e6:.3g} MB/s, more than "
@@ -333,7 +412,7 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     # lean: the cascade gathers the work and the bytes at agent 0
     l_parts = {"start": run_start, "fixed": k.lean_fixed_s,
                "transfer": k.lean_link_factor * b_lean * raw / r0,
-               "compute": (k.lean_work_share * pair * W + k.lean_fixed_cpu_s) / c0}
+               "compute": (k.lean_work_share * (match_cpu if fast else pair * W) + k.lean_fixed_cpu_s) / c0}
     out["lean"] = Prediction("lean", sum(l_parts.values()), l_parts, b_lean * raw)
     return out
 
@@ -386,7 +465,8 @@ def choose(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, st
     link = (_rate_text(float(rates.min())) if rates.min() == rates.max()
             else f"{_rate_text(float(rates.min()))} to {_rate_text(float(rates.max()))}")
     reason = (f"{best}: predicted {preds[best].seconds:.1f} s" + (f" against {others}" if others else "")
-              + f" ({job.n} features of {job.dim} x {job.itemsize} B on {job.agents} agents, links {link}, "
+              + f" ({job.n} features of {job.dim} x {job.itemsize} B on {job.agents} agents, {job.engine} engine, "
+              f"links {link}, "
               f"cores per host {min(hosts.cores):.3g}{speed_text(hosts.kernel_cpu_s, constants)})")
     if best != fastest:
         reason += (f"; within {100 * (NEAR_WITHIN - 1):.0f}% of {fastest}'s time with "

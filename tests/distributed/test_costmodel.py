@@ -1,6 +1,5 @@
 """The cost model behind --mode auto: deterministic picks, the calibration's verdicts, refusals, and the
 modes a runtime job may be started with."""
-import json
 from dataclasses import fields
 from pathlib import Path
 
@@ -177,7 +176,7 @@ def _fit_script():
 
 def test_the_constants_are_the_ones_the_fit_script_fits_and_every_pick_is_near_the_best(capsys):
     fit = _fit_script()
-    rows = [r for f in fit.DEFAULT_JSON for r in json.loads(Path(f).read_text())]
+    rows = fit.read_rows(fit.DEFAULT_JSON)
     fitted = fit.fit(rows)
     for f in fields(FITTED):
         assert getattr(fitted, f.name) == pytest.approx(getattr(FITTED, f.name), rel=2e-3, abs=1e-12), f.name
@@ -211,3 +210,40 @@ def test_modes_gather_and_auto_run_only_in_the_runtime():
     # not a shared parameter: agents need not agree on it
     assert "auto_modes" not in DQMConfig(agents=2).params_text()
     assert np.all([m in costmodel.AUTO_MODES for m in DQMConfig(agents=2).auto_choices])
+
+
+def test_the_fast_engine_is_predicted_from_its_own_mechanisms():
+    """engine="fast": the centralized match is the fast engine's (cheaper than all pairs at 100k, growing slower
+    than n^2), fast balanced's cells pay their own pairs and a budget of copies, and moves fewer bytes than exact
+    balanced; the budget changes both."""
+    fast = JobShape(n=100186, agents=8, dim=128, engine="fast")
+    for mbit in (10, 100, 1000):
+        e, f = predict(BIG, hosts(mbit)), predict(fast, hosts(mbit))
+        for mode in costmodel.AUTO_MODES:
+            assert f[mode].parts["compute"] < e[mode].parts["compute"], (mode, mbit)
+        assert f["gather"].bytes == e["gather"].bytes
+        assert f["balanced"].bytes < e["balanced"].bytes
+        assert choose(fast, hosts(mbit), started=True).mode == "balanced"
+    # growth: four times the features cost 4^fast_exponent the fast match, 16 times the pairs
+    four = JobShape(n=4 * 100186, agents=8, dim=128, engine="fast")
+    g1, g4 = (predict(j, hosts(1000))["gather"].parts["compute"] for j in (fast, four))
+    assert g4 / g1 == pytest.approx(4 ** FITTED.fast_exponent)
+    # the copy budget: more copies, more bytes and more pair work per cell
+    more = JobShape(n=100186, agents=8, dim=128, engine="fast", copies=3.0)
+    assert fast.copies_per_feature == pytest.approx(0.2 + 8 / 8)
+    a, b = predict(fast, hosts(100))["balanced"], predict(more, hosts(100))["balanced"]
+    assert b.bytes > a.bytes and b.parts["compute"] > a.parts["compute"]
+    # the reason names the engine
+    assert "fast engine" in choose(fast, hosts(100)).reason
+    # a slower pair kernel slows the fast match less than all pairs (only its candidates' distances are pairs)
+    slow = Hosts.of([100 * MBIT] * 8, 0.25, kernel_cpu_s=10 * FITTED.kernel_cpu_s)
+    ratio_fast = predict(fast, slow)["gather"].parts["compute"] / predict(fast, hosts(100))["gather"].parts["compute"]
+    ratio_exact = predict(BIG, slow)["gather"].parts["compute"] / predict(BIG, hosts(100))["gather"].parts["compute"]
+    assert 1 < ratio_fast < ratio_exact
+
+
+@pytest.mark.parametrize("bad, word", [({"engine": "auto"}, "engine"), ({"engine": "fast", "copies": 0}, "copies"),
+                                       ({"engine": "fast", "copies": float("nan")}, "copies")])
+def test_a_job_shape_with_an_unknown_engine_or_budget_is_refused(bad, word):
+    with pytest.raises(InputError, match=word):
+        predict(JobShape(n=1000, agents=4, dim=128, **bad), hosts(100, m=4))

@@ -284,6 +284,37 @@ def test_auto_skips_the_probes_only_where_the_links_cannot_change_the_answer_muc
     assert slow.cfg.mode == want.mode and slow.auto["reason"] == want.reason
 
 
+def test_auto_mode_predicts_the_engine_the_job_runs():
+    """--mode auto with --engine fast (or auto at 100k features) predicts the fast engine's modes: the pick,
+    its predicted seconds and the reason are the cost model's for that engine, the report names it, and go
+    names the engine only where it was auto."""
+    from dqm.distributed.coordination import CoordinatorCore
+
+    fit = costmodel.FITTED.kernel_cpu_s
+    rates = {p: 100 * MBIT for p in range(8)}
+    seconds = {}
+    for engine, n, runs in (("fast", 100186, "fast"), ("auto", 100186, "fast"), ("auto", 21691, "exact"),
+                            ("exact", 100186, "exact")):
+        core = CoordinatorCore(DQMConfig(agents=8, mode="auto", engine=engine, job="j"))
+        core.begin()
+        for p in range(8):
+            core.handle({"kind": "ready", "src": p, "epoch": 0, "dim": 128, "dtype": "|u1",
+                         "hosted": np.array([p]), "features": n // 8})
+        job = core.job_shape()
+        assert job.engine == runs and job.copies_per_feature == core.cfg.copies_per_feature
+        if not core.decide_unmeasured(0.25, 0.25, fit):
+            core.decide(rates, 0.25, 0.25, 0.3, kernel_cpu_s=fit)
+        want = costmodel.choose(job, costmodel.Hosts.of([100 * MBIT] * 8, 0.25, gather_cores=0.25,
+                                                        kernel_cpu_s=fit))
+        assert core.cfg.mode == want.mode and core.cfg.engine == runs and core.auto["engine"] == runs
+        assert f"{runs} engine" in core.auto["reason"]
+        go = [fields for _, kind, fields in core.take_outbox() if kind == "go"]
+        assert go == [{"mode": want.mode, **({"engine": runs} if engine == "auto" else {})}] * 8
+        seconds[engine, n] = want.predictions[want.mode].seconds
+    # at 100k the fast engine's pick is predicted faster than the exact engine's
+    assert seconds["fast", 100186] == seconds["auto", 100186] < seconds["exact", 100186]
+
+
 @pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
 def test_gather_inside_dqm_run_equals_centralized(data, tmp_path, kernel):
     from dqm.runtime.launcher import run_job
