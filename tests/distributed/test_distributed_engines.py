@@ -18,6 +18,12 @@ def generated():
     return ds.descriptors, ds.image_ids
 
 
+@pytest.fixture(scope="module")
+def central(generated):
+    """Centralized QuickMatch (exact engine, the balanced mode's kernel) on the generated set, computed once."""
+    return dqm.quickmatch(*generated, kernel="quadratic")
+
+
 def test_engine_is_a_shared_parameter_checked_once():
     cfg = DQMConfig(agents=3, engine="fast").validated(100)
     assert "engine='fast'" in cfg.params_text()
@@ -29,11 +35,10 @@ def test_engine_is_a_shared_parameter_checked_once():
 
 
 @pytest.mark.parametrize("m", [4, 8])
-def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, m):
+def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, central, m):
     X, ids = generated
     exact = simulate(X, ids, DQMConfig(agents=m, seed=1))
     fast = simulate(X, ids, DQMConfig(agents=m, seed=1, engine="fast"))
-    central = dqm.quickmatch(X, ids, kernel="quadratic")
     np.testing.assert_array_equal(exact.labels, central.labels)
     f1 = evaluation.comembership_scores(fast.labels, central.labels).f1
     assert f1 >= 0.99, f1
@@ -82,7 +87,7 @@ def test_likely_copies_keep_the_nearest_within_the_budget():
 
 
 @pytest.mark.parametrize("mode", ["lean", "paper"])
-def test_lean_and_paper_cluster_cells_with_the_fast_engine(generated, mode, monkeypatch):
+def test_lean_and_paper_cluster_cells_with_the_fast_engine(generated, central, mode, monkeypatch):
     X, ids = generated
     engines = []
     real = dqm.distributed.cascade.quickmatch
@@ -94,7 +99,6 @@ def test_lean_and_paper_cluster_cells_with_the_fast_engine(generated, mode, monk
     monkeypatch.setattr(dqm.distributed.cascade, "quickmatch", spy)
     r = simulate(X, ids, DQMConfig(agents=3, seed=1, mode=mode, engine="fast"))
     assert engines and set(engines) == {"fast"}
-    central = dqm.quickmatch(X, ids, kernel="quadratic")
     assert evaluation.comembership_scores(r.labels, central.labels).f1 > 0.9
 
 
@@ -115,7 +119,7 @@ def test_components_equal_scipys_on_random_forests():
     assert (forest.components(1000, chain[::-1], chain[::-1] + 1) == 0).all()  # a long path, any order
 
 
-def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, monkeypatch):
+def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, central, monkeypatch):
     X, ids = generated
     assert DQMConfig(agents=2, engine="auto").engine_for(49_999) == "exact"
     assert DQMConfig(agents=2, engine="auto").engine_for(50_000) == "fast"
@@ -123,7 +127,7 @@ def test_engine_auto_follows_the_features_in_all_as_dqm_match(generated, monkeyp
     # below the threshold: the exact clusters; the coordinator's go named the engine, every agent ran it
     small = simulate(X, ids, DQMConfig(agents=4, seed=1, engine="auto"))
     assert small.config.engine == "exact"
-    np.testing.assert_array_equal(small.labels, dqm.quickmatch(X, ids, kernel="quadratic").labels)
+    np.testing.assert_array_equal(small.labels, central.labels)
     # from the threshold (lowered here): the fast job, copy for copy
     monkeypatch.setattr(dqm.distributed.config, "FAST_FROM", len(X))
     picked = simulate(X, ids, DQMConfig(agents=4, seed=1, engine="auto"))
@@ -161,9 +165,8 @@ def test_engine_auto_survives_a_lost_process(generated, monkeypatch, recovery):
     np.testing.assert_array_equal(lost.labels, clean.labels)
 
 
-def test_the_copy_budget_trades_bytes_for_the_exact_clusters(generated):
+def test_the_copy_budget_trades_bytes_for_the_exact_clusters(generated, central):
     X, ids = generated
-    central = dqm.quickmatch(X, ids, kernel="quadratic")
     runs = {b: simulate(X, ids, DQMConfig(agents=8, seed=1, engine="fast", copy_budget=b)) for b in (0.3, 3.0)}
     few, many = runs[0.3], runs[3.0]
     assert few.stats["ghosts_per_feature"] <= 0.3 + 1e-9 < many.stats["ghosts_per_feature"]
