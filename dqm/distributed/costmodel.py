@@ -81,6 +81,8 @@ from .ghosts import copy_budget
 
 #: the modes :func:`choose` picks from, in the order that breaks an exact tie
 AUTO_MODES = ("gather", "balanced", "lean")
+#: the engines a job runs (``auto`` resolved: :meth:`dqm.distributed.config.DQMConfig.engine_for`), each predicted
+ENGINES_RUN = ("exact", "fast")
 #: link rates (bytes/s, 1 Mbit/s to 10 Gbit/s) over which ``--mode auto`` asks whether one mode is (about) the
 #: fastest whatever the links: then it starts that mode without timing them (:func:`rate_free_choice`)
 CLEAR_RATES_BYTES_S = tuple(mbit * 1e6 / 8 for mbit in (1, 3, 10, 30, 100, 300, 1000, 3000, 10000))
@@ -309,8 +311,8 @@ def check_job(job: JobShape) -> JobShape:
     _count(job.agents, "agents", 1)
     _count(job.dim, "dim", 1)
     _count(job.itemsize, "itemsize", 1)
-    if job.engine not in ("exact", "fast"):
-        raise InputError(f"the cost model predicts the exact or the fast engine, got engine {job.engine!r}")
+    if job.engine not in ENGINES_RUN:
+        raise InputError(f"the cost model predicts the engines {', '.join(ENGINES_RUN)}, got engine {job.engine!r}")
     if job.copies is not None:
         _positive(job.copies, "copies per feature")
     return job

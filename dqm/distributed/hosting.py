@@ -29,7 +29,7 @@ from typing import Callable, Dict, List, Optional, Protocol
 import numpy as np
 
 from .config import DISTRIBUTED_ENGINES, DQMConfig, differing_param, params_hash, parse_params
-from .costmodel import AUTO_MODES
+from .costmodel import AUTO_MODES, ENGINES_RUN
 from .driver import AgentDriver, JobAborted, Transport, ready_fields
 from .gathering import GatherDriver
 from .ledger import COORDINATOR
@@ -210,9 +210,9 @@ class ProcessHost:
             self.job_cfg = self.job_cfg.but(mode=mode)
             log.info("epoch %d: mode %s", self.epoch, mode)
         if self.job_cfg.engine == "auto":
-            if engine not in ("exact", "fast"):
-                raise JobAborted(f"the coordinator's go names no engine (exact or fast) in an --engine auto job "
-                                 f"(got {engine!r})")
+            if engine not in ENGINES_RUN:
+                raise JobAborted(f"the coordinator's go names no engine ({' or '.join(ENGINES_RUN)}) in an --engine "
+                                 f"auto job (got {engine!r})")
             self.job_cfg = self.job_cfg.but(engine=engine)
             log.info("epoch %d: engine %s", self.epoch, engine)
         self._make_drivers()
