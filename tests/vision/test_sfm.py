@@ -266,11 +266,9 @@ def test_a_collection_of_two_scenes_gives_a_model_each_every_one_triangulated_an
     assert report["pairs"]["verified"] == 6 + 10 and report["clusters_across_models"]["clusters"] > 0
     assert (tmp_path / "m" / "model.png").exists() and (tmp_path / "m" / "model-2.png").exists()
     # QuickMatch joins glyphs of both scenes' textures: COLMAP verifies some pairs of images of two scenes on 15-20
-    # chance inliers; they are dropped as weak for both images, and the global mapper, which joined the two
-    # scenes into one model with them, makes a model each
+    # chance inliers; they are dropped as weak for both images (the global mapper joined the two scenes into one
+    # model with them; with them left in, dqm sfm still makes a model each: the next test)
     assert report["pairs"]["dropped_as_weak"] > 0
-    assert main(["sfm", str(a), str(b), "--out", str(tmp_path / "g"), "--mapper", "global", "--quiet"]) == 0
-    assert "2 models, 9 of 9 images registered" in capsys.readouterr().out
 
 
 def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, capsys, monkeypatch):
