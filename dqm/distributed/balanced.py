@@ -46,7 +46,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from ..core import density as exact
-from ..core import memory, pairs, tree
+from ..core import inverted_lists, memory, pairs, tree
 from ..core.clustering import duplicate_groups, equalize_duplicates, zero_sigma_counts
 from . import boundary, forest, ghosts, partition, sketch
 from .config import DQMConfig
@@ -80,6 +80,8 @@ class BalancedCore:
         self.stats: Dict[str, float] = {}
         self.cpu = 0.0
         self.round = 0
+        #: the fast engine's lists over the own features, where they pay (made with the own features' pairs)
+        self.lists: Optional[inverted_lists.CellLists] = None
 
     # ------------------------------------------------------------------ who talks to whom
     def recipients(self, name: str) -> List[int]:
@@ -408,8 +410,22 @@ class BalancedCore:
                     f"{len(self.held_ids):,} features and copies would pass its memory budget of "
                     f"{memory.format_bytes(budget)}; use a smaller rho or more agents")
 
-        pairs.kernel_pass(aug, zero, zero, "quadratic", ghosts.reach(sig, self.cfg.rho), rows_limit=cross,
-                          cols_from=cross, on_edges=tile_edges, undirected=True)
+        if not (self.cfg.fast and inverted_lists.lists_pay(self.n_own)):
+            pairs.kernel_pass(aug, zero, zero, "quadratic", ghosts.reach(sig, self.cfg.rho), rows_limit=cross,
+                              cols_from=cross, on_edges=tile_edges, undirected=True)
+            return
+        # the fast engine on a cell large enough for lists to pay: the pairs the centralized scan would compute,
+        # from lists over the own features (made with them, before any copy), not every pair of the cell
+        rad2 = pairs.search_rad2(aug, ghosts.reach(sig, self.cfg.rho))
+        if cross is None:
+            self.lists = inverted_lists.CellLists(aug, self.cfg.seed)
+            found = self.lists.own_pairs(aug, rad2)
+        elif cross == 0:  # no own feature: nothing to meet
+            return
+        else:
+            found = self.lists.copy_pairs(aug, rad2, cross)
+        for i, j in found:
+            tile_edges(i, j)
 
     def _round_sums(self, inputs) -> Dict[int, Payload]:
         self.meet_own()  # no copies offered at all
@@ -420,6 +436,8 @@ class BalancedCore:
         self.cand = tuple(np.concatenate(part) for part in zip(*self.kept)) if self.kept else \
             (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
         del self.kept
+        # the distances computed: every pair, or where lists paid, what their scans met
+        self.stats["pairs_computed"] = float(self.lists.computed) if self.lists is not None else self.stats["pairs"]
         out = {}
         for a in self.recipients("sums"):
             sl = self.ghost_slices[a]

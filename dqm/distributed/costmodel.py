@@ -38,7 +38,9 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   from 21,691 real features against 100,186 generated ones, which are easier per feature: on generated sets
   alone the engine grows as about n^1.25 from 60k to 1M, so jobs far beyond 100k are predicted too cheap);
 * fast balanced's busiest agent pays its cell's own pairs and its copies' (``JobShape.cell_pair_work``,
-  ``(n/M)^2 (1/2 + copies) dim``, ``copies`` the copy budget) times ``fast_balanced_imbalance``, plus
+  ``(n/M)^2 (1/2 + copies) dim``, ``copies`` the copy budget; where its cell is large enough for lists, the
+  share of them its lists compute, fitted on none of the rows: about 21,000 features a cell and more) times
+  ``fast_balanced_imbalance``, plus
   ``fast_balanced_other_cpu_s`` per 10,000 features of its cell and ``fast_balanced_fixed_cpu_s``; its bytes are
   the routed features and ``fast_copy_bytes`` per copy.
 
@@ -76,6 +78,7 @@ from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..core import inverted_lists
 from ..validation import InputError
 from .ghosts import copy_budget
 
@@ -194,9 +197,11 @@ class JobShape:
     @property
     def cell_pair_work(self) -> float:
         """Fast balanced: pair-dimensions of one cell, its own pairs and its copies' with them (cells of n/M
-        features, as many copies received as sent): ``(n/M)^2 (1/2 + copies) dim``."""
+        features, as many copies received as sent): ``(n/M)^2 (1/2 + copies) dim``, times the share of them the
+        cell's lists compute where they pay (:func:`dqm.core.inverted_lists.cell_pairs_share`)."""
         cell = self.n / self.agents
-        return cell * cell * (0.5 + self.copies_per_feature) * self.dim
+        share = inverted_lists.cell_pairs_share(int(cell))
+        return cell * cell * (0.5 + self.copies_per_feature) * self.dim * share
 
     @property
     def raw_bytes(self) -> float:

@@ -177,3 +177,94 @@ def test_the_copy_budget_trades_bytes_for_the_exact_clusters(generated, central)
     for bad in (-1.0, float("inf"), "2", True):
         with pytest.raises(InputError, match="copy_budget must be a number >= 0"):
             DQMConfig(agents=8, copy_budget=bad).validated(100)
+
+
+def _met_pairs_by_rule(lists, aug, rad2, first, copy_bits=None):
+    """The pairs the cell lists must hand over, by their definition: within ``rad2`` of either end (float32
+    distances as the pass computes them) and met, one of the two scanning the other's list."""
+    from dqm.core import inverted_lists
+
+    n = aug.n
+    G = aug.left_rows(np.arange(n)) @ aug.right.T
+    i, j = np.nonzero(np.triu((G <= rad2[:, None]) | (G <= rad2[None, :]), 1))
+    if copy_bits is None:  # own features among themselves
+        li, lj = lists.own_list[i], lists.own_list[j]
+        met = (li == lj) | inverted_lists._has_bit(lists.bits, i, lj) | inverted_lists._has_bit(lists.bits, j, li)
+    else:  # own rows i < first, copies j >= first
+        keep = (i < first) & (j >= first)
+        i, j = i[keep], j[keep]
+        bits, mine = copy_bits
+        met = inverted_lists._has_bit(bits, j - first, lists.own_list[i]) | \
+            inverted_lists._has_bit(lists.bits, i, mine[j - first])
+    return set(zip(i[met].tolist(), j[met].tolist())), len(i)
+
+
+def test_cell_lists_hand_over_every_met_pair_within_reach_once(generated, central):
+    """The fast balanced mode's lists over a cell's own features (dqm.core.inverted_lists.CellLists): among the
+    own features and between them and copies, every pair within reach that either feature's scan meets is
+    handed over, once, lower index first, and nothing else; the lists scan a share of the pairs, so most (not
+    all) pairs within reach are met."""
+    from dqm.core import inverted_lists, pairs
+
+    X, _ = generated
+    own, copies = X[:4000], X[4000:6000]
+    reach = ghosts.reach(central.sigma[:6000], 0.9)
+    aug = pairs.Augmented(own)
+    rad2 = pairs.search_rad2(aug, reach[:4000])
+    lists = inverted_lists.CellLists(aug, seed=1)
+    assert lists.t < lists.k  # a share of the lists, not all of them
+    got = [(int(a), int(b)) for i, j in lists.own_pairs(aug, rad2) for a, b in zip(i, j)]
+    want, within = _met_pairs_by_rule(lists, aug, rad2, 4000)
+    assert len(got) == len(set(got)) and all(a < b for a, b in got)
+    assert set(got) == want and 0.9 * within < len(want) < within
+    held = pairs.Augmented(np.concatenate([own, copies]))
+    rad2 = pairs.search_rad2(held, reach)
+    got = [(int(a), int(b)) for i, j in lists.copy_pairs(held, rad2, 4000) for a, b in zip(i, j)]
+    # the copies' scans, by the rule the class documents: their nearest lists, by the own features' quota
+    centroids = (lists.centroids - held.center).astype(np.float32)
+    near = inverted_lists._nearest_centroids(held.left_rows(np.arange(4000, 6000)), centroids, lists.t)
+    count = inverted_lists._scanned_lists(lists.counts, near, lists.quota)
+    bits = inverted_lists._scan_bits(near, np.arange(lists.t - 1)[None, :] < count[:, None], lists.k)
+    want, within = _met_pairs_by_rule(lists, held, rad2, 4000, (bits, near[:, 0].astype(np.int64)))
+    assert len(got) == len(set(got)) and all(a < 4000 <= b for a, b in got)
+    assert set(got) == want and 0.9 * within < len(want) < within
+
+
+def test_fast_balanced_cells_scan_lists_where_they_pay(generated, central, monkeypatch):
+    """Cells of enough features (dqm.core.inverted_lists.lists_pay: from about 21,000 own features) meet only
+    the pairs their lists' scans meet, not every pair: here forced on small cells, the clusters stay the exact
+    engine's nearly everywhere, deterministically, with fewer parent candidates than the exact cell pass."""
+    from dqm.core import inverted_lists
+
+    X, ids = generated
+    assert not inverted_lists.lists_pay(12_500) and inverted_lists.lists_pay(25_000)
+    plain = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
+    monkeypatch.setattr(inverted_lists, "lists_pay", lambda n: True)
+    lists = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
+    assert evaluation.comembership_scores(lists.labels, central.labels).f1 >= 0.99
+    for mine, before in zip(lists.per_agent, plain.per_agent):  # the same cells and copies, a share of the pairs
+        assert mine["pairs"] == before["pairs"] == before["pairs_computed"]
+        assert mine["pairs_computed"] < 0.8 * mine["pairs"]
+    again = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
+    np.testing.assert_array_equal(again.labels, lists.labels)
+
+
+def test_cell_lists_benchmark_script_small(capsys):
+    """scripts/bench_cell_lists.py (the fast balanced cells with and without lists, side by side) at its CI size."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_cell_lists.py"
+    spec = importlib.util.spec_from_file_location("bench_cell_lists", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    from dqm.core import inverted_lists
+
+    real = inverted_lists.lists_pay
+    assert script.main(["--n", "6000", "--agents", "2", "--force"]) == 0
+    assert inverted_lists.lists_pay is real  # given back
+    out = capsys.readouterr().out.splitlines()
+    rows = [ln.split("|")[1:-1] for ln in out if ln.startswith("| ") and "---" not in ln]
+    assert [r[0].strip() for r in rows[1:]] == ["lists (forced)", "exact cell pass"]
+    for r in rows[1:]:
+        assert float(r[-1]) >= 0.99 and float(r[-2]) > 0
