@@ -629,10 +629,10 @@ class CellLists:
         tasks: List[PairTask] = []
         for b in range(self.k):
             cols = self._members(b)
-            if len(cols) == 0:
-                continue
             rows = probing[bounds[b]:bounds[b + 1]]  # copies that scan list b (their own list included)
-            tasks.extend((rows[p:p + ROWS], cols, False) for p in range(0, len(rows), ROWS))
+            if len(cols):
+                tasks.extend((rows[p:p + ROWS], cols, False) for p in range(0, len(rows), ROWS))
+            # (a list k-means left without own members can still be a copy's nearest, and scanned by own features)
             theirs = copies[by_own[own_bounds[b]:own_bounds[b + 1]]]  # copies whose own list is b
             probers = self.probers[self.probe_bounds[b]:self.probe_bounds[b + 1]]
             if len(theirs):

@@ -420,8 +420,6 @@ class BalancedCore:
         if cross is None:
             self.lists = inverted_lists.CellLists(aug, self.cfg.seed)
             found = self.lists.own_pairs(aug, rad2)
-        elif cross == 0:  # no own feature: nothing to meet
-            return
         else:
             found = self.lists.copy_pairs(aug, rad2, cross)
         for i, j in found:
