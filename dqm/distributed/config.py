@@ -58,7 +58,8 @@ DEFAULT_SKETCH_DIMS = 48
 #: and its ``go`` names the pick), ``exact`` (every pair within reach; balanced mode's labels are the
 #: centralized ones bit for bit) or ``fast``
 #: (gather, lean, paper: dqm.quickmatch's fast engine where they cluster; balanced: copies travel only where a
-#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`; each cell's own pairs stay exact)
+#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`, and a cell of 21,000 features or more meets the
+#: pairs its lists' scans meet, :class:`dqm.core.inverted_lists.CellLists`; smaller cells meet every pair)
 DISTRIBUTED_ENGINES = ("exact", "fast", "auto")
 DEFAULT_ENGINE = "exact"
 
@@ -145,7 +146,8 @@ class DQMConfig:
     engine: str = field(default=DEFAULT_ENGINE, metadata=_meta(
         "exact (default: every pair within reach; balanced gives dqm.quickmatch's labels bit for bit), fast "
         "(dqm match's fast engine, its default from {:,} features: gather, lean and paper cluster with it; "
-        "balanced sends copies only where a pair is likely, without a certificate; clusters close to the exact "
+        "balanced sends copies only where a pair is likely, without a certificate, and large cells scan lists; "
+        "clusters close to the exact "
         "ones, not bit for bit) or auto (the coordinator picks fast from {:,} features in all, as dqm match "
         "does); docs/distributed.md".format(FAST_FROM, FAST_FROM),
         "--engine", 13, choices=DISTRIBUTED_ENGINES))

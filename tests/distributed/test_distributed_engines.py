@@ -48,6 +48,7 @@ def test_fast_balanced_keeps_the_exact_clusters_with_fewer_copies(generated, cen
     assert fast.stats["bytes_over_raw"] < 0.7 * exact.stats["bytes_over_raw"]
     assert fast.traffic.total("sketch") == 0 and fast.traffic.total("request") == 0
     assert fast.stats["arrival_check_failures"] == 0
+    assert all(agent["pairs_computed"] == agent["pairs"] for agent in fast.per_agent)  # cells too small for lists
     # every copy lies within the likely share of the reach that matters (the receiver's check agrees: no
     # failures above); the bound's rule would have sent far more
     H = boundary.bisector_lower_bounds(X.astype(np.float64), fast.sites, fast.cells, fast.weights)
@@ -238,13 +239,11 @@ def test_fast_balanced_cells_scan_lists_where_they_pay(generated, central, monke
 
     X, ids = generated
     assert not inverted_lists.lists_pay(12_500) and inverted_lists.lists_pay(25_000)
-    plain = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
     monkeypatch.setattr(inverted_lists, "lists_pay", lambda n: True)
     lists = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
     assert evaluation.comembership_scores(lists.labels, central.labels).f1 >= 0.99
-    for mine, before in zip(lists.per_agent, plain.per_agent):  # the same cells and copies, a share of the pairs
-        assert mine["pairs"] == before["pairs"] == before["pairs_computed"]
-        assert mine["pairs_computed"] < 0.8 * mine["pairs"]
+    for agent in lists.per_agent:  # a share of the cell's pairs (without lists: all of them, the test above)
+        assert 0 < agent["pairs_computed"] < 0.8 * agent["pairs"]
     again = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
     np.testing.assert_array_equal(again.labels, lists.labels)
 
