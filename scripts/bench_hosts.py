@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,7 +46,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dqm import evaluation, synthetic  # noqa: E402
+from dqm import InputError, evaluation, outputs, synthetic  # noqa: E402
 from dqm.core.pairs import pair_cpu_s_here  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.distributed.config import DISTRIBUTED_ENGINES  # noqa: E402
@@ -245,17 +247,27 @@ def main(argv=None) -> int:
                     help="runs of every mode at every rate, in turn; each row is the run of median time")
     ap.add_argument("--engine", default="exact", choices=DISTRIBUTED_ENGINES,
                     help="every mode's engine (gather's dqm.quickmatch included): rows compare like with like")
-    ap.add_argument("--json", help="write the rows here")
-    ap.add_argument("--figure", help="write the figure (PNG) here")
+    ap.add_argument("--json", help="write the rows here (after every run; an existing file is refused unless "
+                                   "--overwrite)")
+    ap.add_argument("--figure", help="write the figure (PNG) here (an existing file is refused unless --overwrite)")
+    outputs.add_overwrite_option(ap)
     ap.add_argument("--keep", help="keep the work folder (files, logs) here")
     ap.add_argument("--table-from", nargs="+", metavar="JSON",
                     help="print the table (and --figure) of earlier runs' --json files instead of running")
     args = ap.parse_args(argv)
+    try:  # before any work: the outputs can be written, and exist only where --overwrite lets them be replaced
+        if args.json:
+            outputs.check_file(args.json, "--json", [".json"], overwrite=args.overwrite)
+        if args.figure:
+            outputs.check_file(args.figure, "--figure", [".png"], overwrite=args.overwrite)
+    except InputError as exc:
+        print(f"bench_hosts: {exc}", file=sys.stderr)
+        return 2
     if args.table_from:
         rows = [r for f in args.table_from for r in json.loads(Path(f).read_text())]
         print(table(rows))
-        if args.figure:
-            figure(rows, Path(args.figure))
+        if args.figure and rows:
+            save_figure(rows, args.figure)
         return 0
     import signal
 
@@ -282,15 +294,44 @@ def main(argv=None) -> int:
                 for m in [int(a) for a in args.agents.split(",") if a]:
                     bench(label, X, ids, m, rates, modes, wd / f"{name}-{m}", args.timeout,
                           lambda text: print(text, file=sys.stderr, flush=True), rows,
-                          lambda: args.json and Path(args.json).write_text(json.dumps(rows, indent=1)),
+                          lambda: args.json and save_rows(rows, args.json),
                           repeats=args.repeats, engine=args.engine)
     except NamespacesUnavailable as exc:
         print(f"bench_hosts: cannot run here: {exc}", file=sys.stderr)
         return 2
     print(table(rows))
     if args.figure and rows:
-        figure(rows, Path(args.figure))
+        save_figure(rows, args.figure)
     return 0
+
+
+def save_rows(rows: list, path: str) -> None:
+    """The rows as JSON at ``path``: the first write takes the name (checked before any work), later ones
+    replace that file, each whole (a long benchmark keeps what it measured; another file never replaced)."""
+    text = json.dumps(rows, indent=1)
+    if Path(path).resolve() not in _saved:
+        outputs.write_text(path, text)
+        _saved.add(Path(path).resolve())
+        return
+    target = outputs.written(path)  # this run's file: replaced whole
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.chmod(tmp, target.stat().st_mode & 0o777)
+        os.replace(tmp, target)
+    except BaseException:
+        outputs.remove_temporary(tmp)
+        raise
+
+
+_saved: set = set()
+
+
+def save_figure(rows: list, path: str) -> None:
+    """:func:`figure` written whole under its checked name."""
+    with outputs.atomic_output(path) as tmp:
+        figure(rows, Path(tmp))
 
 
 if __name__ == "__main__":

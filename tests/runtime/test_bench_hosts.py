@@ -1,6 +1,7 @@
 """Emulated hosts (network namespaces in CPU quotas, links capped with tc tbf): every mode of
 scripts/bench_hosts.py gives its documented result through them (a small version: 2 hosts, one rate)."""
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -168,3 +169,31 @@ def test_repeated_runs_take_turns_and_each_row_is_the_run_of_median_time(tmp_pat
     gather, auto = rows
     assert auto["picked"] == "gather" and auto["identical"]
     assert auto["speedup_over_gather"] == pytest.approx(gather["seconds"] / auto["seconds"])
+
+
+def test_outputs_are_refused_before_any_work_and_the_rows_file_is_this_runs(tmp_path, capsys):
+    """--json and --figure: an existing file is refused in one line (exit 2) before anything runs, unless
+    --overwrite; the rows file is taken by its first write and replaced by the later ones (no temporary left)."""
+    from dqm import outputs
+
+    bench = _bench_script()
+    rows = tmp_path / "rows.json"
+    rows.write_text("[]")
+    for option in ("--json", "--figure"):
+        taken = tmp_path / ("taken.json" if option == "--json" else "taken.png")
+        taken.write_text("mine")
+        assert bench.main(["--table-from", str(rows), option, str(taken)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"bench_hosts: {option} {taken} exists; pass --overwrite to replace it, or name another file"
+        assert taken.read_text() == "mine"
+    fig = tmp_path / "rows.png"
+    measured = str(Path(__file__).resolve().parents[2] / "docs" / "bench_hosts_200k_fast.json")
+    assert bench.main(["--table-from", measured, "--figure", str(fig)]) == 0 and fig.stat().st_size > 0
+    outputs.reset_claims()
+    out = tmp_path / "out.json"
+    outputs.check_file(out, "--json", [".json"])
+    bench.save_rows([{"a": 1}], str(out))
+    bench.save_rows([{"a": 1}, {"b": 2}], str(out))
+    assert out.read_text().count("{") == 2 and sorted(p.name for p in tmp_path.iterdir()) == [
+        "out.json", "rows.json", "rows.png", "taken.json", "taken.png"]
+    outputs.reset_claims()
