@@ -310,8 +310,11 @@ def save_rows(rows: list, path: str) -> None:
     replace that file, each whole (a long benchmark keeps what it measured; another file never replaced)."""
     text = json.dumps(rows, indent=1)
     if Path(path).resolve() not in _saved:
-        outputs.write_text(path, text)
         _saved.add(Path(path).resolve())
+        try:
+            outputs.write_text(path, text)
+        except outputs.OutputTaken as exc:  # made meanwhile by another program: left, this run's rows beside it
+            print(f"bench_hosts: {exc}", file=sys.stderr, flush=True)
         return
     target = outputs.written(path)  # this run's file: replaced whole
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
