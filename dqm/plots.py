@@ -110,7 +110,14 @@ def clusters_figure(images: Sequence, keypoints, image_ids, clusters: Sequence[n
     more than ``max_columns`` features shows that many, evenly spread over its
     images. With ``point_ids`` (ground truth), a patch whose point differs
     from the cluster's most common one gets a red frame.
+
+    The patches are one mosaic image in one axes (their scales circled and
+    centres marked by one collection each), not an axes per patch: a figure of
+    6 clusters of 9 drew in a fifth of the time.
     """
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Circle
+
     kp = np.asarray(keypoints, float)
     ids = np.asarray(image_ids)
     if not len(clusters):
@@ -119,8 +126,12 @@ def clusters_figure(images: Sequence, keypoints, image_ids, clusters: Sequence[n
         raise InputError("max_columns must be >= 1")
     cols = min(max_columns, max(len(c) for c in clusters))
     rows = len(clusters)
-    fig = _figure(1.3 * cols + 0.4, 1.45 * rows + 0.5)
+    side = 2 * radius + 1
+    gap = max(2, side // 4)  # between patches: room for a title above each
+    step = side + gap
+    mosaic = np.full((rows * step, cols * step - gap + 2, 3), 255, np.uint8)
     cache: dict[int, np.ndarray] = {}
+    rings, centres, titles = [], [], []
     for r, members in enumerate(clusters):
         members = np.asarray(members)[np.argsort(ids[np.asarray(members)], kind="stable")]
         majority = None
@@ -134,20 +145,26 @@ def clusters_figure(images: Sequence, keypoints, image_ids, clusters: Sequence[n
             k = int(ids[f])
             if k not in cache:
                 cache[k] = as_gray(images[k])
-            ax = fig.add_subplot(rows, cols, r * cols + c + 1)
-            ax.imshow(_patch(cache[k], kp[f, 0], kp[f, 1], radius), cmap="gray", vmin=0, vmax=255)
-            if kp.shape[1] >= 3 and kp[f, 2] > 0:
-                from matplotlib.patches import Circle
-
-                ax.add_patch(Circle((radius, radius), kp[f, 2] / 2.0, fill=False, ec="yellow", lw=0.8))
-            ax.plot([radius], [radius], "+", color="yellow", ms=5)
-            ax.set_xticks([])
-            ax.set_yticks([])
+            y0, x0 = r * step + gap, c * step + 1
             wrong = majority is not None and np.asarray(point_ids)[f] != majority
-            for side in ax.spines.values():
-                side.set_color("#d73027" if wrong else "black")
-                side.set_linewidth(2.5 if wrong else 0.5)
-            ax.set_title(f"img {k}" if c else f"[{len(members)}] img {k}", fontsize=7, pad=2)
+            frame = 3 if wrong else 1
+            mosaic[y0 - frame:y0 + side + frame, x0 - frame:x0 + side + frame] = (215, 48, 39) if wrong else 0
+            mosaic[y0:y0 + side, x0:x0 + side] = _patch(cache[k], kp[f, 0], kp[f, 1], radius)[:, :, None]
+            if kp.shape[1] >= 3 and kp[f, 2] > 0:
+                rings.append(Circle((x0 + radius, y0 + radius), kp[f, 2] / 2.0))
+            centres.append((x0 + radius, y0 + radius))
+            titles.append((x0 + radius, y0 - frame - 1, f"img {k}" if c else f"[{len(members)}] img {k}"))
+    fig = _figure(1.3 * cols + 0.4, 1.45 * rows + 0.5)
+    ax = fig.add_axes((0.02, 0.02, 0.96, 0.96 if not title else 0.9))
+    ax.imshow(mosaic, interpolation="nearest")
+    if rings:
+        ax.add_collection(PatchCollection(rings, facecolor="none", edgecolor="yellow", linewidth=0.8))
+    ax.plot(*np.asarray(centres).T, "+", color="yellow", ms=5, ls="")
+    for x, y, text in titles:
+        ax.text(x, y, text, fontsize=7, ha="center", va="bottom")
+    ax.set_xlim(0, mosaic.shape[1])
+    ax.set_ylim(mosaic.shape[0], 0)
+    ax.set_axis_off()
     if title:
         fig.suptitle(title, fontsize=10)
     return fig

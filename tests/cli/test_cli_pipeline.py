@@ -113,7 +113,10 @@ def test_plot_functions_directly():
         plots.pair_figure(sc.images[0], sc.images[1], xy, xy[:1])
     fig = plots.clusters_figure(sc.images, np.c_[xy, [8.0, 8.0]], np.array([0, 1]), [np.array([0, 1])],
                                 point_ids=np.array([3, 4]))
-    assert len(fig.axes) == 2
+    mosaic = np.asarray(fig.axes[0].images[0].get_array())  # the patches as one image, in one axes
+    assert len(fig.axes) == 1 and mosaic.shape[:2] == (2 * 32 + 1 + 16, 2 * (2 * 32 + 1 + 16) - 16 + 2)
+    red = np.all(mosaic == (215, 48, 39), axis=-1)  # the second feature's point is not the cluster's: framed red
+    assert red[:, mosaic.shape[1] // 2:].sum() > 4 * 65 and not red[:, :mosaic.shape[1] // 2].any()
     fig = plots.cluster_sizes_figure(np.array([0, 0, 1, 2, 2, 2]))
     assert "6 features, 3 clusters" in fig.axes[0].get_title()
     c = PRCurve("quickmatch", "rho", np.array([0.5, 1.0]), np.array([0.9, 0.7]), np.array([0.3, 0.5]))
