@@ -30,9 +30,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     ds = synthetic.sized(args.n)
     X, ids = ds.descriptors, ds.image_ids
-    pays = (lambda n: True) if args.force else inverted_lists.lists_pay
-    runs = {}
     real = inverted_lists.lists_pay
+    pays = (lambda n: True) if args.force else real
+    runs = {}
     try:
         for name, rule in (("lists where they pay" if not args.force else "lists (forced)", pays),
                            ("exact cell pass", lambda n: False)):

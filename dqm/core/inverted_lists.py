@@ -520,8 +520,13 @@ def cell_pairs_share(n: int) -> float:
     return min(1.0, (2 * default_probes(k) + 1) / k)
 
 
-#: a block of pairs to meet: rows, columns, whether only its upper triangle (a list with itself)
-PairTask = Tuple[np.ndarray, np.ndarray, bool]
+#: pairs handed over: ``(i, j)``, ``i < j``
+PairFound = Tuple[np.ndarray, np.ndarray]
+#: a pair's test of which block meets it: ``keep(rows, cols, r, c)`` for the pairs ``(rows[r], cols[c])``
+KeepFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: a block of pairs to meet: rows, columns, whether only its upper triangle (a list with itself), and the test
+#: of the pairs it shares with another block (None: every pair of the block is met there only)
+PairTask = Tuple[np.ndarray, np.ndarray, bool, Optional[KeepFn]]
 
 
 class CellLists:
@@ -539,7 +544,6 @@ class CellLists:
 
     def __init__(self, aug: pairs.Augmented, seed: int = 0, n_threads: Optional[int] = None):
         n = aug.n
-        self.n = n
         self.k = k = n_lists(n)
         self.t = t = default_probes(k)
         centroids = kmeans(aug, k, seed, n_threads)
@@ -551,9 +555,7 @@ class CellLists:
         self.bounds = _list_bounds(self.own_list, k)
         self.counts = np.diff(self.bounds).astype(np.int32)
         self.quota = (t * n) / k
-        count = _scanned_lists(self.counts, near, self.quota)
-        scans = np.arange(t - 1)[None, :] < count[:, None]
-        self.bits = _scan_bits(near, scans, k)
+        count, scans, self.bits = self._scans(near)
         probe_list = near[:, 1:][scans]
         order = _by_list(probe_list, k)
         self.probers = np.repeat(np.arange(n, dtype=np.int64), count)[order]
@@ -565,13 +567,20 @@ class CellLists:
     def _members(self, b: int) -> np.ndarray:
         return self.members[self.bounds[b]:self.bounds[b + 1]]
 
-    def _run(self, aug: pairs.Augmented, rad2: np.ndarray, tasks, keep) -> Iterator[Tuple[np.ndarray, np.ndarray]]:
-        """Each task ``(rows, cols, upper)``: the pairs within reach of the block (``upper``: the upper triangle
-        of a block of a list with itself), filtered by ``keep(rows, cols, r, c)`` (indices into the block)."""
-        self.computed += sum(len(r) * (len(r) - 1) // 2 if upper else len(r) * len(c) for r, c, upper in tasks)
+    def _scans(self, near: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """By the own features' quota, for features whose nearest lists are ``near`` (nearest first): how many
+        of the others each scans, which (a prefix of ``near[:, 1:]``) and all it scans as bitsets."""
+        count = _scanned_lists(self.counts, near, self.quota)
+        scans = np.arange(self.t - 1)[None, :] < count[:, None]
+        return count, scans, _scan_bits(near, scans, self.k)
+
+    def _run(self, aug: pairs.Augmented, rad2: np.ndarray, tasks: List[PairTask]) -> Iterator[PairFound]:
+        """Each task ``(rows, cols, upper, keep)``: the pairs within reach of the block (``upper``: the upper
+        triangle of a block of a list with itself) that its ``keep`` leaves to it."""
+        self.computed += sum(len(r) * (len(r) - 1) // 2 if upper else len(r) * len(c) for r, c, upper, _ in tasks)
 
         def work(task):
-            rows, cols, upper = task
+            rows, cols, upper, keep = task
             G = _block_d2(aug, rows, cols)
             near = (G <= rad2[rows, None]) | (G <= rad2[None, cols])
             if upper:
@@ -586,28 +595,25 @@ class CellLists:
         with pairs.tile_pool(self.n_threads) as run:
             yield from run(work, tasks)
 
-    def own_pairs(self, aug: pairs.Augmented, rad2: np.ndarray) -> Iterator[Tuple[np.ndarray, np.ndarray]]:
+    def own_pairs(self, aug: pairs.Augmented, rad2: np.ndarray) -> Iterator[PairFound]:
         """The met pairs among the own features (``aug``: the own features, in the order the lists were made
         from), list by list. A pair whose two features each scan the other's list is handed over by the
         list of the larger index (as :func:`scan` keeps it)."""
+        def keep(rows, cols, r, c):  # a prober's pair: not where the member scans the prober's list of larger index
+            mine, theirs = self.own_list[cols[c]], self.own_list[rows[r]]
+            return ~_has_bit(self.bits, cols[c], theirs) | (theirs < mine)
+
         tasks: List[PairTask] = []
         for b in range(self.k):
             cols = self._members(b)
             if len(cols) == 0:
                 continue
-            tasks.append((cols, cols, True))
+            tasks.append((cols, cols, True, None))
             probers = self.probers[self.probe_bounds[b]:self.probe_bounds[b + 1]]
-            tasks.extend((probers[p:p + ROWS], cols, False) for p in range(0, len(probers), ROWS))
+            tasks.extend((probers[p:p + ROWS], cols, False, keep) for p in range(0, len(probers), ROWS))
+        return self._run(aug, rad2, tasks)
 
-        def keep(rows, cols, r, c):
-            if rows is cols:
-                return np.ones(len(r), bool)
-            mine, theirs = self.own_list[cols[c]], self.own_list[rows[r]]
-            return ~_has_bit(self.bits, cols[c], theirs) | (theirs < mine)
-
-        return self._run(aug, rad2, tasks, keep)
-
-    def copy_pairs(self, aug: pairs.Augmented, rad2: np.ndarray, first: int) -> Iterator[Tuple[np.ndarray, np.ndarray]]:
+    def copy_pairs(self, aug: pairs.Augmented, rad2: np.ndarray, first: int) -> Iterator[PairFound]:
         """The met pairs between the own features (rows ``0 .. first - 1`` of ``aug``, the order the lists were
         made from) and the copies after them: a copy scans the own lists by the quota of the own features
         (its nearest list counts as its own), and an own feature meets the copies whose own list it scans."""
@@ -616,9 +622,7 @@ class CellLists:
             return iter(())
         centroids = (self.centroids - aug.center).astype(np.float32)
         near = _nearest_centroids(aug.left_rows(copies), centroids, self.t, self.n_threads)
-        count = _scanned_lists(self.counts, near, self.quota)
-        scans = np.arange(self.t - 1)[None, :] < count[:, None]
-        bits = _scan_bits(near, scans, self.k)
+        count, scans, bits = self._scans(near)
         mine = near[:, 0].astype(np.int64)
         probe_list = np.concatenate([mine, near[:, 1:][scans]])
         probing = np.concatenate([copies, np.repeat(copies, count)])
@@ -626,22 +630,19 @@ class CellLists:
         probing, bounds = probing[order], _list_bounds(probe_list, self.k)
         by_own = _by_list(mine, self.k)
         own_bounds = _list_bounds(mine, self.k)
+
+        def keep(rows, cols, r, c):  # an own prober's pair with a copy: not where the copy scans its list too
+            return ~_has_bit(bits, cols[c] - first, self.own_list[rows[r]])
+
         tasks: List[PairTask] = []
         for b in range(self.k):
             cols = self._members(b)
-            rows = probing[bounds[b]:bounds[b + 1]]  # copies that scan list b (their own list included)
+            rows = probing[bounds[b]:bounds[b + 1]]  # copies that scan list b (their own list included): met here only
             if len(cols):
-                tasks.extend((rows[p:p + ROWS], cols, False) for p in range(0, len(rows), ROWS))
+                tasks.extend((rows[p:p + ROWS], cols, False, None) for p in range(0, len(rows), ROWS))
             # (a list k-means left without own members can still be a copy's nearest, and scanned by own features)
             theirs = copies[by_own[own_bounds[b]:own_bounds[b + 1]]]  # copies whose own list is b
             probers = self.probers[self.probe_bounds[b]:self.probe_bounds[b + 1]]
             if len(theirs):
-                tasks.extend((probers[p:p + ROWS], theirs, False) for p in range(0, len(probers), ROWS))
-
-        def keep(rows, cols, r, c):
-            if cols[0] < first:  # copies against an own list: each such pair is met here only
-                return np.ones(len(r), bool)
-            # own probers against the copies of their list: not where the copy scans the prober's list too
-            return ~_has_bit(bits, cols[c] - first, self.own_list[rows[r]])
-
-        return self._run(aug, rad2, tasks, keep)
+                tasks.extend((probers[p:p + ROWS], theirs, False, keep) for p in range(0, len(probers), ROWS))
+        return self._run(aug, rad2, tasks)

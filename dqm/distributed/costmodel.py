@@ -404,7 +404,7 @@ def predict(job: JobShape, hosts: Hosts, constants: CostConstants = FITTED, *, s
     # balanced: 1/M of the pairs per agent (times the imbalance), the bytes spread over M links
     per_link = b_bal * raw / m
     busiest = math.ceil(m / procs)
-    if fast:  # the cells' own pairs and their copies', the exact kernel's
+    if fast:  # the cells' own pairs and their copies' (all of them, or their lists' share where those pay)
         b_cpu = (k.fast_balanced_imbalance * pair * job.cell_pair_work
                  + k.fast_balanced_other_cpu_s * job.n / m / 1e4) * busiest + k.fast_balanced_fixed_cpu_s
     else:
