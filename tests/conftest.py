@@ -10,7 +10,10 @@ def pytest_configure(config):
     """Byte-compile the package once: the suite starts hundreds of dqm processes, and where
     PYTHONDONTWRITEBYTECODE is set (as in this project's sandboxes and CI) each of them would
     otherwise compile every module it imports from source again (about 0.2 s of every start-up;
-    cached .pyc files are read whatever that variable says)."""
+    cached .pyc files are read whatever that variable says). Under pytest-xdist the controller
+    compiles before its workers start; they find it done."""
+    if hasattr(config, "workerinput"):
+        return
     compileall.compile_dir(Path(__file__).resolve().parents[1] / "dqm", quiet=1)
 
 #: the shared real data (Oxford sequences, CMU hotel), next to the project checkout
