@@ -30,8 +30,9 @@ NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
 
 
-def add_image_options(p, default_preset: str = DEFAULT_PRESET) -> None:
-    """Image-input and SIFT options shared by the commands that read images (see :func:`extract`)."""
+def add_image_options(p, default_preset: str = DEFAULT_PRESET, auto: str = "") -> None:
+    """Image-input and SIFT options shared by the commands that read images (see :func:`extract`). ``auto``:
+    what ``--preset auto`` chooses, for a command that offers it (the command resolves it before extracting)."""
     p.add_argument("--image-list", default=None, metavar="FILE",
                    help="also read the images named in FILE, one path a line (relative paths from FILE's "
                         "folder; blank lines and # comments ignored), in the list's order")
@@ -47,9 +48,10 @@ def add_image_options(p, default_preset: str = DEFAULT_PRESET) -> None:
                        "orientation kept: COLMAP's budget), RootSIFT descriptors (more 3-D points on small scenes, "
                        "fewer on large ones: docs/sfm.md)",
              "opencv": "OpenCV's plain SIFT",
+             **({"auto": auto} if auto else {}),
              "paper": "the seed paper's settings (nOctaveLayers=6, contrastThreshold=0.10, edgeThreshold=15, "
                       "sigma=1.0)"}
-    p.add_argument("--preset", choices=sorted(PRESET_NAMES), default=default_preset,
+    p.add_argument("--preset", choices=sorted(PRESET_NAMES + (("auto",) if auto else ())), default=default_preset,
                    help="SIFT settings: " + "; ".join(f"{k}{' (default)' if k == default_preset else ''} = {v}"
                                                       for k, v in words.items()))
     p.add_argument("--max-features", type=int, default=0,

@@ -32,13 +32,14 @@ HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycol
 
 
 def add_arguments(p) -> None:
-    from ..vision.features import SFM_PRESET
-    from ..vision.sfm import DEFAULT_SEED, GLOBAL_FROM, MAPPERS
+    from ..vision.sfm import DEFAULT_SEED, GLOBAL_FROM, LARGE_SCENE_PRESET, MAPPERS, SMALL_SCENE_PRESET
 
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
-    add_image_options(p, default_preset=SFM_PRESET)
+    add_image_options(p, default_preset="auto",
+                      auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
+                           f"{LARGE_SCENE_PRESET} from there (docs/sfm.md)")
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
@@ -160,7 +161,15 @@ def _clusters_across_models(models, export, fs, labels) -> dict:
 
 def run(args) -> int:
     from ..vision import colmap, poses
-    from ..vision.sfm import choose_mapper, model_figure, model_numbers, reconstruct
+    from ..vision.sfm import (
+        GLOBAL_FROM,
+        SMALL_SCENE_PRESET,
+        choose_mapper,
+        choose_preset,
+        model_figure,
+        model_numbers,
+        reconstruct,
+    )
 
     t0 = time.perf_counter()
     colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
@@ -172,11 +181,16 @@ def run(args) -> int:
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
     truth = None
-    if args.gt:  # read and matched to the images' names before any work
+    if args.gt or args.preset == "auto":  # the images named before any work
         from ..vision.features import collect_images
 
         names = [p.name for p in collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)]
-        truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
+        if args.gt:  # read and matched to the images' names
+            truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
+        if args.preset == "auto":
+            args.preset = choose_preset("auto", len(names))
+            print(f"SIFT preset {args.preset} (auto: {count(len(names), 'image')}, {SMALL_SCENE_PRESET} below "
+                  f"{GLOBAL_FROM})", flush=True)
     out = _out_dir(args.out)
     stage = _Stages()
     with stage("extract"):

@@ -44,11 +44,12 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
     assert main(["sfm", str(images), "--out", str(tmp_path / "m1"), "--gt", str(gt), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "6 of 6 images registered" in out and "guided growth" not in out  # plain QuickMatch by default
+    assert "SIFT preset budget (auto: 6 images, budget below 30)" in out  # a small scene: COLMAP's feature budget
     assert "cameras against ground truth: 6 of 6 registered" in out
     for name in ("clusters.npz", "database.db", "model.png", "tracks.csv", "sparse/0", "sfm.json"):
         assert (tmp_path / "m1" / name).exists(), name
     report = json.loads((tmp_path / "m1" / "sfm.json").read_text())
-    assert report["options"]["preset"] == "sfm" and report["model"]["registered"] == 6
+    assert report["options"]["preset"] == "budget" and report["model"]["registered"] == 6
     assert set(report["times"]) == {"extract", "match", "export", "map", "triangulate", "total"}
     # the generated cameras are recovered: pairwise pose errors mostly well under 1 degree (AUC@1 0.83 measured)
     assert report["poses"]["median_rotation_deg"] < 2.0 and report["poses"]["auc"]["1"] > 0.6
@@ -63,6 +64,15 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
     assert re.search(r"AUC@1° 1\.000, AUC@2° 1\.000, AUC@5° 1\.000", line), line
     for name in ("images.bin", "points3D.bin", "cameras.bin"):
         assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
+
+
+def test_sfm_presets_follow_the_collections_size_as_the_mapper_does():
+    from dqm.vision.sfm import GLOBAL_FROM, choose_mapper, choose_preset
+
+    assert [choose_preset("auto", n) for n in (2, GLOBAL_FROM - 1, GLOBAL_FROM, 500)] == \
+        ["budget", "budget", "sfm", "sfm"]
+    assert [choose_mapper("auto", n) for n in (GLOBAL_FROM - 1, GLOBAL_FROM)] == ["incremental", "global"]
+    assert choose_preset("rootsift", 3) == "rootsift" and choose_preset("budget", 100) == "budget"
 
 
 def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
