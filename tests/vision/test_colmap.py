@@ -81,6 +81,51 @@ def test_exported_database_holds_keypoints_matches_and_geometries(scene, tmp_pat
         colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"])
 
 
+def test_verification_is_colmaps_pair_for_pair_with_trials_bounded_by_what_a_pass_needs(scene, tmp_path):
+    """The export's verification runs COLMAP's two-view estimator per pair on a thread pool: the geometries
+    are those of pycolmap.geometric_verification (the same seed), for the pairs that pass and for a pair of
+    random matches that cannot (its trials bounded by 15 inliers among its 40 matches, not COLMAP's 10,000)."""
+    import shutil
+
+    plain = tmp_path / "plain.db"
+    colmap.export_database(plain, scene["kp"], scene["ids"], scene["paths"], scene["labels"], verify=False)
+    d = pycolmap.Database.open(str(plain))
+    try:
+        images = sorted(d.read_all_images(), key=lambda im: im.image_id)
+        a, b = images[0].image_id, images[3].image_id
+        n_a, n_b = d.num_keypoints_for_image(a), d.num_keypoints_for_image(b)
+        rng = np.random.default_rng(0)
+        d.delete_matches(a, b)
+        d.write_matches(a, b, np.stack([rng.choice(n_a, 40, replace=False), rng.choice(n_b, 40, replace=False)],
+                                       axis=1).astype(np.uint32))
+    finally:
+        d.close()
+    ours, theirs = tmp_path / "ours.db", tmp_path / "theirs.db"
+    shutil.copyfile(plain, ours)
+    shutil.copyfile(plain, theirs)
+    two_view = pycolmap.TwoViewGeometryOptions()
+    two_view.ransac.random_seed = 0
+    pycolmap.geometric_verification(str(theirs), two_view_geometry_options=two_view)
+    assert colmap._verify(ours, 2, 0) == 5  # every pair but the random one
+
+    def geometries(path):
+        db = pycolmap.Database.open(str(path))
+        try:
+            return {(x.image_id, y.image_id): (db.read_two_view_geometry(x.image_id, y.image_id).config,
+                                               db.read_two_view_geometry(x.image_id, y.image_id).inlier_matches)
+                    for k, x in enumerate(images) for y in images[k + 1:]}
+        finally:
+            db.close()
+
+    got, want = geometries(ours), geometries(theirs)
+    assert got.keys() == want.keys() and len(got) == 6
+    for pair in want:
+        assert got[pair][0] == want[pair][0], pair
+        np.testing.assert_array_equal(got[pair][1], want[pair][1])
+    assert len(got[(a, b)][1]) == 0
+    assert colmap.trial_ratio(40, 15) == 0.375 and colmap.trial_ratio(100, 15) == colmap.COLMAP_MIN_INLIER_RATIO
+
+
 def test_pairs_too_weak_for_colmaps_verification_are_not_written(scene, tmp_path):
     """An image pair with fewer matches than COLMAP's verification accepts (min_num_inliers, 15) can never be
     verified: when the export verifies, it is left out (and counted); without verification every pair is
