@@ -439,9 +439,9 @@ def _verify(path, num_threads: int, seed: int) -> int:
 
     The bound is the only departure from ``pycolmap.geometric_verification`` with COLMAP's defaults (which
     gives the same geometries as this function without it, pair for pair): it makes the verification of
-    nerf_lego's clusters (3,815 pairs, 2,180 of which fail) 2x faster, and loses the pairs that reach 15
-    inliers only late in 10,000 trials (20 of 1,635 on nerf_lego, 2 of 991 on dtu/scan24, each with 15 or
-    16 inliers among 19-35 matches: chance consensus more than geometry)."""
+    nerf_lego's clusters (3,815 pairs, 2,180 of which fail) 2.6x faster, and loses the pairs that reach 15
+    inliers only late in 10,000 trials (32 of 1,635 on nerf_lego, 2 of the 902 dtu/scan24 keeps, each with 15
+    or 16 inliers among 19-35 matches: chance consensus more than geometry; docs/sfm.md, "At scale")."""
     from ..core.pairs import default_threads, tile_pool
 
     pycolmap = require_pycolmap()

@@ -58,6 +58,8 @@ def choose_preset(preset: str, n_images: int) -> str:
     if preset == "auto":
         return SMALL_SCENE_PRESET if n_images < GLOBAL_FROM else LARGE_SCENE_PRESET
     return preset
+
+
 #: the seed of every random choice in the mapping and the two-view verification
 DEFAULT_SEED = 0
 
