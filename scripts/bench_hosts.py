@@ -35,9 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -306,29 +304,13 @@ def main(argv=None) -> int:
 
 
 def save_rows(rows: list, path: str) -> None:
-    """The rows as JSON at ``path``: the first write takes the name (checked before any work), later ones
-    replace that file, each whole (a long benchmark keeps what it measured; another file never replaced)."""
-    text = json.dumps(rows, indent=1)
-    if Path(path).resolve() not in _saved:
-        _saved.add(Path(path).resolve())
-        try:
-            outputs.write_text(path, text)
-        except outputs.OutputTaken as exc:  # made meanwhile by another program: left, this run's rows beside it
-            print(f"bench_hosts: {exc}", file=sys.stderr, flush=True)
-        return
-    target = outputs.written(path)  # this run's file: replaced whole
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    """The rows as JSON at ``path``, whole: the first write takes the name (checked before any work), later ones
+    replace this run's file (:mod:`dqm.outputs` rewrites what the process wrote), so a long benchmark keeps what
+    it measured and never replaces another file."""
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.chmod(tmp, target.stat().st_mode & 0o777)
-        os.replace(tmp, target)
-    except BaseException:
-        outputs.remove_temporary(tmp)
-        raise
-
-
-_saved: set = set()
+        outputs.write_text(path, json.dumps(rows, indent=1))
+    except outputs.OutputTaken as exc:  # made meanwhile by another program: left, this run's rows beside it
+        print(f"bench_hosts: {exc}", file=sys.stderr, flush=True)
 
 
 def save_figure(rows: list, path: str) -> None:
