@@ -478,19 +478,6 @@ def _verify(path, num_threads: int, seed: int) -> int:
     return sum(1 for g in geometries if len(g.inlier_matches) >= least)
 
 
-def verified_pairs(path) -> int:
-    """The image pairs of the database file ``path`` whose verification kept enough inliers for COLMAP's mapper
-    (its ``min_num_inliers``; COLMAP writes a geometry for every pair it tried, and counts them all)."""
-    pycolmap = require_pycolmap()
-    db = pycolmap.Database.open(str(path))
-    try:
-        _, inliers = db.read_two_view_geometry_num_inliers()
-    finally:
-        db.close()
-    least = min_verified_matches()
-    return int(sum(1 for k in inliers if k >= least))
-
-
 def _read_only(database: Path, read: Callable):
     """``read(connection)`` on the database's SQLite file opened read-only, or None where SQLite fails (not an
     SQLite file, a table or column missing).
