@@ -7,8 +7,8 @@ reassignments: messages of an older epoch are refused) and ``seq`` (the
 message's number on its (src, dst) link within the epoch; receivers drop a
 number they have seen, so a replayed message is never processed twice; an
 ``ack`` carries the number it acknowledges, ``progress`` always 0). numpy arrays travel as
-``{"dtype", "shape", "data"[, "enc"]}`` maps of little-endian bytes (``enc``: delta and byte-plane
-layouts, dqm.distributed.wire), and the fields of a message (all but the header), once they take
+``{"dtype", "shape", "data"[, "enc"]}`` maps of little-endian bytes (``enc``: delta, roots and
+byte-plane layouts, dqm.distributed.wire), and the fields of a message (all but the header), once they take
 256 bytes or more, as one zstd frame in the field ``z`` when that is shorter: all lossless, so every
 value arrives bit for bit.
 
@@ -37,10 +37,10 @@ import numpy as np
 from ..core.events import EVENT_KINDS, ClusterEvent
 from . import wire
 
-#: the schema version (7: copies offered, then pulled by windows: offer / grant / ghost; 6: takeover /
+#: the schema version (8: square roots of integers as those integers (wire's roots); 7: copies offered, then pulled by windows: offer / grant / ghost; 6: takeover /
 #: taken / resume, and ready / taken / refuse not numbered; 5: compact encodings). Processes of different
 #: versions refuse each other's messages, naming the version
-VERSION = 7
+VERSION = 8
 #: default maximum encoded message size (bytes); larger messages are rejected
 MAX_MESSAGE_BYTES = 64 << 20
 #: most entries of a map: an agent's ``stats`` hold two per (destination, kind) it sent to, so 1,024
@@ -78,10 +78,11 @@ def _unpack_array(obj: Any, name: str) -> np.ndarray:
         raise MessageError(f"field {name!r} has no byte data")
     dtype = np.dtype(dt)
     count = int(np.prod(shape)) if shape else 1
-    if count * dtype.itemsize != len(data):
+    enc = obj.get("enc", "")
+    if count * wire.encoded_itemsize(dtype, str(enc)) != len(data):
         raise MessageError(f"field {name!r}: {len(data)} bytes do not fit shape {shape} of {dt}")
     try:
-        return wire.decode_array(data, dtype, tuple(shape), obj.get("enc", ""))
+        return wire.decode_array(data, dtype, tuple(shape), enc)
     except wire.WireError as exc:
         raise MessageError(f"field {name!r}: {exc}") from None
 

@@ -21,6 +21,15 @@ def _edge_arrays():
     yield "sigma float64", rng.gamma(2.0, 40.0, 300)
     yield "floats with specials", np.array([0.0, -0.0, np.inf, -np.inf, 1e-310, np.finfo(np.float64).max,
                                             np.nextafter(1.0, 2.0), np.nan, -7.25])
+    roots = np.sqrt(rng.integers(0, 200_000, 300).astype(np.float64))
+    yield "roots of integers (sigmas of uint8 descriptors)", roots
+    yield "roots with +inf and the largest integer", np.concatenate([roots[:20], [np.inf, 0.0],
+                                                                     np.sqrt([float(wire.ROOT_INF - 1)])])
+    yield "roots but one a step off", np.concatenate([roots[:20], [np.nextafter(roots[3], 0.0)]])
+    yield "roots but one -0.0", np.concatenate([roots[:20], [-0.0]])
+    yield "roots but one negative", np.concatenate([roots[:20], [-roots[5]]])
+    yield "roots but one NaN, late", np.concatenate([roots, [np.nan]])
+    yield "roots but one too large", np.concatenate([roots[:20], [np.sqrt(float(wire.ROOT_INF))]])
     yield "float32", rng.standard_normal(100).astype(np.float32)
     yield "short", np.array([3, 1, 2], np.int64)
     yield "empty", np.zeros(0, np.int64)
@@ -31,7 +40,8 @@ def _edge_arrays():
 @pytest.mark.parametrize("name,a", list(_edge_arrays()), ids=[n for n, _ in _edge_arrays()])
 def test_arrays_round_trip_bit_for_bit(name, a):
     enc, data = wire.encode_array(np.ascontiguousarray(a))
-    assert len(data) == a.nbytes
+    assert len(data) == a.size * wire.encoded_itemsize(a.dtype, enc)
+    assert (enc == "rs") == name.startswith("roots with") or name == "roots of integers (sigmas of uint8 descriptors)"
     back = wire.decode_array(data, a.dtype, a.shape, enc)
     assert back.dtype == a.dtype and back.shape == a.shape
     assert back.tobytes() == a.tobytes()  # bit for bit: -0.0, infinities and wrap-around included
@@ -40,9 +50,32 @@ def test_arrays_round_trip_bit_for_bit(name, a):
 def test_layouts_are_chosen_by_content():
     assert wire.encode_array(np.arange(20, dtype=np.int64))[0] == "ds"
     assert wire.encode_array(np.arange(20, dtype=np.int64)[::-1].copy())[0] == "s"
-    assert wire.encode_array(np.arange(20, dtype=np.float64))[0] == "s"
+    assert wire.encode_array(np.arange(20, dtype=np.float64) + 0.5)[0] == "s"
+    assert wire.encode_array(np.arange(20, dtype=np.float64))[0] == "rs"  # integers are roots of their squares
     assert wire.encode_array(np.arange(20, dtype=np.uint8))[0] == ""
     assert wire.encode_array(np.arange(5, dtype=np.int64))[0] == ""
+    assert wire.encode_array(np.sqrt(np.arange(20, dtype=np.float64)))[0] == "rs"
+    assert wire.encode_array(np.sqrt(np.arange(20, dtype=np.float64)) + 0.5)[0] == "s"
+    assert wire.encode_array(np.sqrt(np.arange(20, dtype=np.float32)))[0] == "s"  # float64 only
+
+
+def test_sigmas_of_integer_descriptors_travel_as_integers():
+    """The sigmas and distances of uint8 descriptors are square roots of integers: they travel in about a
+    third of their float64 bytes, and arrive bit for bit."""
+    from dqm import quickmatch, synthetic
+    ds = synthetic.sized(3000)
+    r = quickmatch(ds.descriptors, ds.image_ids)
+    for name, v in (("sigma", r.sigma), ("parent_distance", r.parent_distance)):
+        assert np.isinf(v).any() or name == "sigma"
+        as_roots = messages.encode("component", JOB, 1, part=0, parts=1, ids=np.arange(len(v), dtype=np.int64),
+                                   image_ids=ds.image_ids.astype(np.int64), sigma=r.sigma,
+                                   parent=np.zeros(len(v), np.int64), distance=v)
+        out = messages.decode(as_roots, job=JOB)
+        assert out["sigma"].tobytes() == r.sigma.tobytes() and out["distance"].tobytes() == v.tobytes()
+        enc, data = wire.encode_array(v)
+        assert enc == "rs", name
+        _, plain = wire.encode_array(v + 0.25)  # the same values, no longer roots: byte planes
+        assert len(wire.compress(data)) < 0.5 * len(wire.compress(plain)), name
 
 
 def _outer(payload: bytes) -> dict:
@@ -125,6 +158,8 @@ def test_malformed_compressed_messages_are_refused_cleanly():
     ("s", (10,), np.uint8, "does not apply"),
     ("s", (3,), np.int64, "does not apply"),
     ("s", (4, 3), np.int64, "does not apply"),
+    ("rs", (10,), np.int64, "does not apply"),
+    ("rs", (10,), np.float64, "do not fit"),  # float64's 8 bytes an item where roots carry 4
 ])
 def test_malformed_array_encodings_are_refused(enc, shape, dtype, match):
     a = np.zeros(shape, dtype)
