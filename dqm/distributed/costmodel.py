@@ -119,7 +119,9 @@ class CostConstants:
     #: pair work is predicted at ``pair_cpu_s`` times its own host's measurement over this
     kernel_cpu_s: float = 1.065e-11
     #: a gather's wire bytes over the raw descriptor bytes of the features sent (compressed, ids included;
-    #: graf 0.77, 0.67, 0.73 at M = 2, 4, 8, 100k 0.80 at M = 8)
+    #: graf 0.77, 0.67, 0.73 at M = 2, 4, 8, 100k 0.80 at M = 8). Every byte constant here was fitted on rows
+    #: of schema 7; schema 8 sends the sigmas of uint8 descriptors as integers (dqm.distributed.wire, roots),
+    #: 3-5% fewer bytes in every mode, so these predict slightly more bytes than a job moves
     gather_bytes: float = 0.7394
     #: CPU-seconds of a centralized match beyond its pairs (imports, sigma, tree)
     match_fixed_cpu_s: float = 0
