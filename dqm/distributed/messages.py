@@ -37,8 +37,9 @@ import numpy as np
 from ..core.events import EVENT_KINDS, ClusterEvent
 from . import wire
 
-#: the schema version (8: square roots of integers as those integers (wire's roots); 7: copies offered, then pulled by windows: offer / grant / ghost; 6: takeover /
-#: taken / resume, and ready / taken / refuse not numbered; 5: compact encodings). Processes of different
+#: the schema version (8: square roots of integers as those integers, wire's roots; 7: copies offered, then
+#: pulled by windows: offer / grant / ghost; 6: takeover / taken / resume, and ready / taken / refuse not
+#: numbered; 5: compact encodings). Processes of different
 #: versions refuse each other's messages, naming the version
 VERSION = 8
 #: default maximum encoded message size (bytes); larger messages are rejected

@@ -41,7 +41,7 @@ def _edge_arrays():
 def test_arrays_round_trip_bit_for_bit(name, a):
     enc, data = wire.encode_array(np.ascontiguousarray(a))
     assert len(data) == a.size * wire.encoded_itemsize(a.dtype, enc)
-    assert (enc == "rs") == name.startswith("roots with") or name == "roots of integers (sigmas of uint8 descriptors)"
+    assert (enc == "rs") == (name.startswith("roots with") or name.startswith("roots of integers"))
     back = wire.decode_array(data, a.dtype, a.shape, enc)
     assert back.dtype == a.dtype and back.shape == a.shape
     assert back.tobytes() == a.tobytes()  # bit for bit: -0.0, infinities and wrap-around included
