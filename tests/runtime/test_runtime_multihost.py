@@ -44,7 +44,9 @@ def _run(ds, cfg, workdir, **kw):
     return res
 
 
-def _check(res, ds, cfg, overhead):
+def _check(res, ds, cfg, overhead, handshake=0):
+    """``overhead``: the kernel's bytes over the metered ones (headers, acknowledgements); ``handshake``:
+    bytes on top for each process's session that do not grow with the job (TLS: its certificates)."""
     rep = res.report
     assert rep["agent_exit_codes"] == [0] * cfg.agents  # every process exited cleanly
     assert set(res.placement.values()) == {0, 1, 2}  # agents really are spread over three hosts
@@ -64,13 +66,15 @@ def _check(res, ds, cfg, overhead):
     k = res.kernel_totals()
     total = rep["total_bytes"]
     # each message crosses the sender's veth into the router and the receiver's veth out of it
-    assert total <= k["to_router"] <= overhead * total, (k, total)
-    assert total <= k["from_router"] <= overhead * total, (k, total)
+    fixed = handshake * len(res.placement)
+    assert total <= k["to_router"] <= overhead * total + fixed, (k, total)
+    assert total <= k["from_router"] <= overhead * total + fixed, (k, total)
     for h, m in res.metered_per_host().items():
         c = res.counters[h]
         # per host: the same, plus a few KiB of handshakes / declarations / keep-alives
-        assert m["sent"] <= c["rx_bytes"] <= overhead * m["sent"] + 8192, (h, m, c)
-        assert m["received"] <= c["tx_bytes"] <= overhead * m["received"] + 8192, (h, m, c)
+        fixed = 8192 + handshake * sum(host == h for host in res.placement.values())
+        assert m["sent"] <= c["rx_bytes"] <= overhead * m["sent"] + fixed, (h, m, c)
+        assert m["received"] <= c["tx_bytes"] <= overhead * m["received"] + fixed, (h, m, c)
 
 
 def test_job_across_namespaces_matches_simulator_and_kernel_counters(netns_ok, tmp_path):
@@ -88,7 +92,10 @@ def test_mutual_tls_and_access_control_across_namespaces(netns_ok, tmp_path):
     router_names = [Namespaces().router_addr(h) for h in range(3)]
     certs = make_certs(tmp_path / "certs", router_names, [f"agent{a}" for a in range(3)] + ["coordinator"])
     res = _run(ds, cfg, tmp_path, tls_certs=certs, acl=True)  # the router enforces the job's roster
-    _check(res, ds, cfg, overhead=1.15)  # TLS records add a few percent
+    # TLS records add a few percent, and each process's session its handshake (certificates both ways): at most
+    # 8 KiB a process on top of the plain test's 10% (a fixed cost, a larger share of this small job's bytes
+    # as the messages shrink)
+    _check(res, ds, cfg, overhead=1.10, handshake=8192)
 
 
 def test_namespaces_are_deleted_and_processes_killed_on_failure(netns_ok):
