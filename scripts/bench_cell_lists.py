@@ -1,7 +1,7 @@
 """The fast balanced mode's cells with and without their lists (issue 62): one simulated job each, side by side.
 
 With ``engine="fast"`` a balanced cell of enough own features (:func:`dqm.core.inverted_lists.lists_pay`, from
-about 21,000) meets only the pairs its lists' scans meet (:class:`dqm.core.inverted_lists.CellLists`); smaller
+about 10,000) meets only the pairs its lists' scans meet (:class:`dqm.core.inverted_lists.CellLists`); smaller
 cells meet every pair within reach (the exact cell pass). This runs the same job both ways in the simulator
 (the cell pass forced exact for the second) and prints, for each: the wall time, the busiest agent's CPU
 seconds, the most distances an agent computed (and the most pairs a cell holds), the bytes over raw, and

@@ -45,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dqm import InputError, evaluation, outputs, synthetic  # noqa: E402
+from dqm.core import inverted_lists  # noqa: E402
 from dqm.core.pairs import pair_cpu_s_here  # noqa: E402
 from dqm.distributed import DQMConfig  # noqa: E402
 from dqm.distributed.config import DISTRIBUTED_ENGINES  # noqa: E402
@@ -111,8 +112,11 @@ def bench(name, X, ids, m: int, rates, modes, workdir: Path, timeout_s: float, l
         ref = median.get("gather")
         out = []
         for mode in [mode for mode in modes if mode in failed or mode in median]:
+            # cell_share: the share of a cell's pairs fast balanced computes here (its lists where they pay),
+            # which scripts/fit_costmodel.py reads
             row = {"data": name, "n": int(len(X)), "m": m, "rate_mbit": rate, "cpu_per_host": cpu,
-                   "mode": mode, "engine": engine, "kernel_cpu_s": kernel}
+                   "mode": mode, "engine": engine, "kernel_cpu_s": kernel,
+                   "cell_share": inverted_lists.cell_pairs_share(len(X) // m)}
             if mode in failed:
                 row.update(error=failed[mode][0], seconds=failed[mode][1])
             else:

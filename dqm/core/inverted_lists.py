@@ -496,17 +496,28 @@ def _has_bit(bits: np.ndarray, rows: np.ndarray, lists: np.ndarray) -> np.ndarra
     return ((words >> (lists & 63).astype(np.uint64)) & np.uint64(1)).astype(bool)
 
 
-#: :class:`CellLists` pays where a feature scans at most this share of the lists (1 / CELL_SHARE): at a quarter,
-#: with pairs used both ways, a cell computes about half its pairs in smaller blocks and is no faster than the
-#: exact pass (12,500 generated features); at an eighth, about a quarter of them
+#: a feature of a cell scans at most this share of the cell's lists (1 / CELL_SHARE): at a quarter, with pairs
+#: used both ways, a cell computes about half its pairs in smaller blocks and is no faster than the exact pass
+#: (12,500 generated features); at an eighth, about a quarter of them
 CELL_SHARE = 8
+#: :class:`CellLists` pays where a cell's lists hold this many own features on average: with smaller lists
+#: the blocks' GEMMs and the numpy per block cost more than the pairs they skip (sacre_coeur's features on
+#: 8 agents, 6,947 a cell in 128 lists, 54 a list: 1.28x the exact pass's CPU; on 4 agents, 13,893 in 128:
+#: 0.78x; generated 100k on 8 agents, 12,523 in 128: 0.73x)
+MIN_LIST_FEATURES = 80
+
+
+def cell_probes(lists: int) -> int:
+    """Lists a feature of a cell scans among ``lists`` (:class:`CellLists`): :func:`default_probes`, at most
+    1 / :data:`CELL_SHARE` of them (an eighth of 128 lists where the engine's default is a quarter)."""
+    return int(min(default_probes(lists), max(1, lists // CELL_SHARE)))
 
 
 def lists_pay(n: int) -> bool:
-    """Whether :class:`CellLists` computes fewer pairs than the exact pass over ``n`` own features
-    (the default probes are at most 1 / :data:`CELL_SHARE` of the lists: from about 21,000 features)."""
+    """Whether :class:`CellLists` meets a cell of ``n`` own features faster than the exact pass: its lists
+    hold :data:`MIN_LIST_FEATURES` features on average (from about 10,000 features, 128 lists)."""
     k = n_lists(n)
-    return default_probes(k) * CELL_SHARE <= k
+    return n >= MIN_LIST_FEATURES * k and cell_probes(k) * CELL_SHARE <= k
 
 
 def cell_pairs_share(n: int) -> float:
@@ -517,7 +528,7 @@ def cell_pairs_share(n: int) -> float:
     if not lists_pay(n):
         return 1.0
     k = n_lists(n)
-    return min(1.0, (2 * default_probes(k) + 1) / k)
+    return min(1.0, (2 * cell_probes(k) + 1) / k)
 
 
 #: pairs handed over: ``(i, j)``, ``i < j``
@@ -534,8 +545,9 @@ class CellLists:
     (:mod:`dqm.distributed.balanced` with ``engine="fast"``): the pairs among the own features, and between
     them and a window of copies, that :func:`scan` would compute, instead of every pair of the cell.
 
-    The lists and the quota are :func:`scan`'s for the own features (:func:`n_lists`,
-    :func:`default_probes`, a seeded :func:`kmeans`); a copy scans the own lists by the same quota, as a
+    The lists and the quota are :func:`scan`'s for the own features (:func:`n_lists`, a seeded :func:`kmeans`),
+    with at most an eighth of the lists probed (:func:`cell_probes`); a copy scans the own lists by the same
+    quota, as a
     feature of the cell would. A pair is met where either of its features scans the other's list, and is
     handed over once (:meth:`own_pairs`, :meth:`copy_pairs`) as ``(i, j)``, ``i < j``, with its float32
     squared distance within ``rad2`` of either end (``rad2``: :func:`dqm.core.pairs.search_rad2` of the held
@@ -545,7 +557,7 @@ class CellLists:
     def __init__(self, aug: pairs.Augmented, seed: int = 0, n_threads: Optional[int] = None):
         n = aug.n
         self.k = k = n_lists(n)
-        self.t = t = default_probes(k)
+        self.t = t = cell_probes(k)
         centroids = kmeans(aug, k, seed, n_threads)
         #: the centroids in the descriptors' own coordinates (a copy's operand is centred elsewhere)
         self.centroids = centroids.astype(np.float64) + aug.center

@@ -58,7 +58,7 @@ DEFAULT_SKETCH_DIMS = 48
 #: and its ``go`` names the pick), ``exact`` (every pair within reach; balanced mode's labels are the
 #: centralized ones bit for bit) or ``fast``
 #: (gather, lean, paper: dqm.quickmatch's fast engine where they cluster; balanced: copies travel only where a
-#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`, and a cell of 21,000 features or more meets the
+#: pair is likely, :func:`dqm.distributed.ghosts.likely_copies`, and a cell of 10,000 features or more meets the
 #: pairs its lists' scans meet, :class:`dqm.core.inverted_lists.CellLists`; smaller cells meet every pair)
 DISTRIBUTED_ENGINES = ("exact", "fast", "auto")
 DEFAULT_ENGINE = "exact"

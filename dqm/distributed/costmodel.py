@@ -39,7 +39,8 @@ of the all-pairs pass, in pair-dimensions), ``c`` the cores of a host and ``r`` 
   alone the engine grows as about n^1.25 from 60k to 1M, so jobs far beyond 100k are predicted too cheap);
 * fast balanced's busiest agent pays its cell's own pairs and its copies' (``JobShape.cell_pair_work``,
   ``(n/M)^2 (1/2 + copies) dim``, ``copies`` the copy budget; where its cell is large enough for lists, the
-  share of them its lists compute, fitted on none of the rows: about 21,000 features a cell and more) times
+  share of them its lists compute, from about 10,000 features a cell; every fit row ran the exact cell
+  pass, ``JobShape.cell_share``) times
   ``fast_balanced_imbalance``, plus
   ``fast_balanced_other_cpu_s`` per 10,000 features of its cell and ``fast_balanced_fixed_cpu_s``; its bytes are
   the routed features and ``fast_copy_bytes`` per copy.
@@ -190,6 +191,9 @@ class JobShape:
     engine: str = "exact"
     #: fast balanced: copies per own feature at most (None: :func:`dqm.distributed.ghosts.copy_budget`)
     copies: Optional[float] = None
+    #: fast balanced: the share of a cell's pairs it computes (None: its lists' rule,
+    #: :func:`dqm.core.inverted_lists.cell_pairs_share`; a benchmark row of older code says what ran)
+    cell_share: Optional[float] = None
 
     @property
     def copies_per_feature(self) -> float:
@@ -202,7 +206,7 @@ class JobShape:
         features, as many copies received as sent): ``(n/M)^2 (1/2 + copies) dim``, times the share of them the
         cell's lists compute where they pay (:func:`dqm.core.inverted_lists.cell_pairs_share`)."""
         cell = self.n / self.agents
-        share = inverted_lists.cell_pairs_share(int(cell))
+        share = inverted_lists.cell_pairs_share(int(cell)) if self.cell_share is None else float(self.cell_share)
         return cell * cell * (0.5 + self.copies_per_feature) * self.dim * share
 
     @property

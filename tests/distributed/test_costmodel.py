@@ -234,15 +234,19 @@ def test_the_fast_engine_is_predicted_from_its_own_mechanisms():
     a, b = predict(fast, hosts(100))["balanced"], predict(more, hosts(100))["balanced"]
     assert b.bytes > a.bytes and b.parts["compute"] > a.parts["compute"]
     # cells large enough for lists (dqm.core.inverted_lists.lists_pay) pay the share of their pairs the lists
-    # compute: at 200k on 8 agents a quarter of what all pairs would cost, at 100k all of them
+    # compute: at 200k and at 100k on 8 agents about a quarter of what all pairs would cost, at 50k all of them
     from dqm.core import inverted_lists
 
     big = JobShape(n=200_000, agents=8, dim=128, engine="fast")
     cell = 200_000 / 8
     assert big.cell_pair_work == pytest.approx(cell * cell * (0.5 + big.copies_per_feature) * 128 *
                                                inverted_lists.cell_pairs_share(25_000))
-    assert 0.2 < inverted_lists.cell_pairs_share(25_000) < 0.3 and inverted_lists.cell_pairs_share(12_523) == 1.0
-    assert fast.cell_pair_work == pytest.approx((100186 / 8) ** 2 * (0.5 + fast.copies_per_feature) * 128)
+    assert 0.2 < inverted_lists.cell_pairs_share(25_000) < 0.3 and 0.2 < inverted_lists.cell_pairs_share(12_523) < 0.3
+    assert inverted_lists.cell_pairs_share(7_000) == 1.0  # lists of 55 features: the exact pass
+    assert fast.cell_pair_work == pytest.approx((100186 / 8) ** 2 * (0.5 + fast.copies_per_feature) * 128 *
+                                                inverted_lists.cell_pairs_share(100186 // 8))
+    small = JobShape(n=50_000, agents=8, dim=128, engine="fast")
+    assert small.cell_pair_work == pytest.approx((50_000 / 8) ** 2 * (0.5 + small.copies_per_feature) * 128)
     # the reason names the engine
     assert "fast engine" in choose(fast, hosts(100)).reason
     # a slower pair kernel slows the fast match less than all pairs (only its candidates' distances are pairs)

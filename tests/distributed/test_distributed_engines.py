@@ -232,13 +232,13 @@ def test_cell_lists_hand_over_every_met_pair_within_reach_once(generated, centra
 
 
 def test_fast_balanced_cells_scan_lists_where_they_pay(generated, central, monkeypatch):
-    """Cells of enough features (dqm.core.inverted_lists.lists_pay: from about 21,000 own features) meet only
+    """Cells of enough features (dqm.core.inverted_lists.lists_pay: from about 10,000 own features) meet only
     the pairs their lists' scans meet, not every pair: here forced on small cells, the clusters stay the exact
     engine's nearly everywhere, deterministically, with fewer parent candidates than the exact cell pass."""
     from dqm.core import inverted_lists
 
     X, ids = generated
-    assert not inverted_lists.lists_pay(12_500) and inverted_lists.lists_pay(25_000)
+    assert not inverted_lists.lists_pay(7_000) and inverted_lists.lists_pay(12_500) and inverted_lists.lists_pay(25_000)
     monkeypatch.setattr(inverted_lists, "lists_pay", lambda n: True)
     lists = simulate(X, ids, DQMConfig(agents=2, seed=1, engine="fast"))
     assert evaluation.comembership_scores(lists.labels, central.labels).f1 >= 0.99
