@@ -547,8 +547,7 @@ class CellLists:
 
     The lists and the quota are :func:`scan`'s for the own features (:func:`n_lists`, a seeded :func:`kmeans`),
     with at most an eighth of the lists probed (:func:`cell_probes`); a copy scans the own lists by the same
-    quota, as a
-    feature of the cell would. A pair is met where either of its features scans the other's list, and is
+    quota, as a feature of the cell would. A pair is met where either of its features scans the other's list, and is
     handed over once (:meth:`own_pairs`, :meth:`copy_pairs`) as ``(i, j)``, ``i < j``, with its float32
     squared distance within ``rad2`` of either end (``rad2``: :func:`dqm.core.pairs.search_rad2` of the held
     features, so no pair within reach of a met pair is missed); the caller computes the exact distance.
