@@ -442,7 +442,7 @@ def _verify(path, num_threads: int, seed: int) -> int:
     nerf_lego's clusters (3,815 pairs, 2,180 of which fail) 2.6x faster, and loses the pairs that reach 15
     inliers only late in 10,000 trials (32 of 1,635 on nerf_lego, 2 of the 902 dtu/scan24 keeps, each with 15
     or 16 inliers among 19-35 matches: chance consensus more than geometry; docs/sfm.md, "At scale")."""
-    from ..core.pairs import default_threads, tile_pool
+    from ..core.pairs import tile_pool
 
     pycolmap = require_pycolmap()
     db = pycolmap.Database.open(str(path))
@@ -467,7 +467,7 @@ def _verify(path, num_threads: int, seed: int) -> int:
         return pycolmap.estimate_two_view_geometry(cameras[images[a].camera_id], points[a],
                                                    cameras[images[b].camera_id], points[b], matches[k], options)
 
-    with tile_pool(default_threads() if num_threads < 1 else num_threads) as run:
+    with tile_pool(None if num_threads < 1 else num_threads) as run:  # None: tile_pool's default threads
         geometries = list(run(estimate, range(len(pairs))))
     db = pycolmap.Database.open(str(path))
     try:
