@@ -122,7 +122,89 @@ class _Stages:
             f"{name} {t:.1f} s ({format_bytes(self.peaks[name])})" for name, t in self.times.items())
 
 
-def _models_report(models, mapped, truth) -> list[dict]:
+def _folder(model, out: Path) -> str:
+    """A model's folder as sfm.json and the summary name it: relative to MODEL_DIR, '/'-separated."""
+    return model.folder.relative_to(out).as_posix()
+
+
+def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_dir=None, say: str = ""):
+    """The stages before the triangulation on the images ``args`` names, written into ``out``: SIFT, QuickMatch,
+    clusters.npz, tracks.csv and database.db (image names relative to ``image_dir``, default the images' common
+    folder), and the mapper's models in ``out/sparse``. Returns the features, QuickMatch's result and extras, the
+    export's summary, the mapper chosen and the models (largest first)."""
+    from ..vision import colmap
+    from ..vision.sfm import choose_mapper, reconstruct
+
+    with stage("extract"):
+        fs = extract(args, min_images=2)
+    with stage("match"):
+        result, extra = cluster(args, fs)
+    with stage("export"):
+        io.save_clusters(out / "clusters.npz", fs, result, extra)
+        io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+        paths = colmap.resolve_images(fs.image_names, None)
+        s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
+                                   image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed)
+    mapper = choose_mapper(args.mapper, s.n_images)
+    print(f"{say}wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
+          f"{mapper} mapping ...", flush=True)
+    with stage("map"):
+        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
+                                num_threads=threads)
+    return fs, result, extra, s, mapper, models
+
+
+def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, export, models, mapped,
+                  sources) -> list[dict]:
+    """Each scene of a collection as good as that scene alone (issue 59): where the collection's size made an
+    ``auto`` choice (the SIFT preset, the mapper: :func:`dqm.vision.sfm.choose_preset`, :func:`choose_mapper`)
+    that a model of fewer images would not make, that model's registered images go through the stages before the
+    triangulation again, alone, with the choices of their own number, into ``out/scenes/<model>/`` (its own
+    clusters.npz, database.db and sparse/0; names as in the collection). Its model replaces the collection's in
+    ``models``, ``mapped`` and ``sources`` where it registers at least as many of the images; the collection's
+    stays in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
+    redone). Returns what was done, one entry a model redone, for sfm.json."""
+    from ..vision.sfm import choose_mapper, choose_preset, model_numbers
+
+    if len(models) < 2:
+        return []
+    by_name = {name: k for k, name in enumerate(export.names)}
+    paths = [str(Path(export.image_dir) / name) for name in export.names]
+    done = []
+    for k, m in enumerate(list(models)):
+        n = int(m.rec.num_reg_images())
+        preset = choose_preset(asked.preset, n)
+        if preset == args.preset and choose_mapper(asked.mapper, n) == choose_mapper(args.mapper, export.n_images):
+            continue
+        names = sorted((image.name for image in m.rec.images.values() if image.has_pose), key=by_name.get)
+        folder = out / "scenes" / m.folder.name
+        sub = argparse.Namespace(**dict(vars(args), inputs=[paths[by_name[name]] for name in names],
+                                        image_list=None, recursive=False, preset=preset, mapper=asked.mapper))
+        say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
+        try:
+            fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
+                                                      image_dir=export.image_dir, say=say)
+        except InputError as e:  # the collection's model stands; what was written stays
+            print(f"{say}not redone ({e}); the collection's model {_folder(m, out)} is kept", flush=True)
+            done.append({"collection_folder": _folder(m, out), "images": n, "preset": preset, "taken": False,
+                         "error": str(e)})
+            continue
+        got = int(own[0].rec.num_reg_images()) if own else 0
+        taken = got >= n
+        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset, "mapper": mapper,
+                 "registered_alone": got, "models_alone": len(own), "taken": taken,
+                 "collection_model": mapped[k]}
+        if taken:
+            models[k], mapped[k], sources[k] = own[0], model_numbers(own[0].rec), (folder / "database.db", s, fs)
+            entry["folder"] = _folder(own[0], out)
+        print(f"{say}{got} of {n} images registered in its largest model"
+              + ("; it replaces the collection's" if taken else f"; the collection's model {_folder(m, out)} is kept"),
+              flush=True)
+        done.append(entry)
+    return done
+
+
+def _models_report(models, mapped, truth, model_dir: Path) -> list[dict]:
     """Every model's numbers (before and after triangulation) and, with ground truth, its cameras against the
     truth of its own images (in a collection of several scenes, each model is one scene)."""
     from ..vision import poses
@@ -130,7 +212,7 @@ def _models_report(models, mapped, truth) -> list[dict]:
 
     out = []
     for m, before in zip(models, mapped):
-        entry = dict(model_numbers(m.rec), folder=f"sparse/{m.folder.name}", before_triangulation=before)
+        entry = dict(model_numbers(m.rec), folder=_folder(m, model_dir), before_triangulation=before)
         if truth is not None:
             names = {Path(image.name).name for image in m.rec.images.values()}
             own = {k: v for k, v in truth.items() if Path(k).name in names}
@@ -164,11 +246,9 @@ def run(args) -> int:
     from ..vision.sfm import (
         GLOBAL_FROM,
         SMALL_SCENE_PRESET,
-        choose_mapper,
         choose_preset,
         model_figure,
         model_numbers,
-        reconstruct,
     )
 
     t0 = time.perf_counter()
@@ -181,6 +261,7 @@ def run(args) -> int:
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
     truth = None
+    asked = argparse.Namespace(preset=args.preset, mapper=args.mapper)  # before auto chooses for the collection
     if args.gt or args.preset == "auto":  # the images named before any work
         from ..vision.features import collect_images
 
@@ -193,29 +274,17 @@ def run(args) -> int:
                   f"{GLOBAL_FROM})", flush=True)
     out = _out_dir(args.out)
     stage = _Stages()
-    with stage("extract"):
-        fs = extract(args, min_images=2)
-    with stage("match"):
-        result, extra = cluster(args, fs)
-    with stage("export"):
-        io.save_clusters(out / "clusters.npz", fs, result, extra)
-        io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
-        paths = colmap.resolve_images(fs.image_names, None)
-        s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
-                                   descriptors=fs.descriptors, camera=camera, seed=args.seed)
-    mapper = choose_mapper(args.mapper, s.n_images)
-    print(f"wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
-          f"{mapper} mapping ...", flush=True)
-    with stage("map"):
-        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
-                                num_threads=threads)
+    fs, result, _, s, mapper, models = _match_and_map(args, out, stage, camera, threads)
     mapped = [model_numbers(m.rec) for m in models]
+    sources = [(out / "database.db", s, fs)] * len(models)  # each model's database, export and features
+    alone = _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
     if models and args.triangulate:
         with stage("triangulate"):
-            for m in models:  # every model (each scene of a mixed collection): their images are disjoint
-                m.rec, ts = _triangulate(m.rec, out / "database.db", s, fs, m.folder, args.seed, threads,
+            for m, (database, export, features) in zip(models, sources):  # every model (each scene of a mixed
+                # collection): their images are disjoint
+                m.rec, ts = _triangulate(m.rec, database, export, features, m.folder, args.seed, threads,
                                          args.threads, args.bundle_adjust)
-                print(ts.summary() if len(models) == 1 else f"sparse/{m.folder.name}: {ts.summary()}")
+                print(ts.summary() if len(models) == 1 else f"{_folder(m, out)}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": mapper, "seed": args.seed,
@@ -225,12 +294,12 @@ def run(args) -> int:
         "model_before_triangulation": mapped[0] if models else model_numbers(None),
         "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs,
                   "dropped_as_weak": s.n_pairs_dropped},
-        "models": _models_report(models, mapped, truth),
+        "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
     figures = []
     for k, (m, entry) in enumerate(zip(models, report["models"])):
         figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
-        model_figure(m.rec, figures[-1], f"sparse/{m.folder.name}: {entry['registered']} of {s.n_images} images, "
+        model_figure(m.rec, figures[-1], f"{_folder(m, out)}: {entry['registered']} of {s.n_images} images, "
                                          f"{entry['points']:,} points")
     report["times"] = dict(stage.times, total=time.perf_counter() - t0)
     report["peak_memory_bytes"] = stage.peaks
@@ -254,5 +323,6 @@ def run(args) -> int:
         report["poses"] = scores.as_dict()
         print(scores.line())
     outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out}/sparse, {', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
+    again = f"{out}/scenes, " if alone else ""
+    print(f"wrote {out}/sparse, {again}{', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
     return 0

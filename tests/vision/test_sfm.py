@@ -281,6 +281,48 @@ def test_a_collection_of_two_scenes_gives_a_model_each_every_one_triangulated_an
     assert report["pairs"]["dropped_as_weak"] > 0
 
 
+def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_size(tmp_path, capsys, monkeypatch):
+    """Issue 59: each scene of a collection as good as that scene alone. ``--preset auto`` and ``--mapper auto``
+    choose by the number of images; a collection from :data:`GLOBAL_FROM` images gets the large scenes' preset and
+    the global mapper, which a scene of fewer images alone would not. With the threshold lowered to 8, two
+    generated scenes of 5 and 4 images are such a collection: each model is mapped again from its own images alone
+    (the budget preset, the incremental mapper) into scenes/<k>/, with the collection's image names, and replaces
+    the collection's model, which stays in sparse/<k>. The same collection with both choices given is not redone."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import sfm
+
+    a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
+    b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
+    monkeypatch.setattr(sfm, "GLOBAL_FROM", 8)
+    assert main(["sfm", str(a), str(b), "--out", str(tmp_path / "m"), "--quiet", "--no-triangulate"]) == 0
+    out = capsys.readouterr().out
+    assert "SIFT preset sfm (auto: 9 images" in out and "global mapping" in out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    alone = report["scenes_alone"]
+    assert [(e["images"], e["preset"], e["mapper"], e["taken"]) for e in alone] == [
+        (5, "budget", "incremental", True), (4, "budget", "incremental", True)]
+    assert [m["folder"] for m in report["models"]] == ["scenes/0/sparse/0", "scenes/1/sparse/0"]
+    db = pycolmap.Database.open(str(tmp_path / "m" / "database.db"))
+    names = {image.name for image in db.read_all_images()}
+    db.close()
+    for e, m in zip(alone, report["models"]):
+        kept = pycolmap.Reconstruction(str(tmp_path / "m" / e["collection_folder"]))
+        own = pycolmap.Reconstruction(str(tmp_path / "m" / m["folder"]))
+        theirs = {image.name for image in kept.images.values() if image.has_pose}
+        assert {image.name for image in own.images.values() if image.has_pose} == theirs <= names
+        assert len({name.split("/")[0] for name in theirs}) == 1 and own.num_points3D() == m["points"] > 0
+        assert e["collection_model"]["points"] == kept.num_points3D()
+        assert (tmp_path / "m" / "scenes" / e["collection_folder"].split("/")[-1] / "clusters.npz").exists()
+    assert f"{tmp_path / 'm'}/scenes" in out.splitlines()[-1]
+    argv = ["sfm", str(a), str(b), "--quiet", "--no-triangulate", "--preset", "sfm", "--mapper", "global"]
+    assert main([*argv, "--out", str(tmp_path / "given")]) == 0
+    given = json.loads((tmp_path / "given" / "sfm.json").read_text())
+    assert given["scenes_alone"] == [] and not (tmp_path / "given" / "scenes").exists()
+    assert [m["folder"] for m in given["models"]] == ["sparse/0", "sparse/1"]
+
+
 def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, capsys, monkeypatch):
     """COLMAP 4's global mapper placed three scenes of the shared mixed collection in one model, joined by 6
     verified image pairs and no 3-D point. Here the weak-pair filter is taken away so that the chance pairs
