@@ -13,7 +13,10 @@ Definitions used everywhere in dqm:
   one-to-one matching among all feature pairs within ``tol``. Recall is the
   fraction of those correspondences that were predicted (a correct predicted
   pair outside the one-to-one matching, e.g. a second keypoint at the same
-  spot, counts for precision only).
+  spot, counts for precision only). Being positional, this truth also pairs
+  keypoints that merely lie within ``tol`` of each other by chance where the
+  keypoints are dense; :func:`chance_truth_pairs` and :func:`real_truth_pairs`
+  estimate how many.
 * **Consistency** of a set of matches (:func:`consistency_violations`): the
   tracks are the connected components of the match graph. C1 (every feature in
   exactly one cluster) holds iff matching is transitive: any two features of
@@ -126,6 +129,39 @@ def one_to_one_truth(H: np.ndarray, xa: np.ndarray, xb: np.ndarray, tol: float) 
             A.append(ia[k])
             B.append(ib[k])
     return np.array(A, np.int64), np.array(B, np.int64)
+
+
+#: translations (px) applied after the true homography by :func:`chance_truth_pairs`: far beyond the truth's
+#: tolerance and any keypoint's localisation error, small against the images
+CHANCE_SHIFTS = ((40.0, 0.0), (0.0, 40.0), (-50.0, 30.0), (30.0, -60.0))
+
+
+def chance_truth_pairs(H: np.ndarray, xa: np.ndarray, xb: np.ndarray, tol: float,
+                       shifts: Sequence[Tuple[float, float]] = CHANCE_SHIFTS) -> float:
+    """How many one-to-one pairs :func:`one_to_one_truth` finds by keypoint density alone: the mean number of its
+    pairs under the true ``H`` followed by each translation in ``shifts``, which breaks every real
+    correspondence and keeps the keypoints' density."""
+    counts = []
+    for dx, dy in shifts:
+        T = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+        counts.append(len(one_to_one_truth(T @ np.asarray(H, np.float64), xa, xb, tol)[0]))
+    return float(np.mean(counts)) if counts else 0.0
+
+
+def real_truth_pairs(n_truth: int, chance: float, n_a: int, n_b: int) -> Tuple[float, float]:
+    """Bounds on how many of an image pair's ``n_truth`` one-to-one truth pairs are real correspondences, from
+    the pairs chance gives (:func:`chance_truth_pairs`) among ``n_a`` and ``n_b`` keypoints: at least
+    ``n_truth - chance`` (as if chance paired every keypoint, real ones included); at most the ``R`` with
+    ``R = n_truth - chance (1 - R / n_a) (1 - R / n_b)`` (chance pairing only keypoints that no real
+    correspondence holds, each image's share apart)."""
+    lo = max(0.0, n_truth - chance)
+    hi = lo
+    for _ in range(100):  # a contraction: the right side grows by less than R does
+        nxt = n_truth - chance * max(0.0, 1 - hi / max(n_a, 1)) * max(0.0, 1 - hi / max(n_b, 1))
+        if abs(nxt - hi) < 1e-9:
+            break
+        hi = nxt
+    return lo, min(float(n_truth), hi)
 
 
 class HomographyTruth:

@@ -134,3 +134,23 @@ def test_unknown_dataset_and_method():
         BM.load_benchmark("/nonexistent/folder")
     with pytest.raises(dqm.InputError, match="unknown method"):
         BM.evaluate(bench("scene:1"), ["quickmatch", "orb"])
+
+
+def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp_path, capsys):
+    """scripts/truth_chance.py (docs/match-defaults/truth-chance.md, issue 61) on a generated scene: the truth's
+    pairs, those chance alone gives (fewer), bounds on the real ones within the truth, and dqm match's
+    clusters' scores, which are the grown row of `dqm evaluate` on the same features."""
+    from script_modules import load_script
+
+    mod = load_script("truth_chance")
+    out = tmp_path / "t.md"
+    assert mod.main(["scene:0", "--out", str(out)]) == 0
+    features = BM.load_benchmark("scene:0", preset="sfm")  # the script's default preset, dqm match's
+    c = mod.chance_rows(features)
+    assert 0 < c["chance"] < c["truth"] and c["chance"] > 0.02 * c["truth"]
+    assert 0 <= c["real_lo"] <= c["real_hi"] <= c["truth"]
+    grown = BM.evaluate(features, ["quickmatch-guided"], curves=False)[0].scores
+    text = out.read_text()
+    assert "`python scripts/truth_chance.py scene:0 --out" in text
+    row = next(line for line in text.splitlines() if line.startswith("| scene:0 |"))
+    assert f"{c['truth']:,}" in row and f"{grown.precision:.3f} / {grown.f1:.3f}" in row

@@ -117,3 +117,24 @@ def test_pr_curve_round_trip_and_f1():
     d = E.PRCurve.from_dict(c.as_dict())
     np.testing.assert_array_equal(d.recall, c.recall)
     assert d.auc() == c.auc()
+
+
+def test_chance_truth_pairs_and_the_bounds_on_the_real_ones():
+    """Keypoints scattered at random with no correspondence: the one-to-one truth within 5 px still pairs many,
+    and chance_truth_pairs (the truth under shifted homographies) counts about as many; the same keypoints with
+    a copy of a third of them in the other image (real correspondences, 0.5 px of noise): real_truth_pairs'
+    bounds hold the 1,000 real ones, and a truth of nothing but chance gets a lower bound near 0."""
+    rng = np.random.default_rng(0)
+    xa = rng.uniform(0, 800, (3000, 2))
+    xb = rng.uniform(0, 800, (3000, 2))
+    H = np.eye(3)
+    truth = len(E.one_to_one_truth(H, xa, xb, 5.0)[0])
+    chance = E.chance_truth_pairs(H, xa, xb, 5.0)
+    assert truth > 300 and abs(chance - truth) < 0.15 * truth
+    assert E.real_truth_pairs(truth, chance, 3000, 3000)[0] < 0.15 * truth
+    real = np.r_[xa[:1000] + rng.normal(0, 0.5, (1000, 2)), xb[1000:]]
+    truth = len(E.one_to_one_truth(H, xa, real, 5.0)[0])
+    chance = E.chance_truth_pairs(H, xa, real, 5.0)
+    lo, hi = E.real_truth_pairs(truth, chance, 3000, 3000)
+    assert lo < 1000 < hi < truth and hi - lo < 0.5 * 1000
+    assert E.chance_truth_pairs(H, xa, real, 5.0, shifts=[(0.0, 0.0)]) == truth
