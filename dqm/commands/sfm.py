@@ -9,9 +9,12 @@ MODEL_DIR (new or empty) receives clusters.npz (dqm's CLUSTERS file), database.d
 database: cameras, keypoints, the clusters' matches, verified geometries), sparse/0 ... (the
 models the mapper made, in COLMAP's binary format), model.png (the largest model from the
 front and from above), tracks.csv and sfm.json (the stage times, the model's numbers and, with
---gt, the pose scores). It is the chain `dqm match` -> `dqm export colmap` -> pycolmap's mapper
-with the same options (docs/sfm.md). Every random choice is seeded (--seed): the same photos
-and options give the same model. Needs pycolmap: pip install 'dqm[colmap]'.
+--gt, the pose scores). In a collection of several scenes and 30 images or more, a scene whose
+model holds fewer than 30 is made again from its images alone, with the choices --preset auto and
+--mapper auto make for its size (scenes/<k>/: its clusters, database and model). It is the chain
+`dqm match` -> `dqm export colmap` -> pycolmap's mapper with the same options (docs/sfm.md). Every
+random choice is seeded (--seed): the same photos and options give the same model. Needs pycolmap:
+pip install 'dqm[colmap]'.
 """
 from __future__ import annotations
 
@@ -39,7 +42,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
-                           f"{LARGE_SCENE_PRESET} from there (docs/sfm.md)")
+                           f"{LARGE_SCENE_PRESET} from there; each scene of a collection of more with fewer is "
+                           f"matched again alone with {SMALL_SCENE_PRESET} (docs/sfm.md)")
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
