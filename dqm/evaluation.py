@@ -156,7 +156,7 @@ def real_truth_pairs(n_truth: int, chance: float, n_a: int, n_b: int) -> Tuple[f
     correspondence holds, each image's share apart)."""
     lo = max(0.0, n_truth - chance)
     hi = lo
-    for _ in range(100):  # a contraction: the right side grows by less than R does
+    for _ in range(100):  # rises to the least such R above the lower bound (the right side grows with R)
         nxt = n_truth - chance * max(0.0, 1 - hi / max(n_a, 1)) * max(0.0, 1 - hi / max(n_b, 1))
         if abs(nxt - hi) < 1e-9:
             break
