@@ -323,6 +323,41 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
     assert [m["folder"] for m in given["models"]] == ["sparse/0", "sparse/1"]
 
 
+def test_a_scene_that_cannot_be_redone_alone_keeps_the_collections_model(tmp_path, capsys, monkeypatch):
+    """The fallbacks of the scenes redone alone (the test before): a scene whose run alone stops on bad input,
+    and one whose run alone registers fewer of its images, keep the collection's model (in sparse/<k>, from
+    database.db), which the last stage then triangulates and sfm.json reports, saying why."""
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.commands import sfm as command
+    from dqm.validation import InputError
+    from dqm.vision import sfm
+
+    a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
+    b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
+    monkeypatch.setattr(sfm, "GLOBAL_FROM", 8)
+    real, calls = command._match_and_map, []
+
+    def match_and_map(args, out, *rest, **kw):
+        calls.append(out)
+        if len(calls) == 2:
+            raise InputError("made to fail")
+        done = real(args, out, *rest, **kw)
+        return done[:-1] + ([],) if len(calls) == 3 else done  # the third: no model alone
+
+    monkeypatch.setattr(command, "_match_and_map", match_and_map)
+    assert main(["sfm", str(a), str(b), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert len(calls) == 3 and "not redone (made to fail)" in out and out.count("model-guided triangulation:") == 2
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    alone = report["scenes_alone"]
+    assert [e["taken"] for e in alone] == [False, False] and alone[0]["error"] == "made to fail"
+    assert alone[1]["registered_alone"] == 0
+    models = report["models"]
+    assert [m["folder"] for m in models] == ["sparse/0", "sparse/1"] and [m["registered"] for m in models] == [5, 4]
+    assert all(m["points"] > m["before_triangulation"]["points"] for m in models)
+
+
 def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, capsys, monkeypatch):
     """COLMAP 4's global mapper placed three scenes of the shared mixed collection in one model, joined by 6
     verified image pairs and no 3-D point. Here the weak-pair filter is taken away so that the chance pairs
