@@ -529,7 +529,7 @@ def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> d
 
     from dqm.vision import poses
 
-    report = run_dir / "sfm.json"  # dqm sfm's names its models (a scene redone alone: scenes/<k>/sparse/0)
+    report = run_dir / "sfm.json"  # dqm sfm's sfm.json names its models (a scene redone alone: scenes/<k>/sparse/0)
     folders = [run_dir / m["folder"] for m in json.loads(report.read_text())["models"]] if report.exists() else \
         sorted(d for d in (run_dir / "sparse").iterdir() if d.is_dir()) if (run_dir / "sparse").is_dir() else []
     models = [pycolmap.Reconstruction(str(d)) for d in folders]

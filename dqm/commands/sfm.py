@@ -42,8 +42,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
-                           f"{LARGE_SCENE_PRESET} from there; each scene of a collection of more with fewer is "
-                           f"matched again alone with {SMALL_SCENE_PRESET} (docs/sfm.md)")
+                           f"{LARGE_SCENE_PRESET} from there (a scene of fewer in a larger collection is matched "
+                           f"again alone with {SMALL_SCENE_PRESET}; docs/sfm.md)")
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
