@@ -500,13 +500,11 @@ def verified_by_scene_pair(database: Path, scene_of: dict[str, str]) -> dict[str
     return out
 
 
-def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
-    """dqm's clusters (its CLUSTERS file) with members in images of two scenes or more, before verification; the
-    images named as the run's database names them (dqm's image k is the database's image k + 1)."""
+def _run_clusters(run_dir: Path, scene_of: dict[str, str]):
+    """dqm's clusters (its CLUSTERS file), every feature's scene (an index into the sorted scene names) and those
+    names; the images named as the run's database names them (dqm's image k is the database's image k + 1)."""
     import numpy as np
     import pycolmap
-
-    from dqm.vision.sfm import clusters_across
 
     z = np.load(run_dir / "clusters.npz", allow_pickle=False)
     db = pycolmap.Database.open(str(run_dir / "database.db"))
@@ -516,9 +514,40 @@ def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
         db.close()
     scenes = sorted(set(scene_of.values()))
     code = np.array([scenes.index(scene_of[n]) for n in names])
-    labels = z["labels"]
-    return {"clusters": int(len(clusters_across(labels, code[z["image_ids"]]))),
+    return z["labels"], code[z["image_ids"]], scenes
+
+
+def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
+    """dqm's clusters with members in images of two scenes or more, before verification."""
+    import numpy as np
+
+    from dqm.vision.sfm import clusters_across
+
+    labels, scene, _ = _run_clusters(run_dir, scene_of)
+    return {"clusters": int(len(clusters_across(labels, scene))),
             "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
+
+
+def mapper_input_by_scene(run_dir: Path, scene_of: dict[str, str]) -> dict:
+    """Per scene, what dqm's clusters hand the mapper (every two members of a cluster a match, each cluster cut to
+    its members in the scene): its features, the observations in clusters of 2+, the matches, their ratio, the
+    largest cluster and the share of the matches in clusters of 10 or more; and ``apart``: the share of one pair
+    scan over all the features that matching each scene apart would cost, sum(n_s^2) / (sum n_s)^2."""
+    import numpy as np
+
+    labels, scene, scenes = _run_clusters(run_dir, scene_of)
+    out: dict = {"scenes": {}}
+    for k, name in enumerate(scenes):
+        mine = labels[scene == k]
+        _, sizes = np.unique(mine, return_counts=True)
+        sizes = sizes[sizes > 1].astype(np.int64)
+        pairs = sizes * (sizes - 1) // 2
+        out["scenes"][name] = {"features": int(len(mine)), "observations": int(sizes.sum()),
+                               "matches": int(pairs.sum()), "largest": int(sizes.max(initial=0)),
+                               "matches_in_clusters_of_10": float(pairs[sizes >= 10].sum() / max(pairs.sum(), 1))}
+    n = np.array([e["features"] for e in out["scenes"].values()], np.float64)
+    out["apart"] = float((n ** 2).sum() / max(n.sum() ** 2, 1.0))
+    return out
 
 
 def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> dict:
@@ -573,6 +602,7 @@ def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) ->
     for name, run_dir, r in each_run(chosen, seeds, work, image_dir, options=["--recursive"]):
         if (run_dir / "clusters.npz").exists():  # dqm's runs
             r["clusters_across_scenes"] = clusters_across_scenes(run_dir, scene_of)
+            r["mapper_input"] = mapper_input_by_scene(run_dir, scene_of)
         r["collection"] = score_collection(run_dir, scene_of, truths)
         r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
         results.setdefault(name, []).append(r)
@@ -631,6 +661,20 @@ def collection_table(results: dict, counts: dict) -> list[str]:
                      + (f"{ca['clusters']:,} of {ca['of_multi_image_clusters']:,}" if ca else "-")
                      + f" | {fmt(t.get('extract'), '.1f')} | {fmt(match, '.1f')} | {fmt(t.get('map'), '.1f')} | "
                      f"{fmt(t.get('triangulate'), '.1f')} | {t['total']:.1f} | {peak} |")
+    for name, runs in results.items():
+        mi = runs[0].get("mapper_input")
+        if not mi:
+            continue
+        lines += ["", f"What {name}'s clusters hand the mapper, by scene (every two members of a cluster a match, "
+                      "each cluster cut to its members in the scene):", "",
+                  "| scene | features | observations in clusters of 2+ | matches | matches / observations | "
+                  "largest cluster | matches in clusters of 10+ |", "|---|---|---|---|---|---|---|"]
+        for scene, e in mi["scenes"].items():
+            ratio = e["matches"] / e["observations"] if e["observations"] else 0.0
+            lines.append(f"| {scene} | {e['features']:,} | {e['observations']:,} | {e['matches']:,} | {ratio:.2f} | "
+                         f"{e['largest']} | {e['matches_in_clusters_of_10']:.2f} |")
+        lines += ["", f"- Matching each scene apart would cost {mi['apart']:.2f} of {name}'s one pair scan over all "
+                      "the features (sum of the scenes' squared feature counts over the square of their sum)."]
     if "colmap" in results:
         c0 = results["colmap"][0]
         for name, runs in results.items():

@@ -426,5 +426,13 @@ def test_bench_sfm_collection_of_two_generated_scenes(tmp_path):
         assert run["verified_pairs"].get("one|one", 0) >= 3 and run["verified_pairs"].get("two|two", 0) >= 3
     dqm_run = data["results"]["dqm"][0]
     assert dqm_run["clusters_across_scenes"]["clusters"] >= 0 and set(dqm_run["peak_memory_bytes"]) >= {"match", "map"}
+    mi = dqm_run["mapper_input"]  # what the clusters hand the mapper, by scene
+    assert sum(e["features"] for e in mi["scenes"].values()) == dqm_run["features"]
+    for e in mi["scenes"].values():  # a cluster of k >= 2 members: k (k - 1) / 2 matches, at least k / 2
+        assert 0 < e["observations"] <= e["features"] and e["observations"] / 2 <= e["matches"]
+        assert 2 <= e["largest"] <= 4 and e["matches_in_clusters_of_10"] == 0  # 4 images a scene
+    n = [e["features"] for e in mi["scenes"].values()]
+    assert mi["apart"] == pytest.approx((n[0] ** 2 + n[1] ** 2) / sum(n) ** 2) and 0.5 <= mi["apart"] < 0.6
     table = (tmp_path / "out" / "sfm.md").read_text()
+    assert f"- Matching each scene apart would cost {mi['apart']:.2f} of dqm's" in table
     assert "| one | dqm | 4 / 4 |" in table and "| two | dqm | 4 / 4 |" in table
