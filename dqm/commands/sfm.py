@@ -185,6 +185,7 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
         sub = argparse.Namespace(**dict(vars(args), inputs=[paths[by_name[name]] for name in names],
                                         image_list=None, recursive=False, preset=preset, mapper=asked.mapper))
         say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
+        print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
                                                       image_dir=export.image_dir, say=say)
