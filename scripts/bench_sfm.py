@@ -500,9 +500,10 @@ def verified_by_scene_pair(database: Path, scene_of: dict[str, str]) -> dict[str
     return out
 
 
-def _run_clusters(run_dir: Path, scene_of: dict[str, str]):
+def run_clusters(run_dir: Path, scene_of: dict[str, str]):
     """dqm's clusters (its CLUSTERS file), every feature's scene (an index into the sorted scene names) and those
-    names; the images named as the run's database names them (dqm's image k is the database's image k + 1)."""
+    names, read once for :func:`clusters_across_scenes` and :func:`mapper_input_by_scene`; the images named as
+    the run's database names them (dqm's image k is the database's image k + 1)."""
     import numpy as np
     import pycolmap
 
@@ -517,25 +518,25 @@ def _run_clusters(run_dir: Path, scene_of: dict[str, str]):
     return z["labels"], code[z["image_ids"]], scenes
 
 
-def clusters_across_scenes(run_dir: Path, scene_of: dict[str, str]) -> dict:
-    """dqm's clusters with members in images of two scenes or more, before verification."""
+def clusters_across_scenes(labels, scene) -> dict:
+    """dqm's clusters with members in images of two scenes or more, before verification (:func:`run_clusters`'
+    arrays)."""
     import numpy as np
 
     from dqm.vision.sfm import clusters_across
 
-    labels, scene, _ = _run_clusters(run_dir, scene_of)
     return {"clusters": int(len(clusters_across(labels, scene))),
             "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
 
 
-def mapper_input_by_scene(run_dir: Path, scene_of: dict[str, str]) -> dict:
-    """Per scene, what dqm's clusters hand the mapper (every two members of a cluster a match, each cluster cut to
-    its members in the scene): its features, the observations in clusters of 2+, the matches, their ratio, the
-    largest cluster and the share of the matches in clusters of 10 or more; and ``apart``: the share of one pair
-    scan over all the features that matching each scene apart would cost, sum(n_s^2) / (sum n_s)^2."""
+def mapper_input_by_scene(labels, scene, scenes) -> dict:
+    """Per scene (:func:`run_clusters`' arrays), what dqm's clusters hand the mapper (every two members of a
+    cluster a match, each cluster cut to its members in the scene): its features, the observations in clusters
+    of 2+, the matches, their ratio, the largest cluster and the share of the matches in clusters of 10 or more;
+    and ``apart``: the share of one pair scan over all the features that matching each scene apart would cost,
+    sum(n_s^2) / (sum n_s)^2."""
     import numpy as np
 
-    labels, scene, scenes = _run_clusters(run_dir, scene_of)
     out: dict = {"scenes": {}}
     for k, name in enumerate(scenes):
         mine = labels[scene == k]
@@ -550,7 +551,7 @@ def mapper_input_by_scene(run_dir: Path, scene_of: dict[str, str]) -> dict:
     return out
 
 
-def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> dict:
+def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict, folders: list[str] | None = None) -> dict:
     """Per scene: the model holding most of its photos, its photos registered there, its cameras against the
     scene's ground truth (pairs among the scene's photos) and its points; over all models: points seen in
     photos of two scenes, models made."""
@@ -558,10 +559,10 @@ def score_collection(run_dir: Path, scene_of: dict[str, str], truths: dict) -> d
 
     from dqm.vision import poses
 
-    report = run_dir / "sfm.json"  # dqm sfm's sfm.json names its models (a scene redone alone: scenes/<k>/sparse/0)
-    folders = [run_dir / m["folder"] for m in json.loads(report.read_text())["models"]] if report.exists() else \
+    # dqm sfm's report names its models' folders (a scene redone alone: scenes/<k>/sparse/0); else sparse/*
+    dirs = [run_dir / f for f in folders] if folders is not None else \
         sorted(d for d in (run_dir / "sparse").iterdir() if d.is_dir()) if (run_dir / "sparse").is_dir() else []
-    models = [pycolmap.Reconstruction(str(d)) for d in folders]
+    models = [pycolmap.Reconstruction(str(d)) for d in dirs]
     mixed = 0
     for rec in models:
         names = {i: im.name for i, im in rec.images.items()}
@@ -601,9 +602,11 @@ def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) ->
     results: dict[str, list[dict]] = {}
     for name, run_dir, r in each_run(chosen, seeds, work, image_dir, options=["--recursive"]):
         if (run_dir / "clusters.npz").exists():  # dqm's runs
-            r["clusters_across_scenes"] = clusters_across_scenes(run_dir, scene_of)
-            r["mapper_input"] = mapper_input_by_scene(run_dir, scene_of)
-        r["collection"] = score_collection(run_dir, scene_of, truths)
+            labels, scene, scenes = run_clusters(run_dir, scene_of)
+            r["clusters_across_scenes"] = clusters_across_scenes(labels, scene)
+            r["mapper_input"] = mapper_input_by_scene(labels, scene, scenes)
+        folders = [m["folder"] for m in r["models"]] if "models" in r else None  # dqm's runs
+        r["collection"] = score_collection(run_dir, scene_of, truths, folders)
         r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
         results.setdefault(name, []).append(r)
         c = r["collection"]
