@@ -174,11 +174,12 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
         return []
     by_name = {name: k for k, name in enumerate(export.names)}
     paths = [str(Path(export.image_dir) / name) for name in export.names]
+    collection_mapper = choose_mapper(args.mapper, export.n_images)
     done = []
     for k, m in enumerate(list(models)):
         n = int(m.rec.num_reg_images())
         preset = choose_preset(asked.preset, n)
-        if preset == args.preset and choose_mapper(asked.mapper, n) == choose_mapper(args.mapper, export.n_images):
+        if preset == args.preset and choose_mapper(asked.mapper, n) == collection_mapper:
             continue
         names = sorted((image.name for image in m.rec.images.values() if image.has_pose), key=by_name.get)
         folder = out / "scenes" / m.folder.name
@@ -186,26 +187,25 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
                                         image_list=None, recursive=False, preset=preset, mapper=asked.mapper))
         say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
         print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
+        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset}
+        done.append(entry)
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
                                                       image_dir=export.image_dir, say=say)
         except InputError as e:  # the collection's model stands; what was written stays
-            print(f"{say}not redone ({e}); the collection's model {_folder(m, out)} is kept", flush=True)
-            done.append({"collection_folder": _folder(m, out), "images": n, "preset": preset, "taken": False,
-                         "error": str(e)})
+            print(f"{say}not redone ({e}); the collection's model {entry['collection_folder']} is kept", flush=True)
+            entry.update(taken=False, error=str(e))
             continue
         got = int(own[0].rec.num_reg_images()) if own else 0
         taken = got >= n
-        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset, "mapper": mapper,
-                 "registered_alone": got, "models_alone": len(own), "taken": taken,
-                 "collection_model": mapped[k]}
+        entry.update(mapper=mapper, registered_alone=got, models_alone=len(own), taken=taken,
+                     collection_model=mapped[k])
         if taken:
             models[k], mapped[k], sources[k] = own[0], model_numbers(own[0].rec), (folder / "database.db", s, fs)
             entry["folder"] = _folder(own[0], out)
-        print(f"{say}{got} of {n} images registered in its largest model"
-              + ("; it replaces the collection's" if taken else f"; the collection's model {_folder(m, out)} is kept"),
-              flush=True)
-        done.append(entry)
+        kept = "it replaces the collection's" if taken else \
+            f"the collection's model {entry['collection_folder']} is kept"
+        print(f"{say}{got} of {n} images registered in its largest model; {kept}", flush=True)
     return done
 
 
