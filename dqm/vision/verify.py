@@ -25,6 +25,7 @@ per cluster (C2).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from typing import Callable, Optional, Tuple
 
@@ -33,6 +34,8 @@ import numpy as np
 from ..validation import InputError
 from .baselines import canonical
 from .colmap import cluster_pairs
+
+LOG = logging.getLogger("dqm.vision")
 
 #: COLMAP's defaults (TwoViewGeometryOptions): min_num_inliers, max_H_inlier_ratio
 MIN_INLIERS = 15
@@ -110,6 +113,20 @@ class VerifyStats:
     n_split: int  # features split off into clusters of their own
 
 
+def _usac(estimate, *args):
+    """``(model, mask)`` of an OpenCV USAC estimator, ``(None, None)`` where it finds no model. OpenCV 4 returns
+    None then; OpenCV 5.1's MAGSAC++ instead fails an internal assertion (``!model.empty()`` in
+    ``setModelParameters``) on some point sets it cannot fit (8-20 matches of tiny images): the same answer, no
+    model. The points are checked before (finite float pixel coordinates), so an error here is the fit's."""
+    import cv2
+
+    try:
+        return estimate(*args)
+    except cv2.error as exc:
+        LOG.debug("USAC found no model (%s)", str(exc).strip().splitlines()[-1] if str(exc).strip() else exc)
+        return None, None
+
+
 def _fit_pair(p: np.ndarray, q: np.ndarray, threshold: float, confidence: float):
     """COLMAP's two-view model selection (module docstring): the inlier mask, the kind ("H" or "F") and
     matrix of the model with more inliers (None: no fit), the configuration and the homography."""
@@ -118,12 +135,12 @@ def _fit_pair(p: np.ndarray, q: np.ndarray, threshold: float, confidence: float)
     n = len(p)
     if n < 8:
         return np.zeros(n, bool), "F", None, UNCALIBRATED, None
-    F, mf = cv2.findFundamentalMat(p, q, cv2.USAC_MAGSAC, threshold, confidence, 10000)
+    F, mf = _usac(cv2.findFundamentalMat, p, q, cv2.USAC_MAGSAC, threshold, confidence, 10000)
     if F is None or mf is None or F.shape != (3, 3):  # OpenCV may stack several solutions
         F, inl_f = None, np.zeros(n, bool)
     else:
         inl_f = mf.ravel().astype(bool)
-    H, mh = cv2.findHomography(p, q, cv2.USAC_MAGSAC, threshold, None, 10000, confidence)
+    H, mh = _usac(cv2.findHomography, p, q, cv2.USAC_MAGSAC, threshold, None, 10000, confidence)
     inl_h = mh.ravel().astype(bool) if H is not None and mh is not None else np.zeros(n, bool)
     n_f, n_h = int(inl_f.sum()), int(inl_h.sum())
     planar = n_h > MAX_H_INLIER_RATIO * max(n_f, 1)
