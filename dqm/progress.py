@@ -66,3 +66,63 @@ def resolve_progress(progress: ProgressArg, label: str, unit: str = "") -> Optio
     if callable(progress):
         return progress
     raise TypeError(f"progress must be a bool or a callable(done, total), got {progress!r}")
+
+
+class Ticker:
+    """``with Ticker(label):`` one line on a TTY with the label and the time since the block began, redrawn
+    every ``every`` seconds by a thread of its own until the block ends: the progress of a long call that
+    reports none (COLMAP's global mapper, triangulator and bundle adjustment). Silent otherwise, as
+    :class:`ProgressBar` (``force`` overrides the terminal test). The thread ends with the block, however it
+    ends."""
+
+    def __init__(self, label: str, stream: Optional[TextIO] = None, force: Optional[bool] = None,
+                 every: float = 1.0):
+        self.label = label
+        self.every = float(every)
+        self.stream = stream if stream is not None else sys.stderr
+        tty = getattr(self.stream, "isatty", lambda: False)()
+        self.enabled = tty if force is None else force
+        self._bar: Optional["tqdm"] = None
+        self._thread = None
+        self._stop = None
+
+    def __enter__(self) -> "Ticker":
+        if not self.enabled:
+            return self
+        import threading
+
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=None, desc=self.label, bar_format="{desc}: {elapsed} elapsed", file=self.stream,
+                         dynamic_ncols=True, leave=True)
+        self._stop = threading.Event()
+        stop, bar = self._stop, self._bar
+
+        def redraw() -> None:
+            while not stop.wait(self.every):
+                bar.refresh()
+
+        self._thread = threading.Thread(target=redraw, name="dqm-ticker", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._bar.close()
+        self._bar = None
+
+
+def ticking(progress: ProgressArg, label: str):
+    """A :class:`Ticker` for ``label`` where ``progress`` draws on a terminal (``True``, or a
+    :class:`ProgressBar` that draws: on its stream), else a context that shows nothing: what a function that
+    takes :data:`ProgressArg` shows around a call that reports no counts."""
+    import contextlib
+
+    if progress is True:
+        return Ticker(label)
+    if isinstance(progress, ProgressBar) and progress.enabled:
+        return Ticker(label, stream=progress.stream, force=True)
+    return contextlib.nullcontext()
