@@ -55,6 +55,7 @@ def add_arguments(p) -> None:
                    help="folder COLMAP / hloc will read the images from; image names are relative to it "
                         "(default: the images' common folder)")
     p.add_argument("--tracks", default=None, metavar="CSV", help="also write the tracks (clusters of 2+) as CSV")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (there is none when output is piped)")
     outputs.add_overwrite_option(p)
     g = p.add_argument_group("colmap")
     g.add_argument("--database", default=None, metavar="DB", help="COLMAP database (.db) to create")
@@ -159,7 +160,7 @@ def _run_colmap(args, t0: float):
     paths = colmap.resolve_images(c["image_names"], args.image_dir)
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
-                               verify=not args.no_verify, camera=camera)
+                               verify=not args.no_verify, camera=camera, progress=not args.quiet)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
           f"{s.pairs_line()}"
           + ("" if args.no_verify else f", {s.verified_line()}")
@@ -177,7 +178,7 @@ def _run_colmap_into(args, t0: float):
         outputs.check_distinct(("--into-database", db), ("--tracks", args.tracks))
     c = _load(args, ("image_names", "image_ids"))
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
-                             names=[str(n) for n in c["image_names"]])
+                             names=[str(n) for n in c["image_names"]], progress=not args.quiet)
     verified = "" if args.no_verify else f", {s.verified_line()}"
     print(f"wrote into {db}: {s.pairs_line()}{verified} "
           f"({time.perf_counter() - t0:.1f} s)")

@@ -224,7 +224,7 @@ def run(args) -> int:
         from ..vision.colmap import write_matches
 
         s = write_matches(database, result.labels, fs.image_ids, overwrite=args.overwrite,
-                          num_threads=args.threads or -1)
+                          num_threads=args.threads or -1, progress=not args.quiet)
         print(f"wrote into {database}: {s.pairs_line()}, "
               f"{s.verified_line()} (COLMAP's geometric verification)")
         image_dir = repr(str(args.image_dir)) if args.image_dir else "IMAGE_DIR"  # else a placeholder, as OUTPUT_DIR

@@ -72,7 +72,7 @@ def add_arguments(p) -> None:
 
 
 def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads,
-                 bundle_adjust: bool):
+                 bundle_adjust: bool, progress: bool):
     """The model with the points that matches under its own geometry add (:mod:`dqm.vision.triangulation`),
     written over the mapper's model in ``folder``."""
     import numpy as np
@@ -86,7 +86,7 @@ def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mappe
             rows = np.flatnonzero(fs.image_ids == by_name[image.name])
             keypoints[image_id], descriptors[image_id] = fs.keypoints[rows, :2], fs.descriptors[rows]
     return triangulate(rec, database, export.image_dir, folder, keypoints, descriptors, seed=seed,
-                       num_threads=mapper_threads, n_threads=threads, bundle_adjust=bundle_adjust)
+                       num_threads=mapper_threads, n_threads=threads, bundle_adjust=bundle_adjust, progress=progress)
 
 
 def _out_dir(path: str) -> Path:
@@ -148,13 +148,14 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
         io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
-                                   image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed)
+                                   image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed,
+                                   progress=not args.quiet)
     mapper = choose_mapper(args.mapper, s.n_images)
     print(f"{say}wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
           f"{mapper} mapping ...", flush=True)
     with stage("map"):
         models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
-                                num_threads=threads)
+                                num_threads=threads, progress=not args.quiet)
     return fs, result, extra, s, mapper, models
 
 
@@ -288,7 +289,7 @@ def run(args) -> int:
             for m, (database, export, features) in zip(models, sources):  # every model (each scene of a mixed
                 # collection): their images are disjoint
                 m.rec, ts = _triangulate(m.rec, database, export, features, m.folder, args.seed, threads,
-                                         args.threads, args.bundle_adjust)
+                                         args.threads, args.bundle_adjust, not args.quiet)
                 print(ts.summary() if len(models) == 1 else f"{_folder(m, out)}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),

@@ -42,6 +42,7 @@ import numpy as np
 from .. import signals
 from ..io import FeatureSet
 from ..outputs import atomic_output
+from ..progress import ProgressArg, resolve_progress
 from ..validation import InputError
 from ..wording import count
 
@@ -331,12 +332,15 @@ def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]]
 
 def export_database(database, keypoints, image_ids, image_paths: Sequence, labels, *,
                     image_dir=None, descriptors=None, verify: bool = True,
-                    num_threads: int = -1, camera: CameraOptions | None = None, seed: int = 0) -> ExportSummary:
+                    num_threads: int = -1, camera: CameraOptions | None = None, seed: int = 0,
+                    progress: ProgressArg = None) -> ExportSummary:
     """Write a COLMAP database from clusters (see the module docstring); refuses an existing file.
 
     ``keypoints``: (n, >=2) OpenCV pixel coordinates; ``image_ids``: 0..m-1 indexing
     ``image_paths`` (existing image files); ``labels``: the clusters; ``camera``: the camera
-    model, sharing and parameters (:func:`camera_options`; default one ``SIMPLE_RADIAL`` per image).
+    model, sharing and parameters (:func:`camera_options`; default one ``SIMPLE_RADIAL`` per image);
+    ``progress(done, total)`` (:data:`dqm.progress.ProgressArg`): image pairs done, twice (their matches
+    written, then verified; ``done`` restarts at 0).
     Every image is read (its size) before the database is created.
     """
     pycolmap = require_pycolmap()
@@ -364,6 +368,7 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     pairs, left_out = verifiable(pairs, least)
     rows_of = [np.flatnonzero(ids == k) for k in range(len(paths))]
     local = local_indices(ids)
+    bar = resolve_progress(progress, "export (write, then verify)", unit="pairs")
     with atomic_output(database) as tmp:  # a stop or an error leaves no half-written database
         colmap_id = {}
         cameras: dict[int, tuple[object, int]] = {}  # camera group -> (pycolmap camera, rig id)
@@ -394,26 +399,30 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
                 if desc is not None:
                     db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
                         pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(desc[rows])))
-            n_matches = _write_cluster_matches(db, pairs, colmap_id, local)
+            n_matches = _write_cluster_matches(db, pairs, colmap_id, local, bar)
         finally:
             db.close()
         summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
                                 n_cameras=len(cameras), n_pairs_left_out=left_out, min_matches=least)
         if verify and pairs:
-            summary.n_verified_pairs = _verify(tmp, num_threads, seed)
+            summary.n_verified_pairs = _verify(tmp, num_threads, seed, bar)
             summary.n_pairs_dropped = drop_weak_pairs(tmp)
             summary.n_verified_pairs -= summary.n_pairs_dropped
     return summary
 
 
-def _write_cluster_matches(db, pairs: dict, colmap_id, local: np.ndarray) -> int:
+def _write_cluster_matches(db, pairs: dict, colmap_id, local: np.ndarray,
+                           progress: Callable[[int, int], None] | None = None) -> int:
     """Write every image pair's matches (:func:`cluster_pairs`; ``colmap_id[k]``: COLMAP's id of dqm image k,
-    ``local``: every feature's keypoint index in its image) into the open pycolmap database; the match count."""
+    ``local``: every feature's keypoint index in its image) into the open pycolmap database; the match count.
+    ``progress(done, total)``: image pairs written."""
     LOG.info("writing the matches of %s", count(len(pairs), "image pair"))
     n_matches = 0
-    for (a, b), m in pairs.items():
+    for done, ((a, b), m) in enumerate(pairs.items(), start=1):
         db.write_matches(colmap_id[a], colmap_id[b], local[m].astype(np.uint32))
         n_matches += len(m)
+        if progress is not None:
+            progress(done, len(pairs))
     return n_matches
 
 
@@ -430,12 +439,13 @@ def trial_ratio(n_matches: int, min_inliers: int) -> float:
     return max(COLMAP_MIN_INLIER_RATIO, min_inliers / max(1, n_matches))
 
 
-def _verify(path, num_threads: int, seed: int) -> int:
+def _verify(path, num_threads: int, seed: int, progress: Callable[[int, int], None] | None = None) -> int:
     """COLMAP's geometric verification of every matched image pair of the database file ``path``: its
     two-view estimator (``pycolmap.estimate_two_view_geometry``, what COLMAP's verifier calls per pair, with
     its options) on ``num_threads`` threads (-1: every core), its RANSAC seeded (so the same matches give the
     same geometries) and each pair's trials bounded by :func:`trial_ratio`; every pair's geometry is written,
-    as COLMAP's verifier writes them. Returns the number of verified image pairs.
+    as COLMAP's verifier writes them. Returns the number of verified image pairs. ``progress(done, total)``: image
+    pairs verified.
 
     The bound is the only departure from ``pycolmap.geometric_verification`` with COLMAP's defaults (which
     gives the same geometries as this function without it, pair for pair): it makes the verification of
@@ -467,8 +477,12 @@ def _verify(path, num_threads: int, seed: int) -> int:
         return pycolmap.estimate_two_view_geometry(cameras[images[a].camera_id], points[a],
                                                    cameras[images[b].camera_id], points[b], matches[k], options)
 
+    geometries = []
     with tile_pool(None if num_threads < 1 else num_threads) as run:  # None: tile_pool's default threads
-        geometries = list(run(estimate, range(len(pairs))))
+        for g in run(estimate, range(len(pairs))):  # in pair order
+            geometries.append(g)
+            if progress is not None:
+                progress(len(geometries), len(pairs))
     db = pycolmap.Database.open(str(path))
     try:
         for (a, b), g in zip(pairs, geometries):
@@ -554,7 +568,8 @@ def _check_images(database: Path, images: list, ids: np.ndarray, names: Sequence
 
 
 def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
-                  num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None) -> ExportSummary:
+                  num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None,
+                  progress: ProgressArg = None) -> ExportSummary:
     """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
     database the features were read from (:func:`import_database`), as COLMAP's own matchers do: its cameras,
     images, keypoints and descriptors stay as they are, so its mapper runs next.
@@ -564,7 +579,8 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     database's name of its image or a path ending in it, checked with the keypoint counts (clusters matched from
     another database are refused). The database is checked first (:func:`check_matches_target`); existing
     matches and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
-    renamed over it when complete, so a stop or an error leaves the old one untouched.
+    renamed over it when complete, so a stop or an error leaves the old one untouched. ``progress``: as
+    :func:`export_database`'s.
     """
     pycolmap = require_pycolmap()
     database = check_matches_target(database, overwrite=overwrite)
@@ -579,6 +595,7 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     least = min_verified_matches() if verify else 1
     pairs, left_out = verifiable(pairs, least)
     local = local_indices(ids)
+    bar = resolve_progress(progress, "export (write, then verify)", unit="pairs")
     mode = os.stat(database).st_mode & 0o7777
     with atomic_output(database, mode=mode) as tmp:
         shutil.copyfile(database, tmp)
@@ -591,13 +608,13 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
             if overwrite:
                 db.clear_two_view_geometries()
                 db.clear_matches()
-            n_matches = _write_cluster_matches(db, pairs, [im.image_id for im in images], local)
+            n_matches = _write_cluster_matches(db, pairs, [im.image_id for im in images], local, bar)
         finally:
             db.close()
         summary = ExportSummary(database, None, len(images), len(ids), len(pairs), n_matches,
                                 names=[im.name for im in images], n_pairs_left_out=left_out, min_matches=least)
         if verify and pairs:
-            summary.n_verified_pairs = _verify(tmp, num_threads, seed)
+            summary.n_verified_pairs = _verify(tmp, num_threads, seed, bar)
             summary.n_pairs_dropped = drop_weak_pairs(tmp)
             summary.n_verified_pairs -= summary.n_pairs_dropped
     return summary

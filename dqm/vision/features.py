@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import signals
+from ..progress import ticking
 from ..validation import InputError
 
 #: SIFT settings; "paper" is the seed paper's experiment preset
@@ -305,9 +306,10 @@ def extract_colmap(images: Sequence, max_features: int = 0, progress=None,
         pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
         logging.getLogger("dqm.vision").info("COLMAP's SIFT (pycolmap's extractor): %d images", len(names))
         try:
-            signals.interruptible(pycolmap.extract_features, str(db), str(root), image_names=names,
-                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
-                                  device=pycolmap.Device.cpu)
+            with ticking(progress, "sift (COLMAP's extractor)"):  # it reports no images: its time, then them
+                signals.interruptible(pycolmap.extract_features, str(db), str(root), image_names=names,
+                                      camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
+                                      device=pycolmap.Device.cpu)
         finally:
             pycolmap.logging.minloglevel = level
         fs = import_database(db)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import signals
+from ..progress import ProgressArg, resolve_progress, ticking
 from ..validation import InputError
 from .colmap import require_pycolmap
 from .triangulation import MIN_SHARED_POINTS, covisible_pairs
@@ -96,7 +97,7 @@ class Model:
 
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
                 num_threads: int = -1, structure_less: bool = False,
-                split: bool = True) -> tuple[list[Model], float]:
+                split: bool = True, progress: ProgressArg = None) -> tuple[list[Model], float]:
     """Every model of pycolmap's mapping of ``database``, the largest first (:func:`by_size`; empty if none),
     and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...): a collection of several
     scenes gives one model per scene.
@@ -105,18 +106,54 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed. ``split``: a
     model whose images fall in groups that share (almost) no 3-D point is one model per group (:func:`split_scenes`; the
     global mapper places the scenes of a collection in one model where a few verified image pairs join them).
+    ``progress`` (:data:`dqm.progress.ProgressArg`): the incremental mapper's registered images of the
+    database's, ``progress(done, total)`` as each is registered (a model's first two at once); the global
+    mapper reports none, so with ``True`` a terminal shows the time it has taken instead.
     """
     pycolmap = require_pycolmap()
     options = mapper_options(mapper, seed, num_threads, structure_less)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    run = pycolmap.incremental_mapping if mapper == "incremental" else pycolmap.global_mapping
     t0 = time.perf_counter()
-    recs = signals.interruptible(run, str(database), str(image_dir), str(out), options=options)
+    if mapper == "incremental":
+        bar = resolve_progress(progress, "mapping", unit="images")
+        callbacks = {} if bar is None else _registration_callbacks(bar, _count_images(database))
+        recs = signals.interruptible(pycolmap.incremental_mapping, str(database), str(image_dir), str(out),
+                                     options=options, **callbacks)
+        getattr(bar, "close", lambda: None)()
+    else:
+        with ticking(progress, "mapping (COLMAP's global mapper)"):
+            recs = signals.interruptible(pycolmap.global_mapping, str(database), str(image_dir), str(out),
+                                         options=options)
     models = [Model(k, recs[k], out / str(k)) for k in by_size(recs)]
     if split:
         models = split_scenes(models, out)
     return models, time.perf_counter() - t0
+
+
+def _count_images(database) -> int:
+    """The images of a COLMAP database file."""
+    pycolmap = require_pycolmap()
+    db = pycolmap.Database.open(str(database))
+    try:
+        return int(db.num_images())
+    finally:
+        db.close()
+
+
+def _registration_callbacks(bar, total: int) -> dict:
+    """The incremental mapper's callbacks that count its registered images into ``bar(done, total)``: two for a
+    model's first pair, one for each image after (capped at ``total``: an image registered again after it was
+    dropped counts twice; a count that does not change is not reported)."""
+    done = [0]
+
+    def registered(k: int) -> None:
+        now = min(total, done[0] + k)
+        if now != done[0]:
+            done[0] = now
+            bar(now, total)
+
+    return {"initial_image_pair_callback": lambda: registered(2), "next_image_callback": lambda: registered(1)}
 
 
 def clusters_across(labels, group) -> np.ndarray:

@@ -42,7 +42,9 @@ thread (``num_threads=1``, dqm sfm's default) the adjustment gives the same mode
 """
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,9 +53,12 @@ import numpy as np
 
 from .. import signals
 from ..core.pairs import default_threads
+from ..progress import ProgressArg, resolve_progress, ticking
 from .colmap import require_pycolmap
 from .guided import DEFAULT_RATIO, propose_links
 from .verify import PairModel
+
+LOG = logging.getLogger("dqm.vision")
 
 #: a guided match fits the model's epipolar geometry within this many pixels (Sampson distance)
 DEFAULT_THRESHOLD = 0.5
@@ -143,11 +148,12 @@ def covisible_partners(rec, partners: int = PARTNERS, min_shared: int = MIN_SHAR
 
 def model_guided_matches(rec, keypoints: dict, descriptors: dict, *, threshold: float = DEFAULT_THRESHOLD,
                          ratio: float = DEFAULT_RATIO, min_shared: int = MIN_SHARED_POINTS,
-                         partners: int = PARTNERS,
-                         n_threads: int | None = None) -> dict[tuple[int, int], np.ndarray]:
+                         partners: int = PARTNERS, n_threads: int | None = None,
+                         progress: Callable[[int, int], None] | None = None) -> dict[tuple[int, int], np.ndarray]:
     """Matches under the model's geometry (module docstring), ``{(image id a, image id b): (m, 2) keypoint
     indices}``, a < b; ``keypoints`` / ``descriptors``: per registered image id, (n, >= 2) OpenCV pixel
-    coordinates and (n, d) descriptors, in the database's keypoint order."""
+    coordinates and (n, d) descriptors, in the database's keypoint order. ``progress(done, total)``: image
+    pairs matched."""
     pairs = covisible_partners(rec, partners, min_shared)
     ids = sorted({i for p in pairs for i in p})
     offsets = np.cumsum([0] + [len(keypoints[i]) for i in ids])
@@ -167,23 +173,30 @@ def model_guided_matches(rec, keypoints: dict, descriptors: dict, *, threshold: 
         return np.stack([i - start[a], j - start[b]], axis=1)
 
     workers = max(1, default_threads() if n_threads is None else int(n_threads))
+    found = []
     with ThreadPoolExecutor(workers) as pool:
-        found = list(pool.map(match, pairs))  # in pair order whatever the threads do
+        for m in pool.map(match, pairs):  # in pair order whatever the threads do
+            found.append(m)
+            if progress is not None:
+                progress(len(found), len(pairs))
     return {p: m for p, m in zip(pairs, found) if len(m)}
 
 
 def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors: dict, *,
                 threshold: float = DEFAULT_THRESHOLD, ratio: float = DEFAULT_RATIO,
                 max_error: float = DEFAULT_MAX_ERROR, seed: int = 0, num_threads: int = -1,
-                n_threads: int | None = None, bundle_adjust: bool = True):
+                n_threads: int | None = None, bundle_adjust: bool = True, progress: ProgressArg = None):
     """The model with the points that model-guided matches add, bundle-adjusted unless ``bundle_adjust`` is
     False (module docstring), written to ``out_dir``, and what was done. ``database``: the model's COLMAP
     database, whose verified matches gain the new ones; ``rec`` is not changed; ``num_threads``: COLMAP's
-    (-1: all cores)."""
+    (-1: all cores). ``progress`` (:data:`dqm.progress.ProgressArg`): the image pairs matched,
+    ``progress(done, total)``; COLMAP's triangulator and bundle adjustment report none, so with ``True`` a
+    terminal shows the time each has taken instead."""
     pycolmap = require_pycolmap()
     t0 = time.perf_counter()
     found = model_guided_matches(rec, keypoints, descriptors, threshold=threshold, ratio=ratio,
-                                 n_threads=n_threads)
+                                 n_threads=n_threads, progress=resolve_progress(progress, "model-guided matches",
+                                                                                unit="pairs"))
     n_matches = sum(len(m) for m in found.values())
     n_new = 0
     db = pycolmap.Database.open(str(database))
@@ -215,8 +228,9 @@ def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors:
     out.mkdir(parents=True, exist_ok=True)
     before = (rec.num_points3D(), rec.compute_num_observations())
     last_id = max(rec.point3D_ids(), default=0)
-    dense = signals.interruptible(pycolmap.triangulate_points, pycolmap.Reconstruction(rec), str(database),
-                                  str(image_dir), str(out), clear_points=False, options=options)
+    with ticking(progress, "triangulation (COLMAP's triangulator)"):
+        dense = signals.interruptible(pycolmap.triangulate_points, pycolmap.Reconstruction(rec), str(database),
+                                      str(image_dir), str(out), clear_points=False, options=options)
     # COLMAP's triangulator creates two-view points, which its incremental mapper never does: the new
     # points must be seen in 3 images or more, as the mapper's are when it creates them (the model's
     # own points keep their ids and stay)
@@ -228,8 +242,10 @@ def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors:
         t2 = time.perf_counter()
         stats.reproj_before_adjust = dense.compute_mean_reprojection_error()
         ba = pycolmap.BundleAdjustmentOptions()  # COLMAP's defaults: the principal points stay
+        ba.print_summary = LOG.isEnabledFor(logging.INFO)  # its report only with -v
         ba.ceres.solver_options.num_threads = int(num_threads)
-        signals.interruptible(pycolmap.bundle_adjustment, dense, ba)
+        with ticking(progress, "bundle adjustment"):
+            signals.interruptible(pycolmap.bundle_adjustment, dense, ba)
         stats.reproj_after_adjust = dense.compute_mean_reprojection_error()
         stats.time_adjust = time.perf_counter() - t2
     dense.write(str(out))

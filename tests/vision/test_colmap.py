@@ -50,8 +50,11 @@ def test_cluster_pairs_are_every_two_members():
 
 def test_exported_database_holds_keypoints_matches_and_geometries(scene, tmp_path):
     db = tmp_path / "db.db"
+    calls = []
     s = colmap.export_database(db, scene["kp"], scene["ids"], scene["paths"], scene["labels"],
-                               descriptors=scene["D"])
+                               descriptors=scene["D"], progress=lambda done, total: calls.append((done, total)))
+    pairs = list(range(1, s.n_image_pairs + 1))
+    assert calls == [(k, s.n_image_pairs) for k in pairs + pairs]  # every pair written, then every pair verified
     want = expected_pairs(scene["labels"], scene["ids"])
     d = pycolmap.Database.open(str(db))
     try:

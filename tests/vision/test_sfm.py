@@ -222,6 +222,43 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     assert total > 1000 and true / total > 0.9, (true, total)
 
 
+def test_every_long_stage_of_dqm_sfm_shows_progress_on_a_terminal(tmp_path, capsys, monkeypatch):
+    """On a terminal every stage after QuickMatch shows its progress: the export's pairs written then verified,
+    the incremental mapper's registered images (callbacks of COLMAP's), the model-guided matches' pairs, and
+    the time taken by the calls that report nothing (COLMAP's global mapper, triangulator, bundle
+    adjustment); --quiet shows none, and the model is the same either way."""
+    import io as _io
+
+    from generators.scenes3d import generate_scene3d
+
+    class Terminal(_io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    images = generate_scene3d(seed=1, n_images=5).save(tmp_path / "img")
+    err = Terminal()
+    monkeypatch.setattr(sys, "stderr", err)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "inc")]) == 0
+    text = err.getvalue()
+    for shown in ("export (write, then verify): 100%", "model-guided matches: 100%",
+                  "triangulation (COLMAP's triangulator): 00:00 elapsed", "bundle adjustment: 00:00 elapsed"):
+        assert shown in text, shown
+    mapped = [bar for bar in re.split(r"[\r\n]", text) if bar.startswith("mapping: 100%")]
+    assert mapped and "| 5/5 [" in mapped[-1], mapped  # every image registered, counted as the mapper went
+    assert "mapping (COLMAP's global mapper)" not in text
+
+    err.seek(0), err.truncate()
+    assert main(["sfm", str(images), "--out", str(tmp_path / "glob"), "--mapper", "global", "--no-triangulate"]) == 0
+    assert "mapping (COLMAP's global mapper): 00:00 elapsed" in err.getvalue()
+
+    err.seek(0), err.truncate()
+    assert main(["sfm", str(images), "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
+    assert "export (write" not in err.getvalue() and "elapsed" not in err.getvalue()
+    inc, quiet = (json.loads((tmp_path / d / "sfm.json").read_text())["model"] for d in ("inc", "quiet"))
+    assert inc == quiet and inc["registered"] == 5
+    capsys.readouterr()
+
+
 def test_covisible_partners_are_each_images_most_covisible_ones():
     """The triangulation stage's pairs: every image with the k images that share the most points with it
     (at least min_shared; ties by the lower id), the union of those choices, each pair once."""
