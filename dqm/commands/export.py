@@ -43,7 +43,7 @@ HELP = "export clusters as a COLMAP database or hloc matches / pairs / features 
 #: the options that only one format takes (dest name -> format)
 _ONLY_FOR = {"database": "colmap", "into_database": "colmap", "no_verify": "colmap", "camera_model": "colmap",
              "camera_params": "colmap", "single_camera": "colmap", "single_camera_per_folder": "colmap",
-             "matches": "hloc", "pairs": "hloc", "features": "hloc"}
+             "partners": "colmap", "matches": "hloc", "pairs": "hloc", "features": "hloc"}
 
 LOG = logging.getLogger("dqm.commands")
 
@@ -64,6 +64,10 @@ def add_arguments(p) -> None:
                         "existing COLMAP database, the one the clusters were matched from (dqm match DB), as COLMAP's "
                         "matchers do; its cameras and features stay (the camera options do not apply); refused if it "
                         "already holds matches, unless --overwrite")
+    g.add_argument("--partners", type=int, default=0, metavar="N",
+                   help="write only each image's N image pairs with the most shared clusters (and the pairs where it "
+                        "is among the other image's N): pairs that grow with the images, as dqm sfm's default 100 "
+                        "(default 0: every pair)")
     g.add_argument("--no-verify", action="store_true",
                    help="write matches only, no two-view geometries (run COLMAP's verification yourself)")
     g.add_argument("--camera-model", default=None, metavar="MODEL",
@@ -104,6 +108,8 @@ def _check_options(args) -> None:
         if args.into_database is not None and camera:
             raise InputError(f"--{camera[0].replace('_', '-')} makes the cameras of a new database; --into-database "
                              "keeps the database's own cameras")
+        if args.partners < 0:
+            raise InputError(f"--partners must be >= 0 (0: every image pair), got {args.partners}")
         return
     for dest in ("matches", "pairs"):
         if getattr(args, dest) is None:
@@ -160,7 +166,8 @@ def _run_colmap(args, t0: float):
     paths = colmap.resolve_images(c["image_names"], args.image_dir)
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
-                               verify=not args.no_verify, camera=camera, progress=not args.quiet)
+                               verify=not args.no_verify, camera=camera, partners=args.partners,
+                               progress=not args.quiet)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
           f"{s.pairs_line()}"
           + ("" if args.no_verify else f", {s.verified_line()}")
@@ -178,7 +185,8 @@ def _run_colmap_into(args, t0: float):
         outputs.check_distinct(("--into-database", db), ("--tracks", args.tracks))
     c = _load(args, ("image_names", "image_ids"))
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
-                             names=[str(n) for n in c["image_names"]], progress=not args.quiet)
+                             names=[str(n) for n in c["image_names"]], partners=args.partners,
+                             progress=not args.quiet)
     verified = "" if args.no_verify else f", {s.verified_line()}"
     print(f"wrote into {db}: {s.pairs_line()}{verified} "
           f"({time.perf_counter() - t0:.1f} s)")

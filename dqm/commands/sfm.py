@@ -35,6 +35,7 @@ HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycol
 
 
 def add_arguments(p) -> None:
+    from ..vision.colmap import SFM_PARTNERS
     from ..vision.sfm import DEFAULT_SEED, GLOBAL_FROM, LARGE_SCENE_PRESET, MAPPERS, SMALL_SCENE_PRESET
 
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
@@ -51,6 +52,10 @@ def add_arguments(p) -> None:
     p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
                    help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
                         f"global one from {GLOBAL_FROM} images, the incremental one below (docs/sfm.md)")
+    p.add_argument("--partners", type=int, default=SFM_PARTNERS, metavar="N",
+                   help=f"verify and map each image's N image pairs with the most shared clusters (and the pairs "
+                        f"where it is among the other image's N): the pairs grow with the images, not with their "
+                        f"pairs (default {SFM_PARTNERS}: every pair below {SFM_PARTNERS + 1} images; 0: every pair)")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help=f"random seed of the two-view verification and the mapper (default {DEFAULT_SEED})")
     p.add_argument("--mapper-threads", type=int, default=1, metavar="N",
@@ -149,7 +154,7 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
                                    image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed,
-                                   progress=not args.quiet)
+                                   partners=args.partners, progress=not args.quiet)
     mapper = choose_mapper(args.mapper, s.n_images)
     print(f"{say}wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
           f"{mapper} mapping ...", flush=True)
@@ -261,8 +266,9 @@ def run(args) -> int:
     colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL,
                                    "single" if args.single_camera else "per-image", None)
-    if args.seed < 0 or args.mapper_threads < 0:
-        raise InputError(f"--seed and --mapper-threads must be >= 0, got {args.seed} and {args.mapper_threads}")
+    if args.seed < 0 or args.mapper_threads < 0 or args.partners < 0:
+        raise InputError(f"--seed, --mapper-threads and --partners must be >= 0, got {args.seed}, "
+                         f"{args.mapper_threads} and {args.partners}")
     threads = args.mapper_threads or -1
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
@@ -293,12 +299,13 @@ def run(args) -> int:
                 print(ts.summary() if len(models) == 1 else f"{_folder(m, out)}: {ts.summary()}")
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
-        "verify": bool(args.verify), "mapper": mapper, "seed": args.seed,
+        "verify": bool(args.verify), "mapper": mapper, "seed": args.seed, "partners": args.partners,
         "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate),
         "bundle_adjust": bool(args.triangulate and args.bundle_adjust)},
         "model": model_numbers(models[0].rec if models else None),
         "model_before_triangulation": mapped[0] if models else model_numbers(None),
-        "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out, "verified": s.n_verified_pairs,
+        "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out,
+                  "beyond_partners": s.n_pairs_beyond, "verified": s.n_verified_pairs,
                   "dropped_as_weak": s.n_pairs_dropped},
         "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}

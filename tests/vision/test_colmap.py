@@ -48,6 +48,31 @@ def test_cluster_pairs_are_every_two_members():
     assert got[(0, 1)] == {(1, 2), (4, 3)}
 
 
+def test_strongest_partners_keep_each_images_pairs_with_the_most_matches():
+    """A pair stays where it is among the N with the most matches of either of its images (ties: the lower
+    other image); 0, or N at least the images less one, keeps every pair."""
+    rng = np.random.default_rng(0)
+    m = 12
+    pairs = {(a, b): np.zeros((int(rng.integers(15, 200)), 2), np.int64) for a in range(m) for b in range(a + 1, m)
+             if rng.random() < 0.7}
+    pairs[(0, 1)] = pairs[(0, 2)] = np.zeros((500, 2), np.int64)  # a tie for image 0's strongest: image 1 first
+
+    def reference(n: int) -> set:
+        out = set()
+        for i in range(m):
+            mine = sorted((-len(v), b if a == i else a, (a, b)) for (a, b), v in pairs.items() if i in (a, b))
+            out |= {pair for _, _, pair in mine[:n]}
+        return out
+
+    for n in (1, 3, 5):
+        kept, beyond = colmap.strongest_partners(pairs, n)
+        assert set(kept) == reference(n) and len(kept) + beyond == len(pairs) and beyond > 0
+        assert all(kept[p] is pairs[p] for p in kept)
+    assert (0, 1) in colmap.strongest_partners(pairs, 1)[0]
+    for n in (0, m - 1, 100):
+        assert colmap.strongest_partners(pairs, n) == (pairs, 0)
+
+
 def test_exported_database_holds_keypoints_matches_and_geometries(scene, tmp_path):
     db = tmp_path / "db.db"
     calls = []

@@ -130,6 +130,9 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
          "--single-camera is an option of dqm export colmap"),
         (["hloc", f, "--matches", str(tmp_path / "x.h5"), "--pairs", str(tmp_path / "x.h5")],
          "--pairs " + str(tmp_path / "x.h5") + ": unknown format .h5; use one of .txt"),
+        (["colmap", f, "--database", str(db), "--partners", "-3"], "--partners must be >= 0"),
+        (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--partners", "3"],
+         "--partners is an option of dqm export colmap"),
     ]
     for argv, msg in cases:
         capsys.readouterr()

@@ -86,7 +86,28 @@ def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
     assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--gt", str(tmp_path / "gt")]) == 2
     assert "no camera for any of the 3 images" in capsys.readouterr().err
     assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--seed", "-2"]) == 2
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--partners", "-1"]) == 2
+    assert "--partners must be >= 0" in capsys.readouterr().err.replace("--seed, --mapper-threads and ", "")
     assert not (tmp_path / "m").exists()
+
+
+def test_dqm_sfm_verifies_and_maps_each_images_strongest_pairs(tmp_path, capsys):
+    """--partners N: only each image's N image pairs with the most shared clusters are written, verified and
+    mapped (the default 100 keeps every pair of a small scene); what is left out is said and reported."""
+    from generators.scenes3d import generate_scene3d
+
+    images = generate_scene3d(seed=4, n_images=5).save(tmp_path / "img")
+    for name, partners in (("all", []), ("two", ["--partners", "2"])):
+        assert main(["sfm", str(images), "--out", str(tmp_path / name), "--no-triangulate", "--quiet",
+                     *partners]) == 0
+    out = capsys.readouterr().out
+    every, two = (json.loads((tmp_path / d / "sfm.json").read_text()) for d in ("all", "two"))
+    assert every["options"]["partners"] == 100 and every["pairs"]["beyond_partners"] == 0
+    assert every["pairs"]["written"] == 10  # 5 images that all see one another
+    assert two["options"]["partners"] == 2 and 0 < two["pairs"]["beyond_partners"]
+    assert two["pairs"]["written"] + two["pairs"]["beyond_partners"] == 10
+    assert f"{two['pairs']['beyond_partners']} pair" in out and "outside both images' 2 strongest left out" in out
+    assert two["model"]["registered"] == 5  # the strongest pairs still hold every image
 
 
 def test_bench_sfm_small_with_ground_truth(tmp_path):
