@@ -118,9 +118,11 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     if mapper == "incremental":
         bar = resolve_progress(progress, "mapping", unit="images")
         callbacks = {} if bar is None else _registration_callbacks(bar, _count_images(database))
-        recs = signals.interruptible(pycolmap.incremental_mapping, str(database), str(image_dir), str(out),
-                                     options=options, **callbacks)
-        getattr(bar, "close", lambda: None)()
+        try:
+            recs = signals.interruptible(pycolmap.incremental_mapping, str(database), str(image_dir), str(out),
+                                         options=options, **callbacks)
+        finally:
+            getattr(bar, "close", lambda: None)()
     else:
         with ticking(progress, "mapping (COLMAP's global mapper)"):
             recs = signals.interruptible(pycolmap.global_mapping, str(database), str(image_dir), str(out),
