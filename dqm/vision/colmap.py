@@ -127,10 +127,9 @@ def strongest_partners(pairs: dict, partners: int) -> tuple[dict, int]:
     no image has more. At most ``partners`` pairs an image are chosen (``partners`` times the images in all, twice
     that many partners an image on average), so the pairs verified and handed to the mapper grow with the
     images, not with their pairs, and so do the matches of a point seen in hundreds of images. What is left out
-    are each image's weakest
-    pairs: on nerf_lego (100 renders, 3,815 pairs with 15 matches or more) 50 keep 2,902 pairs and 1,597 of the
-    1,599 COLMAP verifies, 30 keep 1,805 and 1,422; nothing is left out of a collection of ``partners + 1``
-    images or fewer."""
+    are each image's weakest pairs: on nerf_lego (100 renders, 3,815 pairs with 15 matches or more) 50 keep 2,902
+    pairs and 1,597 of the 1,599 COLMAP verifies, 30 keep 1,805 and 1,422; nothing is left out of a collection of
+    ``partners + 1`` images or fewer."""
     if partners <= 0:
         return pairs, 0
     ranked: dict[int, list[tuple[int, int]]] = {}
