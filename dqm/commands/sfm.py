@@ -55,7 +55,7 @@ def add_arguments(p) -> None:
     p.add_argument("--partners", type=int, default=SFM_PARTNERS, metavar="N",
                    help=f"verify and map each image's N image pairs with the most shared clusters (and the pairs "
                         f"where it is among the other image's N): the pairs grow with the images, not with their "
-                        f"pairs (default {SFM_PARTNERS}: every pair below {SFM_PARTNERS + 1} images; 0: every pair)")
+                        f"pairs (default {SFM_PARTNERS}: every pair below {SFM_PARTNERS + 2} images; 0: every pair)")
     p.add_argument("--seed", type=int, default=DEFAULT_SEED,
                    help=f"random seed of the two-view verification and the mapper (default {DEFAULT_SEED})")
     p.add_argument("--mapper-threads", type=int, default=1, metavar="N",
