@@ -14,6 +14,14 @@ if TYPE_CHECKING:
     from tqdm import tqdm
 
 
+def _where(stream: Optional[TextIO], force: Optional[bool]) -> tuple:
+    """``(stream, draws)`` of a progress display: the stream (default standard error) and whether to draw on it (a
+    terminal; ``force`` overrides the test)."""
+    stream = stream if stream is not None else sys.stderr
+    tty = getattr(stream, "isatty", lambda: False)()
+    return stream, tty if force is None else force
+
+
 class ProgressBar:
     """Callable ``bar(done, total)`` drawn with tqdm on a TTY; silent otherwise.
 
@@ -25,9 +33,7 @@ class ProgressBar:
                  unit: str = ""):
         self.label = label
         self.unit = unit or "it"
-        self.stream = stream if stream is not None else sys.stderr
-        tty = getattr(self.stream, "isatty", lambda: False)()
-        self.enabled = tty if force is None else force
+        self.stream, self.enabled = _where(stream, force)
         self._bar: Optional["tqdm"] = None
         self._done = 0
 
@@ -79,9 +85,7 @@ class Ticker:
                  every: float = 1.0):
         self.label = label
         self.every = float(every)
-        self.stream = stream if stream is not None else sys.stderr
-        tty = getattr(self.stream, "isatty", lambda: False)()
-        self.enabled = tty if force is None else force
+        self.stream, self.enabled = _where(stream, force)
         self._bar: Optional["tqdm"] = None
         self._thread = None
         self._stop = None

@@ -116,8 +116,9 @@ class VerifyStats:
 def _usac(estimate, *args):
     """``(model, mask)`` of an OpenCV USAC estimator, ``(None, None)`` where it finds no model. OpenCV 4 returns
     None then; OpenCV 5.1's MAGSAC++ instead fails an internal assertion (``!model.empty()`` in
-    ``setModelParameters``) on some point sets it cannot fit (8-20 matches of tiny images): the same answer, no
-    model. The points are checked before (finite float pixel coordinates), so an error here is the fit's."""
+    ``setModelParameters``) on some point sets it cannot fit (47 matches of two tiny generated images, several
+    keypoints at one location: tests/vision/test_colmap.py): the same answer, no model. The points are checked
+    before (finite float pixel coordinates), so an error here is the fit's."""
     import cv2
 
     try:
