@@ -30,9 +30,11 @@ NAME = "extract"
 HELP = "SIFT features of images into a FEATURES .npz"
 
 
-def add_image_options(p, default_preset: str = DEFAULT_PRESET, auto: str = "") -> None:
+def add_image_options(p, default_preset: str = DEFAULT_PRESET, auto: str = "", auto_max_features: str = "") -> None:
     """Image-input and SIFT options shared by the commands that read images (see :func:`extract`). ``auto``:
-    what ``--preset auto`` chooses, for a command that offers it (the command resolves it before extracting)."""
+    what ``--preset auto`` chooses, for a command that offers it (the command resolves it before extracting);
+    ``auto_max_features``: what an absent ``--max-features`` means there (its default is then ``None``, which
+    the command resolves with the preset)."""
     p.add_argument("--image-list", default=None, metavar="FILE",
                    help="also read the images named in FILE, one path a line (relative paths from FILE's "
                         "folder; blank lines and # comments ignored), in the list's order")
@@ -54,8 +56,9 @@ def add_image_options(p, default_preset: str = DEFAULT_PRESET, auto: str = "") -
     p.add_argument("--preset", choices=sorted(PRESET_NAMES + (("auto",) if auto else ())), default=default_preset,
                    help="SIFT settings: " + "; ".join(f"{k}{' (default)' if k == default_preset else ''} = {v}"
                                                       for k, v in words.items()))
-    p.add_argument("--max-features", type=int, default=0,
-                   help="SIFT features per image, 0 = no limit (colmap: COLMAP's 8192)")
+    p.add_argument("--max-features", type=int, default=None if auto_max_features else 0,
+                   help="SIFT features per image, 0 = no limit (colmap: COLMAP's 8192)"
+                        + (f"; default: {auto_max_features}" if auto_max_features else ""))
     p.add_argument("--skip-bad-images", action="store_true",
                    help="leave out unreadable image files (listed in a warning) instead of refusing the run")
 

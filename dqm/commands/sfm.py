@@ -36,15 +36,26 @@ HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycol
 
 def add_arguments(p) -> None:
     from ..vision.colmap import SFM_PARTNERS
-    from ..vision.sfm import DEFAULT_SEED, GLOBAL_FROM, LARGE_SCENE_PRESET, MAPPERS, SMALL_SCENE_PRESET
+    from ..vision.sfm import (
+        DEFAULT_SEED,
+        GLOBAL_FROM,
+        LARGE_SCENE_MAX_FEATURES,
+        LARGE_SCENE_PRESET,
+        MAPPERS,
+        SMALL_SCENE_PRESET,
+    )
 
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
-                           f"{LARGE_SCENE_PRESET} from there (a scene of fewer in a larger collection is matched "
-                           f"again alone with {SMALL_SCENE_PRESET}; docs/sfm.md)")
+                           f"{LARGE_SCENE_PRESET} with each image's {LARGE_SCENE_MAX_FEATURES:,} strongest features "
+                           f"(COLMAP's budget) from there (a scene of fewer in a larger collection is matched "
+                           f"again alone with {SMALL_SCENE_PRESET}; docs/sfm.md)",
+                      auto_max_features=f"{LARGE_SCENE_MAX_FEATURES:,} (COLMAP's) where --preset auto takes "
+                                        f"{LARGE_SCENE_PRESET} ({GLOBAL_FROM} images or more: QuickMatch's time grows "
+                                        f"with the square of the features), else no limit")
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
@@ -174,7 +185,7 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     ``models``, ``mapped`` and ``sources`` where it registers at least as many of the images; the collection's
     stays in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
     redone). Returns what was done, one entry a model redone, for sfm.json."""
-    from ..vision.sfm import choose_mapper, choose_preset, model_numbers
+    from ..vision.sfm import choose_features, choose_mapper, model_numbers
 
     if len(models) < 2:
         return []
@@ -184,16 +195,18 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     done = []
     for k, m in enumerate(list(models)):
         n = int(m.rec.num_reg_images())
-        preset = choose_preset(asked.preset, n)
-        if preset == args.preset and choose_mapper(asked.mapper, n) == collection_mapper:
+        preset, max_features = choose_features(asked.preset, asked.max_features, n)
+        if (preset, max_features) == (args.preset, args.max_features) and \
+                choose_mapper(asked.mapper, n) == collection_mapper:
             continue
         names = sorted((image.name for image in m.rec.images.values() if image.has_pose), key=by_name.get)
         folder = out / "scenes" / m.folder.name
         sub = argparse.Namespace(**dict(vars(args), inputs=[paths[by_name[name]] for name in names],
-                                        image_list=None, recursive=False, preset=preset, mapper=asked.mapper))
+                                        image_list=None, recursive=False, preset=preset,
+                                        max_features=max_features, mapper=asked.mapper))
         say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
         print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
-        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset}
+        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset, "max_features": max_features}
         done.append(entry)
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
@@ -257,7 +270,7 @@ def run(args) -> int:
     from ..vision.sfm import (
         GLOBAL_FROM,
         SMALL_SCENE_PRESET,
-        choose_preset,
+        choose_features,
         model_figure,
         model_numbers,
     )
@@ -273,17 +286,21 @@ def run(args) -> int:
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
     truth = None
-    asked = argparse.Namespace(preset=args.preset, mapper=args.mapper)  # before auto chooses for the collection
+    # as asked, before auto chooses for the collection
+    asked = argparse.Namespace(preset=args.preset, max_features=args.max_features, mapper=args.mapper)
+    n_images = 0
     if args.gt or args.preset == "auto":  # the images named before any work
         from ..vision.features import collect_images
 
         names = [p.name for p in collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)]
+        n_images = len(names)
         if args.gt:  # read and matched to the images' names
             truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
-        if args.preset == "auto":
-            args.preset = choose_preset("auto", len(names))
-            print(f"SIFT preset {args.preset} (auto: {count(len(names), 'image')}, {SMALL_SCENE_PRESET} below "
-                  f"{GLOBAL_FROM})", flush=True)
+    args.preset, args.max_features = choose_features(args.preset, args.max_features, n_images)
+    if asked.preset == "auto":
+        cap = f", at most {args.max_features:,} features an image" if args.max_features else ""
+        print(f"SIFT preset {args.preset}{cap} (auto: {count(n_images, 'image')}, {SMALL_SCENE_PRESET} below "
+              f"{GLOBAL_FROM})", flush=True)
     out = _out_dir(args.out)
     stage = _Stages()
     fs, result, _, s, mapper, models = _match_and_map(args, out, stage, camera, threads)

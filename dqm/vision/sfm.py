@@ -12,6 +12,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from .. import signals
 from ..progress import ProgressArg, resolve_progress, ticking
 from ..validation import InputError
 from .colmap import require_pycolmap
+from .features import COLMAP_MAX_FEATURES
 from .triangulation import MIN_SHARED_POINTS, covisible_pairs
 
 LOG = logging.getLogger("dqm.vision")
@@ -45,20 +47,30 @@ def choose_mapper(mapper: str, n_images: int) -> str:
 SMALL_SCENE_PRESET = "budget"
 #: ... and from there on
 LARGE_SCENE_PRESET = "sfm"
+#: ... with at most this many features an image (COLMAP's ``max_num_features``), unless --max-features says otherwise
+LARGE_SCENE_MAX_FEATURES = COLMAP_MAX_FEATURES
 
 
-def choose_preset(preset: str, n_images: int) -> str:
-    """The SIFT preset ``dqm sfm`` extracts with: ``preset`` as asked; ``auto``, COLMAP's feature budget
-    (:data:`SMALL_SCENE_PRESET`: contrast 0.02, each image's 8,192 strongest locations) below
-    :data:`GLOBAL_FROM` images, where the incremental mapper runs and time is small, and the ``sfm`` preset
-    (contrast 0.03, no cap) from there. Measured (docs/sfm.md, "Where COLMAP's points go"): the budget gives
-    entry-P10's 10 photos 1.23x the 3-D points at the same cameras (three seeds) and sacre_coeur's 10
-    photos 1.10x, but dtu/scan24's 49 photos 0.76x the points (its cap is below their 13,600 features an
-    image) and nerf_lego's 100 renders 1.45x the time. The threshold is the mapper's (:func:`choose_mapper`)
-    and was not tuned."""
-    if preset == "auto":
-        return SMALL_SCENE_PRESET if n_images < GLOBAL_FROM else LARGE_SCENE_PRESET
-    return preset
+def choose_features(preset: str, max_features: Optional[int], n_images: int) -> Tuple[str, int]:
+    """The SIFT preset ``dqm sfm`` extracts with and its features an image at most (0: no limit).
+
+    ``preset`` as asked, ``max_features`` as asked (``None``: not given, no limit). ``auto``: COLMAP's feature
+    budget (:data:`SMALL_SCENE_PRESET`: contrast 0.02, each image's 8,192 strongest locations) below
+    :data:`GLOBAL_FROM` images, where the incremental mapper runs and time is small; from there the ``sfm``
+    preset (contrast 0.03) with each image's :data:`LARGE_SCENE_MAX_FEATURES` strongest features (COLMAP's
+    ``max_num_features``), unless ``max_features`` is given. Measured (docs/sfm.md, "Where COLMAP's points go"
+    and "dtu/scan24"): the budget gives entry-P10's 10 photos 1.23x the 3-D points at the same cameras (three
+    seeds) and sacre_coeur's 10 photos 1.10x, but dtu/scan24's 49 photos 0.76x the points and nerf_lego's 100
+    renders 1.45x the time; on dtu/scan24 (13,600 features an image without a cap) the cap takes QuickMatch,
+    whose pair scan grows with the square of the features, from 169.8 to 64.3 s and the whole run from 0.76x
+    to 0.43x COLMAP's time (one run beside it), at 0.62x the 3-D points (1.64x COLMAP's) and cameras within
+    0.005 AUC (still above COLMAP's). nerf_lego's renders (at most 3,444 features an image) are not cut. The
+    threshold is the mapper's (:func:`choose_mapper`) and was not tuned."""
+    if preset != "auto":
+        return preset, int(max_features or 0)
+    if n_images < GLOBAL_FROM:
+        return SMALL_SCENE_PRESET, int(max_features or 0)
+    return LARGE_SCENE_PRESET, int(LARGE_SCENE_MAX_FEATURES if max_features is None else max_features)
 
 
 #: the seed of every random choice in the mapping and the two-view verification

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dqm.cli import main
+from dqm.io import load_clusters
 
 pytest.importorskip("pycolmap", reason="pycolmap is not installed (pip install 'dqm[colmap]')")
 ROOT = Path(__file__).resolve().parents[2]
@@ -67,12 +68,17 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
 
 
 def test_sfm_presets_follow_the_collections_size_as_the_mapper_does():
-    from dqm.vision.sfm import GLOBAL_FROM, choose_mapper, choose_preset
+    """--preset auto: COLMAP's budget below GLOBAL_FROM images, the sfm preset capped at COLMAP's 8,192 features an
+    image from there; a --max-features given is kept (0: no limit), and a preset given is never capped unasked."""
+    from dqm.vision.sfm import GLOBAL_FROM, choose_features, choose_mapper
 
-    assert [choose_preset("auto", n) for n in (2, GLOBAL_FROM - 1, GLOBAL_FROM, 500)] == \
-        ["budget", "budget", "sfm", "sfm"]
+    assert [choose_features("auto", None, n) for n in (2, GLOBAL_FROM - 1, GLOBAL_FROM, 500)] == \
+        [("budget", 0), ("budget", 0), ("sfm", 8192), ("sfm", 8192)]
+    assert [choose_features("auto", m, 500) for m in (0, 5000)] == [("sfm", 0), ("sfm", 5000)]
+    assert choose_features("auto", 5000, 3) == ("budget", 5000)
     assert [choose_mapper("auto", n) for n in (GLOBAL_FROM - 1, GLOBAL_FROM)] == ["incremental", "global"]
-    assert choose_preset("rootsift", 3) == "rootsift" and choose_preset("budget", 100) == "budget"
+    assert choose_features("rootsift", None, 3) == ("rootsift", 0) and choose_features("sfm", None, 100) == ("sfm", 0)
+    assert choose_features("budget", 2000, 100) == ("budget", 2000)
 
 
 def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
@@ -345,7 +351,9 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
     the global mapper, which a scene of fewer images alone would not. With the threshold lowered to 8, two
     generated scenes of 5 and 4 images are such a collection: each model is mapped again from its own images alone
     (the budget preset, the incremental mapper) into scenes/<k>/, with the collection's image names, and replaces
-    the collection's model, which stays in sparse/<k>. The same collection with both choices given is not redone."""
+    the collection's model, which stays in sparse/<k>. The collection's images keep their strongest features up to
+    the large scenes' cap (lowered to 1,300 here, below most of these images' 1,214-1,505 sfm features), the scenes
+    alone all theirs. The same collection with both choices given is neither capped nor redone."""
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
@@ -354,13 +362,22 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
     a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
     b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
     monkeypatch.setattr(sfm, "GLOBAL_FROM", 8)
+    monkeypatch.setattr(sfm, "LARGE_SCENE_MAX_FEATURES", 1300)
     assert main(["sfm", str(a), str(b), "--out", str(tmp_path / "m"), "--quiet", "--no-triangulate"]) == 0
     out = capsys.readouterr().out
-    assert "SIFT preset sfm (auto: 9 images" in out and "global mapping" in out
+    assert "SIFT preset sfm, at most 1,300 features an image (auto: 9 images" in out and "global mapping" in out
     report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert report["options"]["max_features"] == 1300
+
+    def per_image(clusters):
+        return np.bincount(load_clusters(clusters)["image_ids"])
+
+    assert per_image(tmp_path / "m" / "clusters.npz").max() == 1300
     alone = report["scenes_alone"]
-    assert [(e["images"], e["preset"], e["mapper"], e["taken"]) for e in alone] == [
-        (5, "budget", "incremental", True), (4, "budget", "incremental", True)]
+    assert [(e["images"], e["preset"], e["max_features"], e["mapper"], e["taken"]) for e in alone] == [
+        (5, "budget", 0, "incremental", True), (4, "budget", 0, "incremental", True)]
+    for k in (0, 1):
+        assert per_image(tmp_path / "m" / "scenes" / str(k) / "clusters.npz").min() > 1300
     assert [m["folder"] for m in report["models"]] == ["scenes/0/sparse/0", "scenes/1/sparse/0"]
     db = pycolmap.Database.open(str(tmp_path / "m" / "database.db"))
     names = {image.name for image in db.read_all_images()}
@@ -378,6 +395,7 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
     assert main([*argv, "--out", str(tmp_path / "given")]) == 0
     given = json.loads((tmp_path / "given" / "sfm.json").read_text())
     assert given["scenes_alone"] == [] and not (tmp_path / "given" / "scenes").exists()
+    assert given["options"]["max_features"] == 0 and per_image(tmp_path / "given" / "clusters.npz").max() > 1300
     assert [m["folder"] for m in given["models"]] == ["sparse/0", "sparse/1"]
 
 
