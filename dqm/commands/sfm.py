@@ -282,6 +282,8 @@ def run(args) -> int:
     if args.seed < 0 or args.mapper_threads < 0 or args.partners < 0:
         raise InputError(f"--seed, --mapper-threads and --partners must be >= 0, got {args.seed}, "
                          f"{args.mapper_threads} and {args.partners}")
+    if args.max_features is not None and args.max_features < 0:
+        raise InputError(f"--max-features must be >= 0 (0 = no limit), got {args.max_features}")
     threads = args.mapper_threads or -1
     if not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")

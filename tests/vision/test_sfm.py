@@ -94,6 +94,9 @@ def test_dqm_sfm_gt_problems_are_one_line_before_any_work(tmp_path, capsys):
     assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--seed", "-2"]) == 2
     assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--partners", "-1"]) == 2
     assert "--partners must be >= 0" in capsys.readouterr().err.replace("--seed, --mapper-threads and ", "")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--max-features", "-1"]) == 2
+    captured = capsys.readouterr()
+    assert "--max-features must be >= 0 (0 = no limit), got -1" in captured.err and "SIFT preset" not in captured.out
     assert not (tmp_path / "m").exists()
 
 
