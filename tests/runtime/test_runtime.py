@@ -97,9 +97,9 @@ def test_no_router_gives_a_clear_error(tmp_path):
     assert time.monotonic() - t0 < 30
 
 
-def _inject(endpoint, job, agents, dim, ready, marker=None):
+def _inject(endpoint, job, agents, dim, ready, marker=None, done=None):
     """A foreign client that sends hostile messages to every agent's inbox (then deletes ``marker``: the
-    paused agent goes on)."""
+    paused agent goes on), and keeps its session open until ``done`` is set (the job is over)."""
     import zenoh
 
     from dqm.runtime.bus import open_client
@@ -129,15 +129,19 @@ def _inject(endpoint, job, agents, dim, ready, marker=None):
             for a in range(agents):
                 # on process 0's keys (without access control the router lets anyone put there)
                 s.put(keys.message_key(job, 0, a, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
-        time.sleep(1.0)  # let the 3 MiB puts leave: closing at once dropped one of them (13 of 14 counted, 1 CI run)
+        time.sleep(1.0)  # let the 3 MiB puts leave before the paused agent goes on
     finally:
-        watcher.undeclare()
-        s.close()
         if marker is not None:  # once the agent is paused (it writes the marker then)
             t0 = time.monotonic()
             while not marker.exists() and time.monotonic() - t0 < 30:
                 time.sleep(0.02)
             marker.unlink(missing_ok=True)
+        # Closing the session while a 3 MiB put was still leaving dropped it (13 of 14 counted, in two CI runs
+        # with a 1 s wait): the session stays open until the job is over.
+        if done is not None:
+            done.wait(150)
+        watcher.undeclare()
+        s.close()
 
 
 def test_hostile_messages_are_rejected_and_counted(data, tmp_path):
@@ -145,14 +149,17 @@ def test_hostile_messages_are_rejected_and_counted(data, tmp_path):
     cfg = DQMConfig(agents=2, seed=3, job="hostile")
     marker = tmp_path / "paused"  # agent 0 waits in wait_start until the injector is done (60 s at most)
     env = dict(os.environ, DQM_FAULT_PAUSE="0:wait_start", DQM_FAULT_MARKER=str(marker), DQM_FAULT_SECONDS="60")
-    ready = threading.Event()
+    ready, done = threading.Event(), threading.Event()
 
     def on_started(info):
         threading.Thread(target=_inject, args=(f"tcp/127.0.0.1:{info['port']}", cfg.job, 2, X.shape[1], ready,
-                                               marker), daemon=True).start()
+                                               marker, done), daemon=True).start()
 
-    rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120), env=env, on_started=on_started,
-                  agent_args=["--max-message-bytes", str(1 << 21)])
+    try:
+        rep = run_job(X, ids, cfg, RuntimeLimits(job_timeout_s=120), env=env, on_started=on_started,
+                      agent_args=["--max-message-bytes", str(1 << 21)])
+    finally:
+        done.set()
     assert ready.is_set()
     np.testing.assert_array_equal(np.asarray(rep["labels"]), simulate(X, ids, cfg).labels)
     rejected = {}
