@@ -172,6 +172,11 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
     with stage("map"):
         models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
                                 num_threads=threads, progress=not args.quiet)
+    for m in models:
+        for e in m.joins:
+            done = f"joined into {_folder(m, out)}" if e["joined"] else f"kept apart from {_folder(m, out)}"
+            print(f"{say}model {e['model']} ({count(e['images'], 'image')}) {done}: COLMAP's incremental mapper "
+                  f"continuing that model registered {e['registered']} of them ({e['seconds']:.1f} s)", flush=True)
     return fs, result, extra, s, mapper, models
 
 
@@ -236,7 +241,7 @@ def _models_report(models, mapped, truth, model_dir: Path) -> list[dict]:
 
     out = []
     for m, before in zip(models, mapped):
-        entry = dict(model_numbers(m.rec), folder=_folder(m, model_dir), before_triangulation=before)
+        entry = dict(model_numbers(m.rec), folder=_folder(m, model_dir), before_triangulation=before, joins=m.joins)
         if truth is not None:
             names = {Path(image.name).name for image in m.rec.images.values()}
             own = {k: v for k, v in truth.items() if Path(k).name in names}

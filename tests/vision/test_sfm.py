@@ -472,6 +472,81 @@ def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, cap
         assert rec.num_reg_images() == len(m.rec.reg_image_ids()) and rec.num_points3D() > 0
 
 
+def _forced_split(monkeypatch, last: int):
+    """dqm sfm's split of a model by its scenes made to cut the mapper's one model into two: its images but the
+    ``last`` highest ids, and those (one scene, where the real split keeps one model)."""
+    from dqm.vision import sfm
+
+    real_split, real_groups = sfm.split_scenes, sfm.scene_groups
+
+    def split(models, out):
+        ids = sorted(models[0].rec.reg_image_ids())
+        monkeypatch.setattr(sfm, "scene_groups", lambda rec: [ids[:-last], ids[-last:]])
+        try:
+            return real_split(models, out)
+        finally:
+            monkeypatch.setattr(sfm, "scene_groups", real_groups)
+
+    monkeypatch.setattr(sfm, "split_scenes", split)
+
+
+def test_a_small_model_of_a_scenes_images_is_joined_into_the_scenes_model(tmp_path, capsys, monkeypatch):
+    """COLMAP 4's global mapper left 3 to 9 of nerf_lego's 100 renders in a model of their own in the mixed
+    collection. Here one generated scene's model is cut in two (4 images and 2, the split of dqm sfm forced):
+    COLMAP's incremental mapper, continuing the larger model, registers both images of the smaller, which is
+    joined into it (its folder removed; sfm.json's joins say so), and the cameras are the scene's true ones."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    scene = generate_scene3d(seed=0, n_images=6)
+    images = scene.save(tmp_path / "img")
+    gt = write_strecha(scene, tmp_path / "gt")
+    _forced_split(monkeypatch, 2)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--gt", str(gt), "--quiet",
+                 "--no-triangulate"]) == 0
+    out = capsys.readouterr().out
+    assert "model 1 (2 images) joined into sparse/0: COLMAP's incremental mapper continuing that model " \
+           "registered 2 of them" in out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert len(report["models"]) == 1 and report["model"]["registered"] == 6
+    (join,) = report["models"][0]["joins"]
+    assert join["joined"] and (join["model"], join["images"], join["registered"], join["larger_kept"]) == (1, 2, 2, 4)
+    assert join["pairs"] >= 2
+    assert not (tmp_path / "m" / "sparse" / "1").exists()
+    assert pycolmap.Reconstruction(str(tmp_path / "m" / "sparse" / "0")).num_reg_images() == 6
+    # the joined model's cameras are the generated ones (AUC@1 0.83 for the scene mapped whole in the first test)
+    assert report["poses"]["registered"] == 6 and report["poses"]["auc"]["1"] > 0.6
+
+
+def test_a_small_model_of_another_scene_is_not_joined(tmp_path, capsys, monkeypatch):
+    """The joining's guards: the images of two generated scenes make no verified pair (so no join is tried);
+    with the least pairs an image lowered to 0 the smaller scene's model is tried into the larger one, and COLMAP's
+    mapper, continuing it, registers none of its images from the other scene's points: both models stay, each
+    one scene."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import sfm
+
+    a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
+    b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
+    argv = ["sfm", str(a), str(b), "--quiet", "--no-triangulate"]
+    assert main([*argv, "--out", str(tmp_path / "m")]) == 0
+    assert [m["joins"] for m in json.loads((tmp_path / "m" / "sfm.json").read_text())["models"]] == [[], []]
+    monkeypatch.setattr(sfm, "JOIN_PAIRS_PER_IMAGE", 0)
+    assert main([*argv, "--out", str(tmp_path / "tried")]) == 0
+    out = capsys.readouterr().out
+    assert "model 1 (4 images) kept apart from sparse/0" in out
+    report = json.loads((tmp_path / "tried" / "sfm.json").read_text())
+    assert [m["registered"] for m in report["models"]] == [5, 4]
+    (join,) = report["models"][0]["joins"]
+    assert not join["joined"] and join["registered"] == 0 and join["pairs"] == 0
+    for m in report["models"]:
+        rec = pycolmap.Reconstruction(str(tmp_path / "tried" / m["folder"]))
+        assert len({rec.image(i).name.split("/")[0] for i in rec.reg_image_ids()}) == 1
+        assert rec.num_reg_images() == m["registered"]
+
+
 def test_bench_sfm_collection_of_two_generated_scenes(tmp_path):
     """scripts/bench_sfm.py with two image folders (a collection of two scenes, mapped at once): every scene
     is scored in its own model against its own ground truth, with the points seen from two scenes, the
