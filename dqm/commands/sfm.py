@@ -233,6 +233,16 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     return done
 
 
+def registered_images(models) -> tuple[int, int]:
+    """The images registered in any of ``models``, and how many of them more than one model holds too (COLMAP's
+    incremental mapper can start a model from images another model has registered: sacre_coeur's 10 photos gave
+    a model of all 10 and one of 2 of them)."""
+    from collections import Counter
+
+    held = Counter(image.name for m in models for image in m.rec.images.values() if image.has_pose)
+    return len(held), sum(1 for n in held.values() if n > 1)
+
+
 def _models_report(models, mapped, truth, model_dir: Path) -> list[dict]:
     """Every model's numbers (before and after triangulation) and, with ground truth, its cameras against the
     truth of its own images (in a collection of several scenes, each model is one scene)."""
@@ -351,9 +361,10 @@ def run(args) -> int:
           f"{report['times']['total']:.1f} s in all")
     if len(models) > 1:
         across = report["clusters_across_models"]
-        print(f"{len(models)} models, {sum(e['registered'] for e in report['models'])} of {s.n_images} images "
-              "registered: " + "; ".join(f"{e['folder']} {e['registered']} images, {e['points']:,} points"
-                                         for e in report["models"])
+        registered, twice = registered_images(models)
+        again = f" ({count(twice, 'image')} in more than one)" if twice else ""
+        print(f"{len(models)} models, {registered} of {s.n_images} images registered{again}: "
+              + "; ".join(f"{e['folder']} {e['registered']} images, {e['points']:,} points" for e in report["models"])
               + f"; {count(across['clusters'], 'cluster')} of QuickMatch's joined images of two models")
     if truth is not None:
         scores = poses.evaluate_poses(poses.poses_of(models[0].rec), truth)

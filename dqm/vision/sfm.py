@@ -256,14 +256,15 @@ JOIN_PAIRS_PER_IMAGE = 1
 def model_links(database, models: list[Model]) -> tuple[np.ndarray, np.ndarray]:
     """The verified image pairs (at least COLMAP's least inliers) between the registered images of each two models
     of ``models`` in the database file ``database``, and their inliers: two symmetric matrices, one row a model
-    (the diagonal: each model's own pairs)."""
+    (the diagonal: each model's own pairs). An image registered in several models (COLMAP's incremental mapper
+    can start a model from images another model holds) counts in the first of them only."""
     pycolmap = require_pycolmap()
     from .colmap import min_verified_matches
 
-    owner = {}
+    owner: dict[str, int] = {}
     for k, m in enumerate(models):
         for image_id in m.rec.reg_image_ids():
-            owner[m.rec.image(image_id).name] = k
+            owner.setdefault(m.rec.image(image_id).name, k)
     db = pycolmap.Database.open(str(database))
     try:
         model_of = {image.image_id: owner.get(image.name, -1) for image in db.read_all_images()}
@@ -294,7 +295,8 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
     the 3-D points they see. The result replaces the larger model (written to its folder; the smaller one's
     folder is removed) only where every image of both is registered and the images still hold together by their
     3-D points (:func:`scene_groups`: one group); else both stay as they were. Each try is recorded in the
-    larger model's ``joins``. The largest first (:func:`by_size`).
+    larger model's ``joins``. A model whose images all lie in a larger model too has no pair of its own
+    (:func:`model_links`) and is left as it is. The largest first (:func:`by_size`).
 
     Why: COLMAP 4's global mapper left 3 (another folder order: 9) of nerf_lego's 100 renders in a model of their
     own in the mixed collection of docs/sfm.md (165 verified pairs with the other 91, 4,621 inliers); continuing

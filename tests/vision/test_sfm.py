@@ -590,3 +590,21 @@ def test_bench_sfm_collection_of_two_generated_scenes(tmp_path):
     table = (tmp_path / "out" / "sfm.md").read_text()
     assert f"- Matching each scene apart would cost {mi['apart']:.2f} of dqm's" in table
     assert "| one | dqm | 4 / 4 |" in table and "| two | dqm | 4 / 4 |" in table
+
+
+def test_images_registered_in_two_models_are_counted_once():
+    """COLMAP's incremental mapper can start a model from images another model holds (sacre_coeur's 10 photos: a
+    model of all 10 and one of 2 of them); dqm sfm's summary said '12 of 10 images registered'."""
+    from types import SimpleNamespace
+
+    from dqm.commands.sfm import registered_images
+
+    def model(*names, unposed=()):
+        images = [SimpleNamespace(name=n, has_pose=True) for n in names]
+        images += [SimpleNamespace(name=n, has_pose=False) for n in unposed]
+        return SimpleNamespace(rec=SimpleNamespace(images={k: im for k, im in enumerate(images)}))
+
+    ten = [f"{k}.jpg" for k in range(10)]
+    assert registered_images([model(*ten), model("3.jpg", "4.jpg", unposed=["5.jpg"])]) == (10, 2)
+    assert registered_images([model(*ten), model("3.jpg"), model("3.jpg", "x.jpg")]) == (11, 1)
+    assert registered_images([model(*ten[:5]), model(*ten[5:])]) == (10, 0)
