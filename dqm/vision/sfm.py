@@ -306,16 +306,17 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
     pycolmap = require_pycolmap()
     models = list(models)
     for small in sorted(models, key=lambda m: (m.rec.num_reg_images(), m.rec.num_points3D(), -m.key)):
-        if small not in models or len(models) < 2:
+        s = next((k for k, m in enumerate(models) if m is small), None)
+        if s is None or len(models) < 2:  # joined into another already
             continue
         pairs, shared = model_links(database, models)
-        s = models.index(small)
         n = small.rec.num_reg_images()
         larger = [k for k, m in enumerate(models) if k != s and m.rec.num_reg_images() >= n and
                   pairs[s, k] >= JOIN_PAIRS_PER_IMAGE * n]
         if not larger:
             continue
-        big = models[max(larger, key=lambda k: (shared[s, k], -k))]
+        b = max(larger, key=lambda k: (shared[s, k], -k))
+        big = models[b]
         names = _registered_names(big.rec) | _registered_names(small.rec)
         options = mapper_options("incremental", seed, num_threads)
         options.image_names = sorted(names)
@@ -335,14 +336,14 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
         got, kept = len(now & _registered_names(small.rec)), len(now & _registered_names(big.rec))
         whole = got == n and kept == big.rec.num_reg_images() and len(scene_groups(rec)) == 1
         entry = {"model": small.key, "images": n, "registered": got, "larger_kept": kept, "joined": whole,
-                 "pairs": int(pairs[s, models.index(big)]), "seconds": round(time.perf_counter() - t0, 2)}
+                 "pairs": int(pairs[s, b]), "seconds": round(time.perf_counter() - t0, 2)}
         LOG.info("model %d (%d images) into model %d: %d of them registered, %d of its %d kept: %s", small.key, n,
                  big.key, got, kept, big.rec.num_reg_images(), "joined" if whole else "kept apart")
         if whole:
             rec.write(str(big.folder))
             shutil.rmtree(small.folder, ignore_errors=True)
             big.rec = rec
-            models.remove(small)
+            del models[s]
         big.joins.append(entry)
     recs = {k: m.rec for k, m in enumerate(models)}
     return [models[k] for k in by_size(recs)]
