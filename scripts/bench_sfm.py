@@ -481,21 +481,13 @@ def link_collection(folders: list[Path], image_dir: Path) -> dict[str, str]:
 
 
 def verified_by_scene_pair(database: Path, scene_of: dict[str, str]) -> dict[str, int]:
-    """Image pairs COLMAP's verification kept (15+ inliers), counted by scene pair (``a|b``, a <= b)."""
-    import pycolmap
+    """Image pairs COLMAP's verification kept (15+ inliers: dqm.vision.colmap.verified_pairs), counted by scene
+    pair (``a|b``, a <= b)."""
+    from dqm.vision.sfm import verified_name_pairs
 
-    db = pycolmap.Database.open(str(database))
-    try:
-        name = {im.image_id: im.name for im in db.read_all_images()}
-        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
-    finally:
-        db.close()
     out: dict[str, int] = {}
-    for pair_id, k in zip(pair_ids, inliers):
-        if k < 15:
-            continue
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        key = "|".join(sorted((scene_of[name[a]], scene_of[name[b]])))
+    for a, b, _ in verified_name_pairs(database):
+        key = "|".join(sorted((scene_of[a], scene_of[b])))
         out[key] = out.get(key, 0) + 1
     return out
 

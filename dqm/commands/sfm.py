@@ -190,7 +190,7 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     ``models``, ``mapped`` and ``sources`` where it registers at least as many of the images; the collection's
     stays in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
     redone). Returns what was done, one entry a model redone, for sfm.json."""
-    from ..vision.sfm import choose_features, choose_mapper, model_numbers
+    from ..vision.sfm import choose_features, choose_mapper, model_numbers, registered_names
 
     if len(models) < 2:
         return []
@@ -204,7 +204,7 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
         if (preset, max_features) == (args.preset, args.max_features) and \
                 choose_mapper(asked.mapper, n) == collection_mapper:
             continue
-        names = sorted((image.name for image in m.rec.images.values() if image.has_pose), key=by_name.get)
+        names = sorted(registered_names(m.rec), key=by_name.get)
         folder = out / "scenes" / m.folder.name
         sub = argparse.Namespace(**dict(vars(args), inputs=[paths[by_name[name]] for name in names],
                                         image_list=None, recursive=False, preset=preset,
@@ -239,7 +239,9 @@ def registered_images(models) -> tuple[int, int]:
     a model of all 10 and one of 2 of them)."""
     from collections import Counter
 
-    held = Counter(image.name for m in models for image in m.rec.images.values() if image.has_pose)
+    from ..vision.sfm import registered_names
+
+    held = Counter(name for m in models for name in registered_names(m.rec))
     return len(held), sum(1 for n in held.values() if n > 1)
 
 
@@ -267,14 +269,13 @@ def _clusters_across_models(models, export, fs, labels) -> dict:
     and their features in registered images."""
     import numpy as np
 
-    from ..vision.sfm import clusters_across
+    from ..vision.sfm import clusters_across, registered_names
 
     by_name = {name: k for k, name in enumerate(export.names)}
     model_of = np.full(len(export.names), -1)
     for k, m in enumerate(models):
-        for image in m.rec.images.values():
-            if image.has_pose:
-                model_of[by_name[image.name]] = k
+        for name in registered_names(m.rec):
+            model_of[by_name[name]] = k
     where = model_of[fs.image_ids]
     across = clusters_across(labels, where)
     return {"clusters": int(len(across)), "features": int(np.isin(np.asarray(labels)[where >= 0], across).sum())}

@@ -152,6 +152,15 @@ WEAK_PAIR_SHARE = 0.05
 STRONG_PAIR_RANK = 3
 
 
+def verified_pairs(db) -> list[tuple[int, int, int]]:
+    """The verified image pairs of an open pycolmap Database: (image id, image id, inliers) for each pair with at
+    least :func:`min_verified_matches` inliers (COLMAP's verification writes a geometry for every pair it tried)."""
+    pycolmap = require_pycolmap()
+    pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    least = min_verified_matches()
+    return [(*map(int, pycolmap.pair_id_to_image_pair(p)), int(k)) for p, k in zip(pair_ids, inliers) if k >= least]
+
+
 def drop_weak_pairs(database, share: float = WEAK_PAIR_SHARE, rank: int = STRONG_PAIR_RANK) -> int:
     """Take back COLMAP's verification of the image pairs whose inliers are fewer than ``share`` of what both
     images share with their strong partners (each image's ``rank``-th most inliers among its verified pairs; its
@@ -167,10 +176,7 @@ def drop_weak_pairs(database, share: float = WEAK_PAIR_SHARE, rank: int = STRONG
     pycolmap = require_pycolmap()
     db = pycolmap.Database.open(str(database))
     try:
-        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
-        pairs = [tuple(pycolmap.pair_id_to_image_pair(p)) for p in pair_ids]
-        least = min_verified_matches()
-        verified = [(a, b, int(k)) for (a, b), k in zip(pairs, inliers) if k >= least]
+        verified = verified_pairs(db)
         partners: dict[int, list[int]] = {}
         for a, b, k in verified:
             partners.setdefault(a, []).append(k)

@@ -253,37 +253,42 @@ def split_scenes(models: list[Model], out: Path) -> list[Model]:
 JOIN_PAIRS_PER_IMAGE = 1
 
 
-def model_links(database, models: list[Model]) -> tuple[np.ndarray, np.ndarray]:
-    """The verified image pairs (at least COLMAP's least inliers) between the registered images of each two models
-    of ``models`` in the database file ``database``, and their inliers: two symmetric matrices, one row a model
-    (the diagonal: each model's own pairs). An image registered in several models (COLMAP's incremental mapper
-    can start a model from images another model holds) counts in the first of them only."""
+def verified_name_pairs(database) -> list[tuple[str, str, int]]:
+    """The verified image pairs of the database file ``database`` by image name, with their inliers
+    (:func:`dqm.vision.colmap.verified_pairs`)."""
     pycolmap = require_pycolmap()
-    from .colmap import min_verified_matches
+    from .colmap import verified_pairs
 
-    owner: dict[str, int] = {}
-    for k, m in enumerate(models):
-        for image_id in m.rec.reg_image_ids():
-            owner.setdefault(m.rec.image(image_id).name, k)
     db = pycolmap.Database.open(str(database))
     try:
-        model_of = {image.image_id: owner.get(image.name, -1) for image in db.read_all_images()}
-        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        name = {image.image_id: image.name for image in db.read_all_images()}
+        return [(name[a], name[b], n) for a, b, n in verified_pairs(db)]
     finally:
         db.close()
+
+
+def model_links(verified: list[tuple[str, str, int]], models: list[Model]) -> tuple[np.ndarray, np.ndarray]:
+    """The verified image pairs (:func:`verified_name_pairs`) between the registered images of each two models of
+    ``models``, and their inliers: two symmetric matrices, one row a model (the diagonal: each model's own
+    pairs). An image registered in several models (COLMAP's incremental mapper can start a model from images
+    another model holds) counts in the first of them only."""
+    owner: dict[str, int] = {}
+    for k, m in enumerate(models):
+        for name in registered_names(m.rec):
+            owner.setdefault(name, k)
     pairs = np.zeros((len(models), len(models)), np.int64)
     shared = np.zeros_like(pairs)
-    least = min_verified_matches()
-    for pair_id, n in zip(pair_ids, inliers):
-        a, b = (model_of.get(int(i), -1) for i in pycolmap.pair_id_to_image_pair(pair_id))
-        if a >= 0 and b >= 0 and n >= least:
+    for name_a, name_b, n in verified:
+        a, b = owner.get(name_a, -1), owner.get(name_b, -1)
+        if a >= 0 and b >= 0:
             for i, j in {(a, b), (b, a)}:
                 pairs[i, j] += 1
-                shared[i, j] += int(n)
+                shared[i, j] += n
     return pairs, shared
 
 
-def _registered_names(rec) -> set[str]:
+def registered_names(rec) -> set[str]:
+    """The names of a model's registered images (pycolmap's Reconstruction)."""
     return {rec.image(i).name for i in rec.reg_image_ids()}
 
 
@@ -305,11 +310,12 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
     correspondences of the larger model is not registered, so scenes are not joined."""
     pycolmap = require_pycolmap()
     models = list(models)
+    verified = verified_name_pairs(database) if len(models) > 1 else []
     for small in sorted(models, key=lambda m: (m.rec.num_reg_images(), m.rec.num_points3D(), -m.key)):
         s = next((k for k, m in enumerate(models) if m is small), None)
         if s is None or len(models) < 2:  # joined into another already
             continue
-        pairs, shared = model_links(database, models)
+        pairs, shared = model_links(verified, models)
         n = small.rec.num_reg_images()
         larger = [k for k, m in enumerate(models) if k != s and m.rec.num_reg_images() >= n and
                   pairs[s, k] >= JOIN_PAIRS_PER_IMAGE * n]
@@ -317,7 +323,7 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
             continue
         b = max(larger, key=lambda k: (shared[s, k], -k))
         big = models[b]
-        names = _registered_names(big.rec) | _registered_names(small.rec)
+        names = registered_names(big.rec) | registered_names(small.rec)
         options = mapper_options("incremental", seed, num_threads)
         options.image_names = sorted(names)
         options.multiple_models = False
@@ -332,8 +338,8 @@ def join_small_models(models: list[Model], database, image_dir, *, seed: int = D
             rec = recs[largest(recs)] if recs else None
         finally:
             shutil.rmtree(work, ignore_errors=True)
-        now = _registered_names(rec) if rec is not None else set()
-        got, kept = len(now & _registered_names(small.rec)), len(now & _registered_names(big.rec))
+        now = registered_names(rec) if rec is not None else set()
+        got, kept = len(now & registered_names(small.rec)), len(now & registered_names(big.rec))
         whole = got == n and kept == big.rec.num_reg_images() and len(scene_groups(rec)) == 1
         entry = {"model": small.key, "images": n, "registered": got, "larger_kept": kept, "joined": whole,
                  "pairs": int(pairs[s, b]), "seconds": round(time.perf_counter() - t0, 2)}

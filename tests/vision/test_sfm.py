@@ -602,7 +602,8 @@ def test_images_registered_in_two_models_are_counted_once():
     def model(*names, unposed=()):
         images = [SimpleNamespace(name=n, has_pose=True) for n in names]
         images += [SimpleNamespace(name=n, has_pose=False) for n in unposed]
-        return SimpleNamespace(rec=SimpleNamespace(images={k: im for k, im in enumerate(images)}))
+        return SimpleNamespace(rec=SimpleNamespace(
+            reg_image_ids=lambda: [k for k, im in enumerate(images) if im.has_pose], image=images.__getitem__))
 
     ten = [f"{k}.jpg" for k in range(10)]
     assert registered_images([model(*ten), model("3.jpg", "4.jpg", unposed=["5.jpg"])]) == (10, 2)
