@@ -13,7 +13,10 @@ dtu/scan24 (41,961 against 35,996; 0.43 against 0.47 px) and nerf_lego (19,169 a
 against 0.48 px). For each such pair it finds:
 
 * every feature's keypoint in the model's undistorted frame (COLMAP's camera model inverted, scaled
-  by the camera's focal length, so distances are in pixels);
+  by the camera's focal length, so distances are in pixels); a keypoint the camera model cannot invert
+  (COLMAP gives NaN where a strong radial distortion folds back: the mapper estimated k = -3 to -4 at
+  f = 1,500 px for cmu_hotel's 512 x 480 frames, so pixels more than ~290 px from the centre have no
+  undistorted position) takes no part;
 * the candidates: the other image's features within ``threshold`` pixels (Sampson distance) of the
   epipolar geometry of the model's relative pose (:func:`dqm.vision.guided.consistent_pairs`, no
   n x n);
@@ -163,11 +166,12 @@ def model_guided_matches(rec, keypoints: dict, descriptors: dict, *, threshold: 
     xy = np.vstack([_undistorted(rec, i, np.asarray(keypoints[i])[:, :2]) for i in ids])
     X = np.vstack([np.asarray(descriptors[i]) for i in ids])
     no_bound = np.full(len(X), np.inf)
+    invertible = np.isfinite(xy).all(axis=1)  # where the camera model has an undistorted position
 
     def match(pair):
         a, b = pair
-        rows = np.arange(start[a], start[a] + len(keypoints[a]))
-        cols = np.arange(start[b], start[b] + len(keypoints[b]))
+        rows = start[a] + np.flatnonzero(invertible[start[a]:start[a] + len(keypoints[a])])
+        cols = start[b] + np.flatnonzero(invertible[start[b]:start[b] + len(keypoints[b])])
         i, j, _ = propose_links(_pair_model(rec, a, b), rows, cols, X, xy, no_bound, threshold=threshold,
                                 ratio=ratio, max_sigma=1.0)
         return np.stack([i - start[a], j - start[b]], axis=1)

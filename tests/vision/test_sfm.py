@@ -251,6 +251,24 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
         true, total = true + int(hit.sum()), total + len(m)
     assert total > 1000 and true / total > 0.9, (true, total)
 
+    # a camera whose radial distortion folds back (as the global mapper estimated for cmu_hotel's frames, where
+    # the stage stopped on the NaN positions): its keypoints beyond the fold take no part, the rest still match
+    from dqm.vision.triangulation import _undistorted
+
+    folded = pycolmap.Reconstruction(str(tmp_path / "plain/sparse/0"))
+    cam = folded.cameras[folded.images[1].camera_id]
+    assert cam.model.name == "SIMPLE_RADIAL"
+    cam.params = [cam.params[0], cam.params[1], cam.params[2], -0.6]  # no inverse beyond ~0.5 f from the centre
+    lost = ~np.isfinite(_undistorted(folded, 1, kp[1])).all(axis=1)
+    assert 0 < lost.sum() < len(lost)
+    again = model_guided_matches(folded, kp, desc)
+    assert any(1 in pair for pair in again)
+    for (a, b), m in again.items():
+        if a == 1:
+            assert not lost[m[:, 0]].any()
+        if b == 1:
+            assert not lost[m[:, 1]].any()
+
 
 def test_every_long_stage_of_dqm_sfm_shows_progress_on_a_terminal(tmp_path, capsys, monkeypatch):
     """On a terminal every stage after QuickMatch shows its progress: the export's pairs written then verified,
