@@ -80,6 +80,10 @@ def run_colmap(name: str, images: Path, work: Path, seed: int | None, truth) -> 
     return out
 
 
+class PipelineFailed(SystemExit):
+    """A pipeline of the run failed: the run stops, and its working folder (what the pipelines wrote) is kept."""
+
+
 def run_dqm(options: list[str], images: Path, work: Path, seed: int | None, gt: Path | None) -> dict:
     cmd = [sys.executable, "-m", "dqm", "sfm", str(images), "--out", str(work), "--quiet", *options]
     if seed is not None:
@@ -91,7 +95,7 @@ def run_dqm(options: list[str], images: Path, work: Path, seed: int | None, gt: 
     wall = time.perf_counter() - t0
     report = work / "sfm.json"
     if not report.exists():
-        raise SystemExit(f"bench_sfm: {' '.join(cmd)} failed (exit {p.returncode}): {p.stderr.strip()[-500:]}")
+        raise PipelineFailed(f"bench_sfm: {' '.join(cmd)} failed (exit {p.returncode}): {p.stderr.strip()[-500:]}")
     out = json.loads(report.read_text())
     out["times"]["total"] = wall  # start to exit, Python's start and imports included
     return out
@@ -244,7 +248,6 @@ def main() -> int:
         import pycolmap  # noqa: F401
     except ImportError:
         sys.exit("bench_sfm: needs pycolmap (pip install 'dqm[colmap]')")
-    from dqm.vision import features
 
     for folder in args.images:
         if not folder.is_dir():
@@ -259,50 +262,58 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="dqm-bench-sfm-"))
     out_dir = args.out_dir or work / "out"
     out_dir.mkdir(parents=True, exist_ok=True)
-    if len(args.images) > 1:
-        try:
-            return collection_main(chosen, seeds, args.images, gts, work, out_dir)
-        finally:
-            if args.out_dir is not None:
-                shutil.rmtree(work, ignore_errors=True)
-    args.images, args.gt = args.images[0], gts[0]
+    kept = False
     try:
-        paths = features.collect_images([str(args.images)])
-        if args.max_images:
-            paths = paths[: args.max_images]
-        subsets = parse_subsets(args.subsets, len(paths)) if args.subsets else [list(range(len(paths)))]
-        full = None
-        for k, subset in enumerate(subsets):
-            chosen_paths = [paths[i] for i in subset]
-            results, truth = run_pipelines(chosen, seeds, chosen_paths, args.gt, work / f"subset{k}")
-            label = subset_label(subset, len(paths))
-            full = (results, truth, chosen_paths) if len(subset) == len(paths) or full is None else full
-            if args.subsets:
-                SUBSET_RESULTS.append((label, results))
-        results, truth, chosen_paths = full
-        cpu = platform_line()
-        lines = table(results, truth is not None, len(chosen_paths))
-        lines += against_colmap(results, truth is not None)
-        if args.subsets:
-            lines += ["", f"Every pipeline on {len(subsets)} subsets of the photos (image indices in name order):", ""]
-            lines += subset_table(SUBSET_RESULTS, truth is not None)
-        lines += ["", f"One run per pipeline and seed on {cpu}; dqm's times are whole `dqm sfm` processes, "
-                      f"COLMAP's its three pycolmap calls in this process. Match s: dqm's QuickMatch plus the "
-                      f"export with COLMAP's verification; COLMAP's exhaustive matching with its verification."]
-        (out_dir / "sfm.md").write_text("\n".join(lines) + "\n")
-        (out_dir / "sfm.json").write_text(json.dumps({"images": str(args.images), "n_images": len(chosen_paths),
-                                                       "gt": None if args.gt is None else str(args.gt),
-                                                       "machine": cpu, "results": results,
-                                                       "subsets": SUBSET_RESULTS}, indent=1) + "\n")
-        if truth is not None:
-            pose_figure(results, truth, out_dir / "sfm_poses.png", f"{args.images.parent.name}/{args.images.name}: "
-                                                                   "cameras against ground truth")
-        print("\n".join(lines))
-        print(f"wrote {out_dir / 'sfm.md'}, {out_dir / 'sfm.json'}"
-              + (f", {out_dir / 'sfm_poses.png'}" if truth is not None else ""))
+        if len(args.images) > 1:
+            return collection_main(chosen, seeds, args.images, gts, work, out_dir)
+        args.images, args.gt = args.images[0], gts[0]
+        return single_main(chosen, seeds, args, work, out_dir)
+    except PipelineFailed as failed:  # what the pipelines computed before the failure stays, for a look
+        kept = True
+        raise PipelineFailed(f"{failed.code}\nbench_sfm: the run's working folder is kept: {work}") from None
     finally:
-        if args.out_dir is not None:
+        if args.out_dir is not None and not kept:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def single_main(chosen, seeds, args, work: Path, out_dir: Path) -> int:
+    """One image folder (``args.images``, its cameras ``args.gt``): every pipeline, seed and subset on it, the
+    tables and the figure into ``out_dir``."""
+    from dqm.vision import features
+
+    paths = features.collect_images([str(args.images)])
+    if args.max_images:
+        paths = paths[: args.max_images]
+    subsets = parse_subsets(args.subsets, len(paths)) if args.subsets else [list(range(len(paths)))]
+    full = None
+    for k, subset in enumerate(subsets):
+        chosen_paths = [paths[i] for i in subset]
+        results, truth = run_pipelines(chosen, seeds, chosen_paths, args.gt, work / f"subset{k}")
+        label = subset_label(subset, len(paths))
+        full = (results, truth, chosen_paths) if len(subset) == len(paths) or full is None else full
+        if args.subsets:
+            SUBSET_RESULTS.append((label, results))
+    results, truth, chosen_paths = full
+    cpu = platform_line()
+    lines = table(results, truth is not None, len(chosen_paths))
+    lines += against_colmap(results, truth is not None)
+    if args.subsets:
+        lines += ["", f"Every pipeline on {len(subsets)} subsets of the photos (image indices in name order):", ""]
+        lines += subset_table(SUBSET_RESULTS, truth is not None)
+    lines += ["", f"One run per pipeline and seed on {cpu}; dqm's times are whole `dqm sfm` processes, "
+                  f"COLMAP's its three pycolmap calls in this process. Match s: dqm's QuickMatch plus the "
+                  f"export with COLMAP's verification; COLMAP's exhaustive matching with its verification."]
+    (out_dir / "sfm.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "sfm.json").write_text(json.dumps({"images": str(args.images), "n_images": len(chosen_paths),
+                                                   "gt": None if args.gt is None else str(args.gt),
+                                                   "machine": cpu, "results": results,
+                                                   "subsets": SUBSET_RESULTS}, indent=1) + "\n")
+    if truth is not None:
+        pose_figure(results, truth, out_dir / "sfm_poses.png", f"{args.images.parent.name}/{args.images.name}: "
+                                                               "cameras against ground truth")
+    print("\n".join(lines))
+    print(f"wrote {out_dir / 'sfm.md'}, {out_dir / 'sfm.json'}"
+          + (f", {out_dir / 'sfm_poses.png'}" if truth is not None else ""))
     return 0
 
 

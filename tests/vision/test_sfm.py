@@ -2,6 +2,7 @@
 ground truth (--gt, both formats), the same model bit for bit on a second run, scripts/bench_sfm.py
 (small, on a generated scene), and the shared photos' ground-truth cameras."""
 import json
+import os
 import re
 import subprocess
 import sys
@@ -149,6 +150,30 @@ def test_bench_sfm_small_with_ground_truth(tmp_path):
         auc = poses.pose_auc(run["pair_errors"])
         assert [run["poses"]["auc"][k] for k in ("1", "2", "5")] == pytest.approx(auc)
     assert (tmp_path / "out" / "sfm_poses.png").stat().st_size > 10_000
+
+
+def test_bench_sfm_keeps_its_working_folder_when_a_pipeline_fails(tmp_path):
+    """A pipeline that fails stops scripts/bench_sfm.py with its error and the path of the run's working folder,
+    which stays (a 9-minute `dqm sfm` of a collection that failed in its last stage left nothing to look at);
+    no table is written."""
+    import cv2
+
+    from dqm.vision.scenes import texture
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for k in range(2):
+        cv2.imwrite(str(images / f"img{k}.png"), texture(120, 160, seed=k))
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    p = subprocess.run([sys.executable, "scripts/bench_sfm.py", "--images", str(images), "--pipelines",
+                        "dqm --rho -1", "--out-dir", str(tmp_path / "out")], capture_output=True, text=True,
+                       timeout=300, cwd=ROOT, env={**os.environ, "TMPDIR": str(temp)})
+    assert p.returncode == 1, p.stderr[-2000:]
+    assert "failed (exit 2)" in p.stderr and "--rho" in p.stderr, p.stderr[-2000:]
+    kept = Path(re.search(r"working folder is kept: (\S+)", p.stderr).group(1))
+    assert kept.is_dir() and kept.parent == temp
+    assert not (tmp_path / "out" / "sfm.md").exists()
 
 
 def test_points_gap_classifies_every_colmap_point(tmp_path):
