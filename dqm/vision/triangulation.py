@@ -15,8 +15,8 @@ against 0.48 px). For each such pair it finds:
 * every feature's keypoint in the model's undistorted frame (COLMAP's camera model inverted, scaled
   by the camera's focal length, so distances are in pixels); a keypoint the camera model cannot invert
   (COLMAP gives NaN where a strong radial distortion folds back: the mapper estimated k = -3 to -4 at
-  f = 1,500 px for cmu_hotel's 512 x 480 frames, so pixels more than ~290 px from the centre have no
-  undistorted position) takes no part;
+  f = 1,500 px for cmu_hotel's 512 x 480 frames, so pixels more than 290-330 px from the centre have
+  no undistorted position) takes no part;
 * the candidates: the other image's features within ``threshold`` pixels (Sampson distance) of the
   epipolar geometry of the model's relative pose (:func:`dqm.vision.guided.consistent_pairs`, no
   n x n);
