@@ -167,11 +167,11 @@ def model_guided_matches(rec, keypoints: dict, descriptors: dict, *, threshold: 
     X = np.vstack([np.asarray(descriptors[i]) for i in ids])
     no_bound = np.full(len(X), np.inf)
     invertible = np.isfinite(xy).all(axis=1)  # where the camera model has an undistorted position
+    usable = {i: start[i] + np.flatnonzero(invertible[start[i]:start[i] + len(keypoints[i])]) for i in ids}
 
     def match(pair):
         a, b = pair
-        rows = start[a] + np.flatnonzero(invertible[start[a]:start[a] + len(keypoints[a])])
-        cols = start[b] + np.flatnonzero(invertible[start[b]:start[b] + len(keypoints[b])])
+        rows, cols = usable[a], usable[b]
         i, j, _ = propose_links(_pair_model(rec, a, b), rows, cols, X, xy, no_bound, threshold=threshold,
                                 ratio=ratio, max_sigma=1.0)
         return np.stack([i - start[a], j - start[b]], axis=1)
