@@ -33,6 +33,8 @@ otherwise, never into the repository's committed docs.
 """
 from __future__ import annotations
 
+import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -336,3 +338,20 @@ def write_text(path, text: str) -> Path:
     with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(text)
     return Path(path)
+
+
+def finite(obj):
+    """``obj`` (dicts, lists and tuples of them, any depth) with every NaN or infinite float replaced by None, so
+    that its JSON is strict: ``NaN`` is not JSON, and tools other than Python's refuse it (jq, browsers)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
+def write_json(path, obj, indent: Optional[int] = 1) -> Path:
+    """Write ``obj`` as strict JSON (:func:`finite`: NaN and infinities as null), whole or not at all."""
+    return write_text(path, json.dumps(finite(obj), indent=indent, allow_nan=False) + "\n")

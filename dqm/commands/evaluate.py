@@ -290,17 +290,6 @@ def _load_clusters(path: str) -> dict:
         raise InputError(f"--clusters {p}: not a readable clusters file ({type(exc).__name__}: {exc})") from None
 
 
-def _finite(obj):
-    """``obj`` with every NaN / inf float replaced by None, so the JSON is strict (e.g. a file without its rho)."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
-
-
 def run_clusters(args) -> int:
     """``dqm evaluate --clusters``: score one CLUSTERS file (see :func:`dqm.benchmark.evaluate_clusters`)."""
     other = [opt for opt, _ in changed_options(args) if opt not in CLUSTERS_OPTIONS]
@@ -336,7 +325,7 @@ def run_clusters(args) -> int:
         "datasets": {bench.name: {"n_features": len(bench), "n_images": bench.n_images, "kind": bench.kind,
                                   "methods": [row.as_dict()]}},
     }
-    outputs.write_text(out, json.dumps(_finite(payload), indent=1))
+    outputs.write_json(out, payload)
     print(f"wrote {out}")
     return 0
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import time
 from pathlib import Path
 
@@ -344,15 +343,10 @@ def run(args) -> int:
                   "dropped_as_weak": s.n_pairs_dropped},
         "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
-    figures = []
-    for k, (m, entry) in enumerate(zip(models, report["models"])):
-        figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
-        model_figure(m.rec, figures[-1], f"{_folder(m, out)}: {entry['registered']} of {s.n_images} images, "
-                                         f"{entry['points']:,} points")
     report["times"] = dict(stage.times, total=time.perf_counter() - t0)
     report["peak_memory_bytes"] = stage.peaks
     if not models:
-        outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
+        outputs.write_json(out / "sfm.json", report)
         print(f"no model: pycolmap's mapper registered no image pair ({stage.times['map']:.1f} s); the clusters and "
               f"the database are in {out}")
         return 1
@@ -371,7 +365,12 @@ def run(args) -> int:
         scores = poses.evaluate_poses(poses.poses_of(models[0].rec), truth)
         report["poses"] = scores.as_dict()
         print(scores.line())
-    outputs.write_text(out / "sfm.json", json.dumps(report, indent=1) + "\n")
+    outputs.write_json(out / "sfm.json", report)
+    figures = []  # after sfm.json: what is computed is written before anything else can fail
+    for k, (m, entry) in enumerate(zip(models, report["models"])):
+        figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
+        model_figure(m.rec, figures[-1], f"{_folder(m, out)}: {entry['registered']} of {s.n_images} images, "
+                                         f"{entry['points']:,} points")
     again = f"{out}/scenes, " if alone else ""
     print(f"wrote {out}/sparse, {again}{', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
     return 0

@@ -380,12 +380,16 @@ def model_figure(rec, path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    P = np.array([p.xyz for p in rec.points3D.values()])
-    C = np.array([im.projection_center() for im in rec.images.values() if im.has_pose])
-    centre = np.median(P, axis=0)
-    _, _, vt = np.linalg.svd(P - centre, full_matrices=False)
+    P = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    C = np.array([im.projection_center() for im in rec.images.values() if im.has_pose]).reshape(-1, 3)
+    # the axes of the points; of the cameras too where there are fewer than three points (COLMAP's incremental
+    # mapper left cmu_hotel's frames 54, 56 and 61 in a model with no point after the triangulation stage)
+    basis = P if len(P) >= 3 else np.vstack([P, C])
+    centre = np.median(basis, axis=0) if len(basis) else np.zeros(3)
+    vt = np.linalg.svd(basis - centre, full_matrices=len(basis) < 3)[2] if len(basis) else np.eye(3)
     p3, c3 = (P - centre) @ vt.T, (C - centre) @ vt.T
-    lim = np.percentile(np.abs(p3), 98, axis=0) * 1.2 + 1e-12
+    shown = p3 if len(p3) >= 3 else np.vstack([p3, c3])
+    lim = (np.percentile(np.abs(shown), 98, axis=0) if len(shown) else np.ones(3)) * 1.2 + 1e-12
     fig, (front, top) = plt.subplots(1, 2, figsize=(11, 5), dpi=110)
     # points as one line's markers, the legend under the axes and fixed margins: half the time of scattered
     # points, a legend placed by searching the data and a layout found by drawing the figure twice (0.2 against

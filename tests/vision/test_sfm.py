@@ -652,3 +652,40 @@ def test_images_registered_in_two_models_are_counted_once():
     assert registered_images([model(*ten), model("3.jpg", "4.jpg", unposed=["5.jpg"])]) == (10, 2)
     assert registered_images([model(*ten), model("3.jpg"), model("3.jpg", "x.jpg")]) == (11, 1)
     assert registered_images([model(*ten[:5]), model(*ten[5:])]) == (10, 0)
+
+
+def test_a_model_with_no_point_is_drawn_and_reported_as_strict_json(tmp_path, capsys):
+    """cmu_hotel's 101 frames with --single-camera --mapper incremental: COLMAP's incremental mapper left three
+    frames in a model with no 3-D point after the triangulation stage, and drawing it raised LinAlgError after
+    six minutes, before sfm.json was written. A model with fewer than three points is drawn with its cameras'
+    axes, and sfm.json is written before the figures. No model at all has no track length and no reprojection
+    error: null in strict JSON, not NaN."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm import outputs
+    from dqm.vision.sfm import model_figure, model_numbers
+
+    scene = generate_scene3d(seed=1, n_images=4)
+    images = scene.save(tmp_path / "img")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--no-triangulate", "--quiet"]) == 0
+    rec = pycolmap.Reconstruction(str(tmp_path / "m/sparse/0"))
+    assert rec.num_points3D() > 3 and rec.num_reg_images() >= 3
+    for keep in (1, 0):  # one point left, then none
+        for point_id in sorted(rec.point3D_ids())[keep:]:
+            rec.delete_point3D(point_id)
+        assert rec.num_points3D() == keep
+        model_figure(rec, tmp_path / f"model-{keep}.png", f"{keep} points")
+        assert (tmp_path / f"model-{keep}.png").stat().st_size > 10_000
+    assert model_numbers(rec)["points"] == 0
+    numbers = model_numbers(None)  # no model at all: no track length, no reprojection error
+    assert numbers["registered"] == 0 and np.isnan(numbers["track"])
+    outputs.write_json(tmp_path / "numbers.json", {"model": numbers, "curve": [1.0, float("inf")]})
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    strict = json.loads((tmp_path / "numbers.json").read_text(), parse_constant=refuse)
+    assert strict == {"model": dict(numbers, track=None, reproj=None), "curve": [1.0, None]}
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text(), parse_constant=refuse)  # written as strict
+    assert report["model"]["registered"] >= 3 and report["model"]["track"] > 1
