@@ -138,7 +138,7 @@ def mean_run(runs: list[dict]) -> dict:
 
     out = {"model": {}, "times": {}}
     for k in runs[0]["model"]:
-        vals = [r["model"][k] for r in runs]
+        vals = [np.nan if r["model"][k] is None else r["model"][k] for r in runs]  # None: no model (sfm.json)
         out["model"][k] = min(vals) if k == "registered" else (
             int(round(np.mean(vals))) if k == "points" else float(np.mean(vals)))
     for k in runs[0]["times"]:

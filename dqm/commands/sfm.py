@@ -11,7 +11,8 @@ models the mapper made, in COLMAP's binary format), model.png (the largest model
 front and from above), tracks.csv and sfm.json (the stage times, the model's numbers and, with
 --gt, the pose scores). In a collection of several scenes and 30 images or more, a scene whose
 model holds fewer than 30 is made again from its images alone, with the choices --preset auto and
---mapper auto make for its size (scenes/<k>/: its clusters, database and model). It is the chain
+--mapper auto make for its size (scenes/<k>/: its clusters, database and model). Where --mapper auto's
+global mapper makes no model, the incremental mapper runs on the same database. It is the chain
 `dqm match` -> `dqm export colmap` -> pycolmap's mapper with the same options (docs/sfm.md). Every
 random choice is seeded (--seed): the same photos and options give the same model. Needs pycolmap:
 pip install 'dqm[colmap]'.
@@ -61,7 +62,8 @@ def add_arguments(p) -> None:
     p.add_argument("--single-camera", action="store_true", help="one camera for all images (one size)")
     p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
                    help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
-                        f"global one from {GLOBAL_FROM} images, the incremental one below (docs/sfm.md)")
+                        f"global one from {GLOBAL_FROM} images (the incremental one where it makes no model), the "
+                        f"incremental one below (docs/sfm.md)")
     p.add_argument("--partners", type=int, default=SFM_PARTNERS, metavar="N",
                    help=f"verify and map each image's N image pairs with the most shared clusters (and the pairs "
                         f"where it is among the other image's N): the pairs grow with the images, not with their "
@@ -169,8 +171,17 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
     print(f"{say}wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
           f"{mapper} mapping ...", flush=True)
     with stage("map"):
-        models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper, seed=args.seed,
-                                num_threads=threads, progress=not args.quiet)
+        models, seconds = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper,
+                                      seed=args.seed, num_threads=threads, progress=not args.quiet)
+        if not models and mapper == "global" and args.mapper == "auto":
+            # the global mapper's chosen, not asked for: where it makes no model, the incremental one may (cmu_hotel's
+            # 101 video frames with --single-camera: no model on one thread, 101 frames on two; the incremental
+            # mapper registered all 101)
+            mapper = "incremental"
+            print(f"{say}COLMAP's global mapper made no model ({seconds:.1f} s); {mapper} mapping instead ...",
+                  flush=True)
+            models, _ = reconstruct(out / "database.db", s.image_dir, out / "sparse", mapper=mapper,
+                                    seed=args.seed, num_threads=threads, progress=not args.quiet)
     for m in models:
         for e in m.joins:
             done = f"joined into {_folder(m, out)}" if e["joined"] else f"kept apart from {_folder(m, out)}"

@@ -689,3 +689,34 @@ def test_a_model_with_no_point_is_drawn_and_reported_as_strict_json(tmp_path, ca
     assert strict == {"model": dict(numbers, track=None, reproj=None), "curve": [1.0, None]}
     report = json.loads((tmp_path / "m" / "sfm.json").read_text(), parse_constant=refuse)  # written as strict
     assert report["model"]["registered"] >= 3 and report["model"]["track"] > 1
+
+
+def test_where_the_global_mapper_auto_chose_makes_no_model_the_incremental_one_runs(tmp_path, capsys,
+                                                                                   monkeypatch):
+    """cmu_hotel's 101 video frames with --single-camera: COLMAP's global mapper (--mapper auto's choice from 30
+    images) made no model on one thread (101 frames on two), and dqm sfm stopped at 'no model'; the incremental
+    mapper registers all 101 from the same database. Now it runs where the global mapper auto chose makes no
+    model; the global mapper asked for by name is not replaced. (The global mapper's failure is made to happen
+    here: these generated scenes give it a model.)"""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    scene = generate_scene3d(seed=0, n_images=5)
+    images = scene.save(tmp_path / "img")
+    monkeypatch.setattr("dqm.vision.sfm.GLOBAL_FROM", 3)  # --mapper auto chooses the global mapper for 5 images
+    calls = []
+
+    def no_model(database, *args, **kwargs):
+        calls.append(database)
+        return {}
+
+    monkeypatch.setattr(pycolmap, "global_mapping", no_model)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "auto"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert len(calls) == 1 and "COLMAP's global mapper made no model" in out and "incremental mapping instead" in out
+    assert "5 of 5 images registered" in out
+    report = json.loads((tmp_path / "auto" / "sfm.json").read_text())
+    assert report["options"]["mapper"] == "incremental" and report["model"]["registered"] == 5
+    assert main(["sfm", str(images), "--out", str(tmp_path / "asked"), "--mapper", "global", "--quiet"]) == 1
+    out = capsys.readouterr().out
+    assert len(calls) == 2 and "no model" in out and "instead" not in out
