@@ -59,6 +59,7 @@ PIPELINES: dict[str, list[str] | None] = {
     "dqm --preset rootsift": ["--preset", "rootsift"],
     "dqm --preset rootsift --guided (the default before)": ["--preset", "rootsift", "--guided"],
     "colmap --mapper global": None,
+    "colmap --single-camera": None,
 }
 #: what runs without --pipelines
 DEFAULT_PIPELINES = ["colmap", "dqm", "dqm --preset colmap", "dqm --guided",
@@ -71,7 +72,8 @@ def run_colmap(name: str, images: Path, work: Path, seed: int | None, truth) -> 
     from dqm.vision.sfm import colmap_pipeline, model_numbers
 
     t0 = time.perf_counter()
-    models, times = colmap_pipeline(images, work, seed=seed, mapper="global" if "global" in name else "incremental")
+    models, times = colmap_pipeline(images, work, seed=seed, mapper="global" if "global" in name else "incremental",
+                                    single_camera="--single-camera" in name)
     times["total"] = time.perf_counter() - t0
     rec = models[0].rec if models else None
     out = {"model": model_numbers(rec), "times": times}

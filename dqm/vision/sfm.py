@@ -414,12 +414,14 @@ def model_figure(rec, path, title: str) -> None:
     plt.close(fig)
 
 
-def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str = "incremental"):
+def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str = "incremental",
+                    single_camera: bool = False):
     """COLMAP's own pipeline on an image folder, as a user runs it through pycolmap with its defaults:
     its SIFT (``extract_features``), exhaustive matching with its verification (``match_exhaustive``)
     and a mapper; the peer of ``dqm sfm`` in ``scripts/bench_sfm.py``.
 
     ``seed`` None keeps COLMAP's unseeded defaults; a number seeds its verification and mapper.
+    ``single_camera``: one camera for every image (COLMAP's ``CameraMode.SINGLE``, ``dqm sfm --single-camera``).
     Returns every model, the largest first (:class:`Model`; none if the mapper made none), and the seconds of
     each stage (extract, match, map).
     """
@@ -432,7 +434,8 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     level = pycolmap.logging.minloglevel  # COLMAP warns that its extraction uses every core; it is meant to
     pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
     try:
-        signals.interruptible(pycolmap.extract_features, str(database), str(image_dir))
+        mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
+        signals.interruptible(pycolmap.extract_features, str(database), str(image_dir), camera_mode=mode)
     finally:
         pycolmap.logging.minloglevel = level
     times["extract"] = time.perf_counter() - t0

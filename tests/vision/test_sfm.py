@@ -720,3 +720,19 @@ def test_where_the_global_mapper_auto_chose_makes_no_model_the_incremental_one_r
     assert main(["sfm", str(images), "--out", str(tmp_path / "asked"), "--mapper", "global", "--quiet"]) == 1
     out = capsys.readouterr().out
     assert len(calls) == 2 and "no model" in out and "instead" not in out
+
+
+def test_colmaps_own_pipeline_with_one_camera_for_every_image(tmp_path):
+    """The peer in scripts/bench_sfm.py, as a user runs COLMAP through pycolmap: its SIFT, exhaustive matching and
+    incremental mapper, a camera per image by default and one for all with ``single_camera`` (bench_sfm's
+    ``colmap --single-camera``, beside ``dqm sfm --single-camera`` on a video's frames)."""
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision.sfm import colmap_pipeline
+
+    images = generate_scene3d(seed=2, n_images=4).save(tmp_path / "img")
+    for single, cameras in ((False, 4), (True, 1)):
+        models, times = colmap_pipeline(images, tmp_path / f"colmap-{single}", seed=0, single_camera=single)
+        rec = models[0].rec
+        assert rec.num_reg_images() == 4 and rec.num_points3D() > 100, rec.summary()
+        assert len(rec.cameras) == cameras and set(times) == {"extract", "match", "map"}
