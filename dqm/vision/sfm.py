@@ -113,9 +113,10 @@ class Model:
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
                 num_threads: int = -1, structure_less: bool = False, split: bool = True, join: bool = True,
                 progress: ProgressArg = None) -> tuple[list[Model], float]:
-    """Every model of pycolmap's mapping of ``database``, the largest first (:func:`by_size`; empty if none),
-    and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``, ...): a collection of several
-    scenes gives one model per scene.
+    """Every model of pycolmap's mapping of ``database`` that holds a 3-D point, the largest first
+    (:func:`by_size`; empty if none), and the mapping time in seconds. Models go to ``out_dir`` (``0``, ``1``,
+    ...; a model without a point stays there, left out with a warning): a collection of several scenes gives one
+    model per scene.
 
     ``mapper``: ``incremental`` (``pycolmap.incremental_mapping``) or ``global``
     (``pycolmap.global_mapping``, COLMAP 4's global mapper); ``seed``: the mapper's random seed. ``split``: a
@@ -146,6 +147,12 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
             recs = signals.interruptible(pycolmap.global_mapping, str(database), str(image_dir), str(out),
                                          options=options)
     models = [Model(k, recs[k], out / str(k)) for k in by_size(recs)]
+    for m in models:
+        if m.rec.num_points3D() == 0:  # COLMAP's incremental mapper left cmu_hotel's frames 54, 56 and 61
+            # (--single-camera) in a model without one: registered images with no structure are no model
+            LOG.warning("the mapper's model %s (%d images) has no 3-D point: left out", m.folder,
+                        m.rec.num_reg_images())
+    models = [m for m in models if m.rec.num_points3D() > 0]
     if split:
         models = split_scenes(models, out)
     if join:

@@ -736,3 +736,33 @@ def test_colmaps_own_pipeline_with_one_camera_for_every_image(tmp_path):
         rec = models[0].rec
         assert rec.num_reg_images() == 4 and rec.num_points3D() > 100, rec.summary()
         assert len(rec.cameras) == cameras and set(times) == {"extract", "match", "map"}
+
+
+def test_a_model_the_mapper_left_without_a_point_is_left_out(tmp_path, capsys, monkeypatch):
+    """COLMAP's incremental mapper left cmu_hotel's frames 54, 56 and 61 (--single-camera) in a model with no 3-D
+    point beside the model of all 101 frames; dqm sfm reported two models, '3 images in more than one', and made
+    that model again alone. Registered images without structure are no model: left out with a warning, its
+    folder kept. (Such a model is made here from the mapper's own: these generated scenes give none.)"""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    real = pycolmap.incremental_mapping
+
+    def with_a_model_without_points(database, image_dir, out, *args, **kwargs):
+        recs = real(database, image_dir, out, *args, **kwargs)
+        empty = pycolmap.Reconstruction(str(Path(out) / "0"))
+        for point_id in list(empty.point3D_ids()):
+            empty.delete_point3D(point_id)
+        (Path(out) / "1").mkdir()
+        empty.write(str(Path(out) / "1"))
+        return {**recs, 1: empty}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", with_a_model_without_points)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "model" in captured.err and "(5 images) has no 3-D point: left out" in captured.err
+    assert "5 of 5 images registered" in captured.out and "2 models" not in captured.out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert [m["folder"] for m in report["models"]] == ["sparse/0"] and report["model"]["points"] > 100
+    assert (tmp_path / "m" / "sparse" / "1" / "images.bin").exists()  # what the mapper wrote stays
