@@ -59,7 +59,13 @@ def add_arguments(p) -> None:
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
-    p.add_argument("--single-camera", action="store_true", help="one camera for all images (one size)")
+    shared = p.add_mutually_exclusive_group()
+    shared.add_argument("--single-camera", action="store_true",
+                        help="one camera for all images (one size: a video's frames), as COLMAP's "
+                             "ImageReader.single_camera")
+    shared.add_argument("--single-camera-per-folder", action="store_true",
+                        help="one camera per folder of images (one size each: a video a folder), as COLMAP's "
+                             "ImageReader.single_camera_per_folder")
     p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
                    help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
                         f"global one from {GLOBAL_FROM} images (the incremental one where it makes no model), the "
@@ -303,8 +309,8 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
-    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL,
-                                   "single" if args.single_camera else "per-image", None)
+    mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
+    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, None)
     if args.seed < 0 or args.mapper_threads < 0 or args.partners < 0:
         raise InputError(f"--seed, --mapper-threads and --partners must be >= 0, got {args.seed}, "
                          f"{args.mapper_threads} and {args.partners}")

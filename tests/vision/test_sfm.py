@@ -766,3 +766,30 @@ def test_a_model_the_mapper_left_without_a_point_is_left_out(tmp_path, capsys, m
     report = json.loads((tmp_path / "m" / "sfm.json").read_text())
     assert [m["folder"] for m in report["models"]] == ["sparse/0"] and report["model"]["points"] > 100
     assert (tmp_path / "m" / "sparse" / "1" / "images.bin").exists()  # what the mapper wrote stays
+
+
+def test_dqm_sfm_one_camera_per_folder(tmp_path, capsys):
+    """--single-camera-per-folder (COLMAP's ImageReader.single_camera_per_folder): a video a folder, each folder's
+    frames one camera; --single-camera one for all; both at once refused before any work."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    for name, seed in (("one", 2), ("two", 5)):
+        generate_scene3d(seed=seed, n_images=4).save(tmp_path / "photos" / name)
+    photos = str(tmp_path / "photos")
+    for flag, cameras in (("--single-camera-per-folder", 2), ("--single-camera", 1)):
+        out = tmp_path / flag.strip("-")
+        assert main(["sfm", photos, "--recursive", "--out", str(out), flag, "--no-triangulate", "--quiet"]) == 0
+        db = pycolmap.Database.open(str(out / "database.db"))
+        try:
+            images = db.read_all_images()
+            assert len(images) == 8 and len({im.camera_id for im in images}) == cameras
+            if cameras == 2:
+                for folder in ("one", "two"):
+                    assert len({im.camera_id for im in images if im.name.startswith(folder + "/")}) == 1
+        finally:
+            db.close()
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["sfm", photos, "--out", str(tmp_path / "both"), "--single-camera", "--single-camera-per-folder"])
+    assert "not allowed with argument" in capsys.readouterr().err and not (tmp_path / "both").exists()
