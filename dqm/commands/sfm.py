@@ -323,13 +323,15 @@ def run(args) -> int:
     # as asked, before auto chooses for the collection
     asked = argparse.Namespace(preset=args.preset, max_features=args.max_features, mapper=args.mapper)
     n_images = 0
-    if args.gt or args.preset == "auto":  # the images named before any work
+    if args.gt or args.preset == "auto" or mode != "per-image":  # the images named before any work
         from ..vision.features import collect_images
 
-        names = [p.name for p in collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)]
+        paths = collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)
+        names = [p.name for p in paths]
         n_images = len(names)
         if args.gt:  # read and matched to the images' names
             truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
+        colmap.check_camera_sharing(paths, camera)  # a shared camera needs one image size
     args.preset, args.max_features = choose_features(args.preset, args.max_features, n_images)
     if asked.preset == "auto":
         cap = f", at most {args.max_features:,} features an image" if args.max_features else ""

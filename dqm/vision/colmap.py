@@ -349,6 +349,18 @@ def _image_facts(paths: Sequence[Path]) -> list[tuple[int, int, float]]:
     return out
 
 
+def check_camera_sharing(image_paths: Sequence, camera: CameraOptions, image_dir=None) -> None:
+    """InputError, before any work, where ``camera`` shares a camera among images of different sizes (as
+    :func:`export_database` would refuse them, after the extraction and matching); names relative to
+    ``image_dir`` (default the images' common folder), as the export names them. Reads every image (its size)
+    unless every image has a camera of its own."""
+    if camera.mode == "per-image":
+        return
+    paths = [Path(p) for p in image_paths]
+    _, names = image_folder(paths, None if image_dir is None else Path(image_dir))
+    _camera_groups(names, _image_facts(paths), camera.mode)
+
+
 def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]], mode: str) -> list[int]:
     """The camera of every image, named by its first image: one each, one for all, or one per folder of its name.
 

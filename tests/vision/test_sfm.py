@@ -793,3 +793,13 @@ def test_dqm_sfm_one_camera_per_folder(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["sfm", photos, "--out", str(tmp_path / "both"), "--single-camera", "--single-camera-per-folder"])
     assert "not allowed with argument" in capsys.readouterr().err and not (tmp_path / "both").exists()
+    # a folder whose frames differ in size cannot share a camera: one line before any work (it came after the
+    # extraction and QuickMatch, from the export)
+    import cv2
+
+    first = sorted((tmp_path / "photos" / "two").glob("*.png"))[0]
+    cv2.imwrite(str(first), cv2.resize(cv2.imread(str(first)), None, fx=0.5, fy=0.5))
+    assert main(["sfm", photos, "--recursive", "--out", str(tmp_path / "sizes"), "--single-camera-per-folder"]) == 2
+    captured = capsys.readouterr()
+    assert "one camera for the images of folder 'two' needs one image size" in captured.err
+    assert captured.err.count("\n") == 1 and "SIFT" not in captured.out and not (tmp_path / "sizes").exists()
