@@ -48,6 +48,23 @@ _ONLY_FOR = {"database": "colmap", "into_database": "colmap", "no_verify": "colm
 LOG = logging.getLogger("dqm.commands")
 
 
+def add_camera_sharing_options(group) -> None:
+    """--single-camera and --single-camera-per-folder, which exclude each other (dqm export colmap, dqm sfm)."""
+    shared = group.add_mutually_exclusive_group()
+    shared.add_argument("--single-camera", action="store_true",
+                        help="one camera for all images (they must have one size: a video's frames), as COLMAP's "
+                             "ImageReader.single_camera")
+    shared.add_argument("--single-camera-per-folder", action="store_true",
+                        help="one camera per folder of the image names (one size each: a video a folder), as "
+                             "COLMAP's ImageReader.single_camera_per_folder")
+
+
+def camera_sharing(args) -> str:
+    """The camera sharing those options ask for: ``single``, ``per-folder`` or ``per-image``
+    (:data:`dqm.vision.colmap.CAMERA_MODES`)."""
+    return "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
+
+
 def add_arguments(p) -> None:
     p.add_argument("format", choices=("colmap", "hloc"), help="what to write")
     p.add_argument("clusters", metavar="CLUSTERS", help="CLUSTERS.npz from dqm match (with keypoints and images)")
@@ -77,13 +94,7 @@ def add_arguments(p) -> None:
                    help="the model's parameters for every camera, comma-separated in COLMAP's order "
                         "(e.g. f,cx,cy,k for SIMPLE_RADIAL), as COLMAP's ImageReader.camera_params; marked as "
                         "a prior (default: EXIF or 1.2 x the larger side, image centre, no distortion)")
-    shared = g.add_mutually_exclusive_group()
-    shared.add_argument("--single-camera", action="store_true",
-                        help="one camera for all images (they must have one size), as COLMAP's "
-                             "ImageReader.single_camera")
-    shared.add_argument("--single-camera-per-folder", action="store_true",
-                        help="one camera per folder of the image names, as COLMAP's "
-                             "ImageReader.single_camera_per_folder")
+    add_camera_sharing_options(g)
     g = p.add_argument_group("hloc")
     g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file (.h5) to write")
     g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file (.txt) to write")
@@ -157,8 +168,8 @@ def _run_colmap(args, t0: float):
     colmap.require_pycolmap(what="dqm export colmap")
     if args.into_database is not None:
         return _run_colmap_into(args, t0)
-    mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
-    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, args.camera_params)
+    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, camera_sharing(args),
+                                   args.camera_params)
     db = outputs.check_file(args.database, "--database", (".db", ".sqlite", ".sqlite3"), overwrite=args.overwrite)
     if args.tracks:
         outputs.check_distinct(("--database", db), ("--tracks", args.tracks))

@@ -27,6 +27,7 @@ from pathlib import Path
 from .. import io, outputs
 from ..validation import InputError
 from ..wording import count
+from .export import add_camera_sharing_options, camera_sharing
 from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
 
@@ -59,13 +60,7 @@ def add_arguments(p) -> None:
     add_cluster_options(p, "sfm")
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
-    shared = p.add_mutually_exclusive_group()
-    shared.add_argument("--single-camera", action="store_true",
-                        help="one camera for all images (one size: a video's frames), as COLMAP's "
-                             "ImageReader.single_camera")
-    shared.add_argument("--single-camera-per-folder", action="store_true",
-                        help="one camera per folder of images (one size each: a video a folder), as COLMAP's "
-                             "ImageReader.single_camera_per_folder")
+    add_camera_sharing_options(p)
     p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
                    help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
                         f"global one from {GLOBAL_FROM} images (the incremental one where it makes no model), the "
@@ -309,7 +304,7 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     colmap.require_pycolmap(what="dqm sfm (COLMAP's mapper)")
-    mode = "single" if args.single_camera else "per-folder" if args.single_camera_per_folder else "per-image"
+    mode = camera_sharing(args)
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, mode, None)
     if args.seed < 0 or args.mapper_threads < 0 or args.partners < 0:
         raise InputError(f"--seed, --mapper-threads and --partners must be >= 0, got {args.seed}, "
