@@ -27,7 +27,7 @@ from pathlib import Path
 from .. import io, outputs
 from ..validation import InputError
 from ..wording import count
-from .export import add_camera_sharing_options, camera_sharing
+from .export import add_camera_sharing_options, add_cluster_matches_option, camera_sharing
 from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
 
@@ -61,6 +61,7 @@ def add_arguments(p) -> None:
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
     add_camera_sharing_options(p)
+    add_cluster_matches_option(p)
     p.add_argument("--mapper", choices=("auto",) + MAPPERS, default="auto",
                    help=f"COLMAP's incremental mapper or its global mapper (COLMAP 4, ex-GLOMAP); auto (default): the "
                         f"global one from {GLOBAL_FROM} images (the incremental one where it makes no model), the "
@@ -167,7 +168,8 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
                                    image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed,
-                                   partners=args.partners, progress=not args.quiet)
+                                   partners=args.partners, cluster_matches=args.cluster_matches,
+                                   progress=not args.quiet)
     mapper = choose_mapper(args.mapper, s.n_images)
     print(f"{say}wrote {out / 'database.db'}: {s.n_images} images, {s.pairs_line()}, {s.verified_line()}; "
           f"{mapper} mapping ...", flush=True)
@@ -348,6 +350,7 @@ def run(args) -> int:
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": mapper, "seed": args.seed, "partners": args.partners,
+        "cluster_matches": args.cluster_matches,
         "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate),
         "bundle_adjust": bool(args.triangulate and args.bundle_adjust)},
         "model": model_numbers(models[0].rec if models else None),

@@ -82,16 +82,47 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     return pycolmap
 
 
-def cluster_pairs(labels, image_ids) -> dict[tuple[int, int], np.ndarray]:
-    """Every two members of every cluster, grouped by image pair.
+#: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): every two, or each member
+#: with those 1, 2, 4, ... places after it in image order
+CLUSTER_MATCHES = ("all", "log")
+
+
+def log_spaced_pairs(labels, image_ids) -> tuple[np.ndarray, np.ndarray]:
+    """Each member ``i`` of every cluster with the members 1, 2, 4, 8, ... places after it, the members in image
+    order: pairs ``(f, g)`` of row indices. A cluster of s members gives sum over d = 1, 2, 4, ... < s of (s - d)
+    pairs, at most s log2 s (every two: s (s - 1) / 2), and any two members are joined by a path of at most
+    log2 s of them, so the cluster stays one track in COLMAP's correspondence graph; the pairs of 2 or 3 members
+    are every pair."""
+    lab = np.asarray(labels, np.int64)
+    order = np.lexsort((np.asarray(image_ids, np.int64), lab))
+    sorted_labels = lab[order]
+    first, second = [], []
+    d = 1
+    while d < len(order):
+        same = sorted_labels[:-d] == sorted_labels[d:]
+        if not same.any():
+            break
+        first.append(order[:-d][same])
+        second.append(order[d:][same])
+        d *= 2
+    if not first:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(first), np.concatenate(second)
+
+
+def cluster_pairs(labels, image_ids, matches: str = "all") -> dict[tuple[int, int], np.ndarray]:
+    """Every two members of every cluster (``matches="all"``; ``"log"``: :func:`log_spaced_pairs`), grouped by
+    image pair.
 
     Returns ``{(a, b): (m, 2) int64 array of feature indices}`` with image ``a < b`` and column 0
     in image ``a``. Within a cluster the images differ (constraint C2), so no pair is dropped.
     """
     from ..core.tree import member_pairs
 
+    if matches not in CLUSTER_MATCHES:
+        raise InputError(f"cluster matches {matches!r}: use one of {', '.join(CLUSTER_MATCHES)}")
     ids = np.asarray(image_ids, np.int64)
-    f, g = member_pairs(np.asarray(labels, np.int64))
+    f, g = member_pairs(np.asarray(labels, np.int64)) if matches == "all" else log_spaced_pairs(labels, ids)
     if not len(f):
         return {}
     swap = ids[f] > ids[g]
@@ -383,13 +414,14 @@ def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]]
 def export_database(database, keypoints, image_ids, image_paths: Sequence, labels, *,
                     image_dir=None, descriptors=None, verify: bool = True,
                     num_threads: int = -1, camera: CameraOptions | None = None, seed: int = 0,
-                    partners: int = 0, progress: ProgressArg = None) -> ExportSummary:
+                    partners: int = 0, cluster_matches: str = "all", progress: ProgressArg = None) -> ExportSummary:
     """Write a COLMAP database from clusters (see the module docstring); refuses an existing file.
 
     ``keypoints``: (n, >=2) OpenCV pixel coordinates; ``image_ids``: 0..m-1 indexing
     ``image_paths`` (existing image files); ``labels``: the clusters; ``camera``: the camera
     model, sharing and parameters (:func:`camera_options`; default one ``SIMPLE_RADIAL`` per image);
     ``partners``: only each image's strongest pairs are written (:func:`strongest_partners`; 0: every pair);
+    ``cluster_matches``: which members of a cluster are matches (:data:`CLUSTER_MATCHES`, :func:`cluster_pairs`);
     ``progress(done, total)`` (:data:`dqm.progress.ProgressArg`): image pairs done, twice (their matches
     written, then verified; ``done`` restarts at 0).
     Every image is read (its size) before the database is created.
@@ -414,7 +446,7 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
     desc = None if descriptors is None else np.asarray(descriptors)
     if desc is not None and (desc.dtype != np.uint8 or desc.shape[1:] != (128,)):
         desc = None  # COLMAP's descriptor type is 128-D uint8; the mapper does not need others
-    pairs = cluster_pairs(labels, ids)
+    pairs = cluster_pairs(labels, ids, cluster_matches)
     least = min_verified_matches() if verify else 1
     pairs, left_out = verifiable(pairs, least)
     pairs, beyond = strongest_partners(pairs, partners)
@@ -622,7 +654,7 @@ def _check_images(database: Path, images: list, ids: np.ndarray, names: Sequence
 
 def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
                   num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None,
-                  partners: int = 0, progress: ProgressArg = None) -> ExportSummary:
+                  partners: int = 0, cluster_matches: str = "all", progress: ProgressArg = None) -> ExportSummary:
     """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
     database the features were read from (:func:`import_database`), as COLMAP's own matchers do: its cameras,
     images, keypoints and descriptors stay as they are, so its mapper runs next.
@@ -632,8 +664,8 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     database's name of its image or a path ending in it, checked with the keypoint counts (clusters matched from
     another database are refused). The database is checked first (:func:`check_matches_target`); existing
     matches and geometries are replaced only with ``overwrite``. The new database is written beside the old one and
-    renamed over it when complete, so a stop or an error leaves the old one untouched. ``partners`` and
-    ``progress``: as :func:`export_database`'s.
+    renamed over it when complete, so a stop or an error leaves the old one untouched. ``partners``,
+    ``cluster_matches`` and ``progress``: as :func:`export_database`'s.
     """
     pycolmap = require_pycolmap()
     database = check_matches_target(database, overwrite=overwrite)
@@ -644,7 +676,7 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
     listed = _images_keypoints(database)
     if listed is not None:  # checked before the database is copied (else on the copy, as pycolmap reads it)
         _check_images(database, listed, ids, names)
-    pairs = cluster_pairs(labels, ids)
+    pairs = cluster_pairs(labels, ids, cluster_matches)
     least = min_verified_matches() if verify else 1
     pairs, left_out = verifiable(pairs, least)
     pairs, beyond = strongest_partners(pairs, partners)

@@ -48,6 +48,49 @@ def test_cluster_pairs_are_every_two_members():
     assert got[(0, 1)] == {(1, 2), (4, 3)}
 
 
+def test_log_spaced_cluster_matches_keep_each_cluster_one_track_in_far_fewer_matches():
+    """--cluster-matches log: each member with those 1, 2, 4, ... places after it in image order. Checked against a
+    reference on clusters of 1 to 101 members (cmu_hotel's video has clusters in every one of its 101 frames):
+    sum over d of (s - d) matches for s members instead of s (s - 1) / 2, every match inside a cluster and
+    between the members that many places apart in image order, each cluster connected (one track), every pair
+    for 2 or 3 members; an unknown name refused."""
+    rng = np.random.default_rng(3)
+    sizes = list(range(1, 41)) + [64, 65, 101]
+    labels = np.concatenate([np.full(s, k) for k, s in enumerate(sizes)])
+    ids = np.concatenate([rng.permutation(101)[:s] for s in sizes])  # at most one feature an image a cluster
+    rows = rng.permutation(len(labels))  # rows in no particular order
+    labels, ids = labels[rows], ids[rows]
+    got = colmap.cluster_pairs(labels, ids, "log")
+    pairs = np.concatenate(list(got.values()))
+    assert len({tuple(p) for p in pairs.tolist()}) == len(pairs)
+    assert all(ids[f] == a and ids[g] == b for (a, b), m in got.items() for f, g in m)
+    assert (labels[pairs[:, 0]] == labels[pairs[:, 1]]).all()
+    for k, s in enumerate(sizes):
+        members = np.flatnonzero(labels == k)
+        place = {int(f): j for j, f in enumerate(members[np.argsort(ids[members])])}  # image order
+        mine = pairs[labels[pairs[:, 0]] == k]
+        offsets = sorted(abs(place[int(f)] - place[int(g)]) for f, g in mine)
+        want = sorted(d for d in (2 ** e for e in range(8)) if d < s for _ in range(s - d))
+        assert offsets == want, s
+        assert len(mine) <= max(1, s * np.log2(max(s, 2)))
+        reached, frontier = {int(members[0])}, [int(members[0])]  # one track: every member reached
+        while frontier:
+            f = frontier.pop()
+            for a, b in mine.tolist():
+                for x, y in ((a, b), (b, a)):
+                    if x == f and y not in reached:
+                        reached.add(y)
+                        frontier.append(y)
+        assert reached == set(members.tolist()), s
+    every = colmap.cluster_pairs(labels, ids)
+    assert sum(map(len, every.values())) == sum(s * (s - 1) // 2 for s in sizes)
+    small = np.isin(labels, [k for k, s in enumerate(sizes) if s <= 3])
+    assert {k: set(map(tuple, v.tolist())) for k, v in colmap.cluster_pairs(labels[small], ids[small], "log").items()}\
+        == {k: set(map(tuple, v.tolist())) for k, v in colmap.cluster_pairs(labels[small], ids[small]).items()}
+    with pytest.raises(InputError, match="cluster matches 'tree'"):
+        colmap.cluster_pairs(labels, ids, "tree")
+
+
 def test_strongest_partners_keep_each_images_pairs_with_the_most_matches():
     """A pair stays where it is among the N with the most matches of either of its images (ties: the lower
     other image); 0, or N at least the images less one, keeps every pair."""

@@ -803,3 +803,32 @@ def test_dqm_sfm_one_camera_per_folder(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "one camera for the images of folder 'two' needs one image size" in captured.err
     assert captured.err.count("\n") == 1 and "SIFT" not in captured.out and not (tmp_path / "sizes").exists()
+
+
+def test_dqm_sfm_log_spaced_cluster_matches(tmp_path, capsys):
+    """--cluster-matches log hands the mapper each cluster as fewer matches (one track still) and registers every
+    image of a generated scene; the option is in sfm.json; dqm export colmap takes it too."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    images = generate_scene3d(seed=0, n_images=6).save(tmp_path / "img")
+    written = {}
+    for how in ("all", "log"):
+        assert main(["sfm", str(images), "--out", str(tmp_path / how), "--cluster-matches", how, "--quiet"]) == 0
+        out = capsys.readouterr().out
+        written[how] = int(re.search(r"([\d,]+) matches in", out).group(1).replace(",", ""))
+        report = json.loads((tmp_path / how / "sfm.json").read_text())
+        assert report["options"]["cluster_matches"] == how and report["model"]["registered"] == 6
+    assert written["log"] < written["all"]  # the pairs with 15 matches or more (COLMAP verifies no fewer)
+    sizes = np.bincount(load_clusters(tmp_path / "log" / "clusters.npz")["labels"])
+    assert sizes.max() >= 4  # clusters where log-spaced matches are fewer than every two members
+    for how, want in (("all", sum(s * (s - 1) // 2 for s in sizes)),
+                      ("log", sum(sum(s - d for d in (1, 2, 4) if d < s) for s in sizes))):
+        db_path = tmp_path / f"export-{how}.db"  # every pair written, none verified: each cluster's matches
+        assert main(["export", "colmap", str(tmp_path / "log" / "clusters.npz"), "--database", str(db_path),
+                     "--cluster-matches", how, "--no-verify", "--quiet"]) == 0
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            assert db.num_matches() == want, how
+        finally:
+            db.close()
