@@ -133,6 +133,8 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
         (["colmap", f, "--database", str(db), "--partners", "-3"], "--partners must be >= 0"),
         (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--partners", "3"],
          "--partners is an option of dqm export colmap"),
+        (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--cluster-matches",
+          "log"], "--cluster-matches is an option of dqm export colmap"),
     ]
     for argv, msg in cases:
         capsys.readouterr()
