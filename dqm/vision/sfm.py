@@ -389,14 +389,13 @@ def model_figure(rec, path, title: str) -> None:
 
     P = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
     C = np.array([im.projection_center() for im in rec.images.values() if im.has_pose]).reshape(-1, 3)
-    # the axes of the points; of the cameras too where there are fewer than three points (COLMAP's incremental
-    # mapper left cmu_hotel's frames 54, 56 and 61 in a model with no point after the triangulation stage)
+    # the axes and the extent of the points; of the cameras too where there are fewer than three points (COLMAP's
+    # incremental mapper left three of cmu_hotel's frames in a model with none)
     basis = P if len(P) >= 3 else np.vstack([P, C])
     centre = np.median(basis, axis=0) if len(basis) else np.zeros(3)
     vt = np.linalg.svd(basis - centre, full_matrices=len(basis) < 3)[2] if len(basis) else np.eye(3)
     p3, c3 = (P - centre) @ vt.T, (C - centre) @ vt.T
-    shown = p3 if len(p3) >= 3 else np.vstack([p3, c3])
-    lim = (np.percentile(np.abs(shown), 98, axis=0) if len(shown) else np.ones(3)) * 1.2 + 1e-12
+    lim = (np.percentile(np.abs((basis - centre) @ vt.T), 98, axis=0) if len(basis) else np.ones(3)) * 1.2 + 1e-12
     fig, (front, top) = plt.subplots(1, 2, figsize=(11, 5), dpi=110)
     # points as one line's markers, the legend under the axes and fixed margins: half the time of scattered
     # points, a legend placed by searching the data and a layout found by drawing the figure twice (0.2 against
