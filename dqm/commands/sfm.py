@@ -12,7 +12,10 @@ front and from above), tracks.csv and sfm.json (the stage times, the model's num
 --gt, the pose scores). In a collection of several scenes and 30 images or more, a scene whose
 model holds fewer than 30 is made again from its images alone, with the choices --preset auto and
 --mapper auto make for its size (scenes/<k>/: its clusters, database and model). Where --mapper auto's
-global mapper makes no model, the incremental mapper runs on the same database. It is the chain
+global mapper makes no model, the incremental mapper runs on the same database. Where more than half of
+a model's images have cameras COLMAP calls bogus (a focal length or a distortion out of its bounds, as a
+camera a frame of a video can get) and its images, a camera each, have one size a folder and no EXIF
+focal length, it is mapped again with one camera per folder (shared-camera/<k>/). It is the chain
 `dqm match` -> `dqm export colmap` -> pycolmap's mapper with the same options (docs/sfm.md). Every
 random choice is seeded (--seed): the same photos and options give the same model. Needs pycolmap:
 pip install 'dqm[colmap]'.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import time
 from pathlib import Path
 
@@ -30,6 +34,8 @@ from ..wording import count
 from .export import add_camera_sharing_options, add_cluster_matches_option, camera_sharing
 from .extract import add_image_options, extract
 from .match import add_cluster_options, cluster
+
+LOG = logging.getLogger("dqm.commands")
 
 NAME = "sfm"
 HELP = "images -> sparse 3-D model (extract, QuickMatch, export to COLMAP, pycolmap mapping; --gt: pose accuracy)"
@@ -246,6 +252,66 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     return done
 
 
+def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, export, models, mapped,
+                         sources) -> list[dict]:
+    """A model whose cameras are mostly bogus (more than half its registered images: :func:`dqm.vision.sfm.
+    bogus_cameras`) mapped again with one camera per folder, where each image had a camera of its own and one per
+    folder fits (:func:`dqm.vision.colmap.shared_camera_unfit`: one size a folder, no EXIF focal length): a
+    video's frames, where a camera a frame leaves focal length and distortion free for every frame. Its images
+    (every image of the run where the mapper made one model) go through the stages before the triangulation
+    again into ``out/shared-camera/<k>/``, ``k`` the model's place in ``models``. Its model replaces the first
+    in ``models``, ``mapped`` and ``sources`` where it registers at least as many images with fewer bogus
+    cameras; otherwise the first stays, with a warning. Returns what was done, one entry a model, for
+    sfm.json."""
+    from ..vision import colmap
+    from ..vision.sfm import bogus_cameras, choose_features, model_numbers, registered_names
+
+    by_name = {name: k for k, name in enumerate(export.names)}
+    done = []
+    for k, m in enumerate(list(models)):
+        bad, n = bogus_cameras(m.rec), int(m.rec.num_reg_images())
+        if 2 * len(bad) <= n:
+            continue
+        names = list(export.names) if len(models) == 1 else sorted(registered_names(m.rec), key=by_name.get)
+        paths = [str(Path(export.image_dir) / name) for name in names]
+        entry = {"model_folder": _folder(m, out), "images": n, "bogus_cameras": len(bad), "taken": False}
+        done.append(entry)
+        bogus = f"{_folder(m, out)}: {len(bad)} of {n} registered images have a camera COLMAP calls bogus " \
+                f"(focal length or distortion out of bounds, e.g. {bad[0]})"
+        unfit = "the images share cameras already" if camera_sharing(args) != "per-image" else \
+            colmap.shared_camera_unfit(paths, export.image_dir)
+        if unfit is not None:
+            entry["unfit"] = unfit
+            LOG.warning("%s; not mapped again with one camera per folder (%s): the model's cameras are not to be "
+                        "trusted", bogus, unfit)
+            continue
+        folder = out / "shared-camera" / str(k)
+        preset, max_features = choose_features(asked.preset, asked.max_features, len(names))
+        sub = argparse.Namespace(**dict(vars(args), inputs=paths, image_list=None, recursive=False, preset=preset,
+                                        max_features=max_features, mapper=asked.mapper, single_camera=False,
+                                        single_camera_per_folder=True))
+        camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
+        say = f"{_folder(m, out)} again, one camera per folder: "
+        print(f"{bogus}; its {count(len(names), 'image')} share one size a folder and have no EXIF focal length, "
+              f"so they are mapped again with one camera per folder into {folder} ...", flush=True)
+        fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads, image_dir=export.image_dir,
+                                                  say=say)
+        got = int(own[0].rec.num_reg_images()) if own else 0
+        still = len(bogus_cameras(own[0].rec)) if own else 0
+        entry.update(mapper=mapper, registered_again=got, bogus_cameras_again=still, taken=bool(own) and got >= n and
+                     still < len(bad), model_before=mapped[k])
+        if entry["taken"]:
+            models[k], mapped[k], sources[k] = own[0], model_numbers(own[0].rec), (folder / "database.db", s, fs)
+            entry["folder"] = _folder(own[0], out)
+            print(f"{say}{got} of {n} images registered, {still} bogus cameras, "
+                  f"{own[0].rec.num_points3D():,} 3-D points: it replaces {entry['model_folder']}", flush=True)
+        else:
+            LOG.warning("%s again with one camera per folder: %d of %d images registered, %d bogus cameras; "
+                        "%s is kept and its cameras are not to be trusted", _folder(m, out), got, n, still,
+                        entry["model_folder"])
+    return done
+
+
 def registered_images(models) -> tuple[int, int]:
     """The images registered in any of ``models``, and how many of them more than one model holds too (COLMAP's
     incremental mapper can start a model from images another model has registered: sacre_coeur's 10 photos gave
@@ -340,6 +406,7 @@ def run(args) -> int:
     mapped = [model_numbers(m.rec) for m in models]
     sources = [(out / "database.db", s, fs)] * len(models)  # each model's database, export and features
     alone = _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
+    again = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources)
     if models and args.triangulate:
         with stage("triangulate"):
             for m, (database, export, features) in zip(models, sources):  # every model (each scene of a mixed
@@ -359,6 +426,7 @@ def run(args) -> int:
                   "beyond_partners": s.n_pairs_beyond, "verified": s.n_verified_pairs,
                   "dropped_as_weak": s.n_pairs_dropped},
         "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
+        "shared_camera_again": again,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
     report["times"] = dict(stage.times, total=time.perf_counter() - t0)
     report["peak_memory_bytes"] = stage.peaks
@@ -388,6 +456,6 @@ def run(args) -> int:
         figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
         model_figure(m.rec, figures[-1], f"{_folder(m, out)}: {entry['registered']} of {s.n_images} images, "
                                          f"{entry['points']:,} points")
-    again = f"{out}/scenes, " if alone else ""
-    print(f"wrote {out}/sparse, {again}{', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
+    redone = "".join(f"{out}/{where}, " for where, done in (("scenes", alone), ("shared-camera", again)) if done)
+    print(f"wrote {out}/sparse, {redone}{', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
     return 0

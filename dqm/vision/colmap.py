@@ -392,6 +392,23 @@ def check_camera_sharing(image_paths: Sequence, camera: CameraOptions, image_dir
     _camera_groups(names, _image_facts(paths), camera.mode)
 
 
+def shared_camera_unfit(image_paths: Sequence, image_dir=None) -> str | None:
+    """Why one camera per folder does not fit these images, or None where it does: each folder's images have
+    one size and none has an EXIF focal length (a prior of its own; photos of several cameras often have one).
+    Names relative to ``image_dir`` (default the images' common folder), as the export names them."""
+    paths = [Path(p) for p in image_paths]
+    _, names = image_folder(paths, None if image_dir is None else Path(image_dir))
+    facts = _image_facts(paths)
+    with_exif = [name for name, fact in zip(names, facts) if fact[2]]
+    if with_exif:
+        return f"{count(len(with_exif), 'image')} ({with_exif[0]}, ...) with an EXIF focal length"
+    try:
+        _camera_groups(names, facts, "per-folder")
+    except InputError as e:
+        return str(e)
+    return None
+
+
 def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]], mode: str) -> list[int]:
     """The camera of every image, named by its first image: one each, one for all, or one per folder of its name.
 

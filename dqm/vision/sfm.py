@@ -372,12 +372,28 @@ def largest(recs: dict) -> int:
     return by_size(recs)[0]
 
 
+def bogus_cameras(rec) -> list[str]:
+    """The names of a model's registered images whose camera COLMAP calls bogus (``Camera.has_bogus_params``): a
+    focal length outside 0.1-10x the larger image side or an extra parameter (a distortion coefficient) beyond
+    +-1, the bounds of pycolmap's ``IncrementalMapperOptions``. Its incremental mapper drops such an image from a
+    model; its global mapper keeps them: on cmu_hotel's video frames, a camera a frame, it estimated a radial
+    distortion k of -3 to -4 for every frame (pixels more than 290-330 px from the centre of a 512 px frame then
+    have no undistorted position)."""
+    pycolmap = require_pycolmap()
+    bounds = pycolmap.IncrementalMapperOptions()
+    return sorted(rec.image(i).name for i in rec.reg_image_ids()
+                  if rec.cameras[rec.image(i).camera_id].has_bogus_params(
+                      bounds.min_focal_length_ratio, bounds.max_focal_length_ratio, bounds.max_extra_param))
+
+
 def model_numbers(rec) -> dict:
-    """Registered images, 3-D points, mean track length and mean reprojection error (px) of a model."""
+    """Registered images, 3-D points, mean track length, mean reprojection error (px) and the registered images
+    with a bogus camera (:func:`bogus_cameras`) of a model."""
     if rec is None:
-        return {"registered": 0, "points": 0, "track": float("nan"), "reproj": float("nan")}
+        return {"registered": 0, "points": 0, "track": float("nan"), "reproj": float("nan"), "bogus_cameras": 0}
     return {"registered": rec.num_reg_images(), "points": rec.num_points3D(),
-            "track": rec.compute_mean_track_length(), "reproj": rec.compute_mean_reprojection_error()}
+            "track": rec.compute_mean_track_length(), "reproj": rec.compute_mean_reprojection_error(),
+            "bogus_cameras": len(bogus_cameras(rec))}
 
 
 def model_figure(rec, path, title: str) -> None:

@@ -722,6 +722,86 @@ def test_where_the_global_mapper_auto_chose_makes_no_model_the_incremental_one_r
     assert len(calls) == 2 and "no model" in out and "instead" not in out
 
 
+def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp_path, capsys, monkeypatch):
+    """cmu_hotel's 101 video frames, a camera a frame (dqm sfm's default, COLMAP's too): COLMAP's global mapper
+    gave every frame a radial distortion k of -3 to -4, cameras COLMAP itself calls bogus, and a model of 185
+    points. Where more than half of a model's cameras are bogus and its images share one size a folder with no
+    EXIF focal length, it is mapped again with one camera per folder into shared-camera/<k>/ and replaces the
+    first (kept in sparse/<k>). Here the mapper's first model is made bogus as the global mapper made cmu_hotel's
+    (these generated views give it sound cameras); the second mapping is left alone. Where the cameras are shared
+    already (--single-camera), the model is kept, with a warning."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import sfm
+
+    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    real, calls = sfm.reconstruct, []
+
+    def first_bogus(database, *args, **kwargs):
+        models, seconds = real(database, *args, **kwargs)
+        calls.append(database)
+        if len(calls) == 1:
+            for m in models:
+                for camera in m.rec.cameras.values():
+                    camera.params = [*camera.params[:3], -3.0]  # SIMPLE_RADIAL's k
+        return models, seconds
+
+    monkeypatch.setattr(sfm, "reconstruct", first_bogus)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "sparse/0: 5 of 5 registered images have a camera COLMAP calls bogus" in out
+    assert "it replaces sparse/0" in out and f"{tmp_path / 'm'}/shared-camera" in out.splitlines()[-1]
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    [again] = report["shared_camera_again"]
+    assert again["taken"] and (again["images"], again["bogus_cameras"]) == (5, 5)
+    assert (again["registered_again"], again["bogus_cameras_again"]) == (5, 0)
+    assert report["models"][0]["folder"] == "shared-camera/0/sparse/0" and report["model"]["bogus_cameras"] == 0
+    assert report["model"]["registered"] == 5 and report["model"]["points"] > 0
+    shared = pycolmap.Reconstruction(str(tmp_path / "m" / "shared-camera/0/sparse/0"))
+    assert {image.camera_id for image in shared.images.values()} == {1}  # one camera for the folder
+    first = pycolmap.Reconstruction(str(tmp_path / "m" / "sparse/0"))  # the first model stays
+    assert len({image.camera_id for image in first.images.values()}) == 5
+    assert sfm.bogus_cameras(first) == [] and sfm.bogus_cameras(shared) == []
+    camera = first.cameras[first.images[1].camera_id]
+    camera.params = [camera.params[0] * 20, *camera.params[1:]]  # a focal length beyond 10x the image: bogus too
+    assert sfm.bogus_cameras(first) == [first.images[1].name]
+
+    calls.clear()
+    assert main(["sfm", str(images), "--out", str(tmp_path / "one"), "--single-camera", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "not mapped again with one camera per folder (the images share cameras already)" in captured.err
+    report = json.loads((tmp_path / "one" / "sfm.json").read_text())
+    assert [e["taken"] for e in report["shared_camera_again"]] == [False] and len(calls) == 1
+    assert report["model_before_triangulation"]["bogus_cameras"] == 5  # (the last stage's adjustment mends these)
+    assert not (tmp_path / "one" / "shared-camera").exists()
+
+
+def test_one_camera_per_folder_fits_images_of_one_size_without_exif(tmp_path):
+    """What a bogus model's repair checks before it maps again: one size a folder, no EXIF focal length (a
+    prior of the image's own; photos of several cameras often carry one)."""
+    from PIL import Image
+
+    from dqm.vision.colmap import shared_camera_unfit
+
+    rng = np.random.default_rng(0)
+    for folder, size in (("a", (160, 120)), ("b", (200, 150))):
+        (tmp_path / folder).mkdir()
+        for k in range(2):
+            Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)).save(
+                tmp_path / folder / f"{k}.png")
+    pngs = sorted(tmp_path.glob("*/*.png"))
+    assert shared_camera_unfit(pngs) is None  # a camera a folder: each folder one size
+    Image.fromarray(rng.integers(0, 255, (150, 200, 3), dtype=np.uint8)).save(tmp_path / "a" / "2.png")
+    assert "needs one image size: a/0.png is 160x120, a/2.png is 200x150" in shared_camera_unfit(
+        [*pngs, tmp_path / "a" / "2.png"])
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[41989] = 28  # focal length in 35 mm film
+    Image.open(tmp_path / "a" / "1.png").convert("RGB").save(tmp_path / "a" / "1.jpg", exif=exif)
+    assert shared_camera_unfit([tmp_path / "a" / "0.png", tmp_path / "a" / "1.jpg"]) == \
+        "1 image (1.jpg, ...) with an EXIF focal length"
+
+
 def test_colmaps_own_pipeline_with_one_camera_for_every_image(tmp_path):
     """The peer in scripts/bench_sfm.py, as a user runs COLMAP through pycolmap: its SIFT, exhaustive matching and
     incremental mapper, a camera per image by default and one for all with ``single_camera`` (bench_sfm's
