@@ -294,8 +294,14 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
         say = f"{_folder(m, out)} again, one camera per folder: "
         print(f"{bogus}; its {count(len(names), 'image')} share one size a folder and have no EXIF focal length, "
               f"so they are mapped again with one camera per folder into {folder} ...", flush=True)
-        fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads, image_dir=export.image_dir,
-                                                  say=say)
+        try:
+            fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
+                                                      image_dir=export.image_dir, say=say)
+        except InputError as e:  # the first model stands; what was written stays
+            entry["error"] = str(e)
+            LOG.warning("%s not mapped again (%s); %s is kept and its cameras are not to be trusted",
+                        _folder(m, out), e, entry["model_folder"])
+            continue
         got = int(own[0].rec.num_reg_images()) if own else 0
         still = len(bogus_cameras(own[0].rec)) if own else 0
         entry.update(mapper=mapper, registered_again=got, bogus_cameras_again=still, taken=bool(own) and got >= n and

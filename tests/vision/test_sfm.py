@@ -733,6 +733,8 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
+    from dqm.commands import sfm as command
+    from dqm.validation import InputError
     from dqm.vision import sfm
 
     images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
@@ -766,6 +768,22 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     camera = first.cameras[first.images[1].camera_id]
     camera.params = [camera.params[0] * 20, *camera.params[1:]]  # a focal length beyond 10x the image: bogus too
     assert sfm.bogus_cameras(first) == [first.images[1].name]
+
+    real_match_and_map = command._match_and_map
+
+    def fails_again(args, out, *rest, **kwargs):
+        if "shared-camera" in str(out):
+            raise InputError("made to fail")
+        return real_match_and_map(args, out, *rest, **kwargs)
+
+    calls.clear()
+    monkeypatch.setattr(command, "_match_and_map", fails_again)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "fails"), "--quiet"]) == 0
+    assert "sparse/0 not mapped again (made to fail); sparse/0 is kept" in capsys.readouterr().err
+    report = json.loads((tmp_path / "fails" / "sfm.json").read_text())
+    assert report["shared_camera_again"][0]["error"] == "made to fail" and len(calls) == 1
+    assert report["models"][0]["folder"] == "sparse/0" and report["model"]["registered"] == 5
+    monkeypatch.setattr(command, "_match_and_map", real_match_and_map)
 
     calls.clear()
     assert main(["sfm", str(images), "--out", str(tmp_path / "one"), "--single-camera", "--quiet"]) == 0
