@@ -724,12 +724,14 @@ def test_where_the_global_mapper_auto_chose_makes_no_model_the_incremental_one_r
 
 def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp_path, capsys, monkeypatch):
     """cmu_hotel's 101 video frames, a camera a frame (dqm sfm's default, COLMAP's too): COLMAP's global mapper
-    gave every frame a radial distortion k of -3 to -4, cameras COLMAP itself calls bogus, and a model of 185
-    points. Where more than half of a model's cameras are bogus and its images share one size a folder with no
-    EXIF focal length, it is mapped again with one camera per folder into shared-camera/<k>/ and replaces the
-    first (kept in sparse/<k>). Here the mapper's first model is made bogus as the global mapper made cmu_hotel's
-    (these generated views give it sound cameras); the second mapping is left alone. Where the cameras are shared
-    already (--single-camera), the model is kept, with a warning."""
+    gave every frame a radial distortion k of -3 to -4, cameras COLMAP itself calls bogus, and a model of 391
+    points (185 after the last stage). Where a model has bogus cameras and its images share one size a folder
+    with no EXIF focal length, they are mapped again with one camera per folder into shared-camera/<k>/, which
+    replaces the first model (kept in sparse/<k>) where it registers as many images with fewer bogus cameras and
+    as many 3-D points. Here the mappings' models are spoiled as the global mapper spoiled cmu_hotel's (these
+    generated views give it sound cameras): some cameras made bogus, some points taken away. The first model is
+    kept where the second has fewer points, where the second cannot be made, and where the cameras are shared
+    already (--single-camera), each with a warning."""
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
@@ -738,36 +740,53 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     from dqm.vision import sfm
 
     images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
-    real, calls = sfm.reconstruct, []
+    real, calls, plan = sfm.reconstruct, [], {}
 
-    def first_bogus(database, *args, **kwargs):
+    def spoiled(database, *args, **kwargs):  # plan: {mapping: (bogus cameras, share of the points kept)}
         models, seconds = real(database, *args, **kwargs)
         calls.append(database)
-        if len(calls) == 1:
-            for m in models:
-                for camera in m.rec.cameras.values():
-                    camera.params = [*camera.params[:3], -3.0]  # SIMPLE_RADIAL's k
+        bogus, keep = plan.get(len(calls), (0, 1.0))
+        for m in models:
+            for image_id in sorted(m.rec.reg_image_ids())[:bogus]:
+                camera = m.rec.cameras[m.rec.image(image_id).camera_id]
+                camera.params = [*camera.params[:3], -3.0]  # SIMPLE_RADIAL's k
+            for point_id in sorted(m.rec.point3D_ids())[int(keep * m.rec.num_points3D()):]:
+                m.rec.delete_point3D(point_id)
         return models, seconds
 
-    monkeypatch.setattr(sfm, "reconstruct", first_bogus)
-    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--quiet"]) == 0
-    out = capsys.readouterr().out
-    assert "sparse/0: 5 of 5 registered images have a camera COLMAP calls bogus" in out
-    assert "it replaces sparse/0" in out and f"{tmp_path / 'm'}/shared-camera" in out.splitlines()[-1]
-    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    def run(name, *options, spoil):
+        calls.clear()
+        plan.clear()
+        plan.update(spoil)
+        assert main(["sfm", str(images), "--out", str(tmp_path / name), "--quiet", *options]) == 0
+        return capsys.readouterr(), json.loads((tmp_path / name / "sfm.json").read_text())
+
+    monkeypatch.setattr(sfm, "reconstruct", spoiled)
+    captured, report = run("m", spoil={1: (5, 0.5)})
+    assert "sparse/0: 5 of 5 registered images have a camera COLMAP calls bogus" in captured.out
+    assert "it replaces sparse/0" in captured.out
+    assert f"{tmp_path / 'm'}/shared-camera" in captured.out.splitlines()[-1]
     [again] = report["shared_camera_again"]
-    assert again["taken"] and (again["images"], again["bogus_cameras"]) == (5, 5)
+    assert again["taken"] and (again["images"], again["bogus_cameras"]) == (5, 5) and len(calls) == 2
     assert (again["registered_again"], again["bogus_cameras_again"]) == (5, 0)
+    assert again["points_again"] > again["model_before"]["points"] > 0
     assert report["models"][0]["folder"] == "shared-camera/0/sparse/0" and report["model"]["bogus_cameras"] == 0
     assert report["model"]["registered"] == 5 and report["model"]["points"] > 0
     shared = pycolmap.Reconstruction(str(tmp_path / "m" / "shared-camera/0/sparse/0"))
     assert {image.camera_id for image in shared.images.values()} == {1}  # one camera for the folder
-    first = pycolmap.Reconstruction(str(tmp_path / "m" / "sparse/0"))  # the first model stays
+    first = pycolmap.Reconstruction(str(tmp_path / "m" / "sparse/0"))  # the first model stays (as written)
     assert len({image.camera_id for image in first.images.values()}) == 5
     assert sfm.bogus_cameras(first) == [] and sfm.bogus_cameras(shared) == []
     camera = first.cameras[first.images[1].camera_id]
     camera.params = [camera.params[0] * 20, *camera.params[1:]]  # a focal length beyond 10x the image: bogus too
     assert sfm.bogus_cameras(first) == [first.images[1].name]
+
+    captured, report = run("fewer", spoil={1: (1, 1.0), 2: (0, 0.5)})  # one bogus camera; fewer points again
+    assert "sparse/0: 1 of 5 registered images have a camera COLMAP calls bogus" in captured.out
+    assert "bogus cameras, " in captured.err and "; sparse/0 is kept" in captured.err
+    [again] = report["shared_camera_again"]
+    assert not again["taken"] and again["points_again"] < again["model_before"]["points"]
+    assert report["models"][0]["folder"] == "sparse/0" and len(calls) == 2
 
     real_match_and_map = command._match_and_map
 
@@ -776,23 +795,20 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
             raise InputError("made to fail")
         return real_match_and_map(args, out, *rest, **kwargs)
 
-    calls.clear()
     monkeypatch.setattr(command, "_match_and_map", fails_again)
-    assert main(["sfm", str(images), "--out", str(tmp_path / "fails"), "--quiet"]) == 0
-    assert "sparse/0 not mapped again (made to fail); sparse/0 is kept" in capsys.readouterr().err
-    report = json.loads((tmp_path / "fails" / "sfm.json").read_text())
+    captured, report = run("fails", spoil={1: (5, 1.0)})
+    assert "sparse/0 not mapped again (made to fail); sparse/0 is kept" in captured.err
     assert report["shared_camera_again"][0]["error"] == "made to fail" and len(calls) == 1
     assert report["models"][0]["folder"] == "sparse/0" and report["model"]["registered"] == 5
     monkeypatch.setattr(command, "_match_and_map", real_match_and_map)
 
-    calls.clear()
-    assert main(["sfm", str(images), "--out", str(tmp_path / "one"), "--single-camera", "--quiet"]) == 0
-    captured = capsys.readouterr()
+    # (--no-triangulate: the last stage's bundle adjustment would mend these made-up cameras)
+    captured, report = run("one", "--single-camera", "--no-triangulate", spoil={1: (5, 1.0)})
     assert "not mapped again with one camera per folder (the images share cameras already)" in captured.err
-    report = json.loads((tmp_path / "one" / "sfm.json").read_text())
+    assert "sparse/0: 5 of 5 registered images have a camera COLMAP calls bogus (focal length or distortion out " \
+           "of its bounds): their poses are not to be trusted" in captured.err
     assert [e["taken"] for e in report["shared_camera_again"]] == [False] and len(calls) == 1
-    assert report["model_before_triangulation"]["bogus_cameras"] == 5  # (the last stage's adjustment mends these)
-    assert not (tmp_path / "one" / "shared-camera").exists()
+    assert report["model"]["bogus_cameras"] == 5 and not (tmp_path / "one" / "shared-camera").exists()
 
 
 def test_one_camera_per_folder_fits_images_of_one_size_without_exif(tmp_path):
