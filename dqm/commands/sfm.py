@@ -200,6 +200,14 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
     return fs, result, extra, s, mapper, models
 
 
+def _args_again(args, paths: list[str], features: tuple[str, int], mapper: str, **more) -> argparse.Namespace:
+    """``args`` for the stages before the triangulation again on the images ``paths`` alone, with the SIFT choice
+    ``features`` (preset, max_features) and ``mapper``; ``more``: other options changed."""
+    preset, max_features = features
+    return argparse.Namespace(**dict(vars(args), inputs=paths, image_list=None, recursive=False, preset=preset,
+                                     max_features=max_features, mapper=mapper, **more))
+
+
 def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, export, models, mapped,
                   sources) -> list[dict]:
     """Each scene of a collection as good as that scene alone (issue 59): where the collection's size made an
@@ -226,9 +234,7 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
             continue
         names = sorted(registered_names(m.rec), key=by_name.get)
         folder = out / "scenes" / m.folder.name
-        sub = argparse.Namespace(**dict(vars(args), inputs=[paths[by_name[name]] for name in names],
-                                        image_list=None, recursive=False, preset=preset,
-                                        max_features=max_features, mapper=asked.mapper))
+        sub = _args_again(args, [paths[by_name[name]] for name in names], (preset, max_features), asked.mapper)
         say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
         print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
         entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset, "max_features": max_features}
@@ -289,10 +295,8 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
                         "trusted", bogus, unfit)
             continue
         folder = out / "shared-camera" / str(k)
-        preset, max_features = choose_features(asked.preset, asked.max_features, len(names))
-        sub = argparse.Namespace(**dict(vars(args), inputs=paths, image_list=None, recursive=False, preset=preset,
-                                        max_features=max_features, mapper=asked.mapper, single_camera=False,
-                                        single_camera_per_folder=True))
+        sub = _args_again(args, paths, choose_features(asked.preset, asked.max_features, len(names)), asked.mapper,
+                          single_camera=False, single_camera_per_folder=True)
         camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
         say = f"{_folder(m, out)} again, one camera per folder: "
         print(f"{bogus}; its {count(len(names), 'image')} share one size a folder and have no EXIF focal length, "
