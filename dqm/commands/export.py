@@ -62,12 +62,14 @@ def add_camera_sharing_options(group) -> None:
 def add_cluster_matches_option(group, default: str | None = "auto") -> None:
     """--cluster-matches: which members of a cluster COLMAP gets as matches (dqm export colmap, dqm sfm; None as
     the default: not given, which is ``auto``, so that dqm export hloc can tell it was not given)."""
-    from ..vision.colmap import ALL_PAIRS_UP_TO, CLUSTER_MATCHES
+    from ..vision.colmap import CLUSTER_MATCHES, SEQUENCE_FILL, SEQUENCE_FROM
 
     group.add_argument("--cluster-matches", choices=CLUSTER_MATCHES, default=default,
-                       help=f"auto (default): every two members of a cluster of up to {ALL_PAIRS_UP_TO}, log-spaced "
-                            f"members in larger ones (a video's tracks through tens of frames: the mapper's input "
-                            f"and time cut, docs/sfm.md); all: every two members of every cluster; log: each member "
+                       help=f"auto (default): every two members of a cluster, but log-spaced members in a track "
+                            f"through a run of frames (more than {SEQUENCE_FROM} members, in "
+                            f"{SEQUENCE_FILL * 100:.0f}%% or more of the images from its first to its last: a "
+                            f"video's; the mapper's input and time cut, docs/sfm.md); all: every two members of "
+                            f"every cluster; log: each member "
                             f"with those 1, 2, 4, ... places after it in image order, at most s log2 s matches for a "
                             f"cluster of s, one track still")
 

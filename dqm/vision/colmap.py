@@ -82,16 +82,41 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     return pycolmap
 
 
-#: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): every two (``all``), each
-#: member with those 1, 2, 4, ... places after it in image order (``log``), or every two in clusters of up to
-#: :data:`ALL_PAIRS_UP_TO` members and log-spaced ones in larger clusters (``auto``, the default)
+#: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): ``auto`` (the export's
+#: default) every two, but in a track through a run of frames (:func:`sequence_clusters`) log-spaced ones;
+#: ``all`` every two; ``log`` each member with those 1, 2, 4, ... places after it in image order
 CLUSTER_MATCHES = ("auto", "all", "log")
 
-#: ``cluster_matches="auto"``: the largest cluster whose every two members are matches (at most 7.5 matches an
-#: observation); larger clusters (a video's tracks through tens of frames) get log-spaced matches. The photo sets
-#: here have few such clusters (dtu/scan24 287 of 66,275 clusters across images, nerf_lego 129 of 39,230,
-#: entry-P10 and sacre_coeur none); cmu_hotel's 101 frames have 1,347 of 4,165 (docs/sfm.md)
-ALL_PAIRS_UP_TO = 16
+#: ``cluster_matches="auto"``: a cluster of more than this many members whose members are in at least
+#: :data:`SEQUENCE_FILL` of the images from its first to its last (image order) gets log-spaced matches. Every
+#: two members of a cluster of up to 16 are at most 7.5 matches an observation. Measured (docs/sfm.md): a video's
+#: tracks run through tens of frames (cmu_hotel 1,072 of 4,165 clusters: 17.5 matches an observation become 5.6);
+#: in nerf_lego's renders, in no order, a cluster's members are scattered (none; log-spaced matches in that order
+#: cost its cameras: AUC@1 0.730 -> 0.662 over 3 seeds with every cluster of more than 16 log-spaced), in
+#: dtu/scan24's, in path order, 11 of 66,275 qualify; entry-P10's and sacre_coeur's clusters are all smaller
+SEQUENCE_FROM = 16
+
+#: the share of the images from a cluster's first to its last that must hold a member (:data:`SEQUENCE_FROM`)
+SEQUENCE_FILL = 2 / 3
+
+
+def sequence_clusters(labels, image_ids) -> np.ndarray:
+    """Per row, whether its cluster is a track through a run of frames: more than :data:`SEQUENCE_FROM` members,
+    in at least :data:`SEQUENCE_FILL` of the images from its first member's to its last's (image ids in image
+    order; at most one member an image, constraint C2). There each member's neighbours in image order are its
+    strongest matches, and :func:`log_spaced_pairs` keeps them."""
+    lab = np.asarray(labels, np.int64)
+    ids = np.asarray(image_ids, np.int64)
+    if not len(lab):
+        return np.zeros(0, bool)
+    _, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    first = np.full(len(counts), ids.max(), np.int64)
+    last = np.full(len(counts), ids.min(), np.int64)
+    np.minimum.at(first, inverse, ids)
+    np.maximum.at(last, inverse, ids)
+    run = (counts > SEQUENCE_FROM) & (counts >= SEQUENCE_FILL * (last - first + 1))
+    return run[inverse]
 
 
 def log_spaced_pairs(labels, image_ids) -> tuple[np.ndarray, np.ndarray]:
@@ -117,10 +142,20 @@ def log_spaced_pairs(labels, image_ids) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(first), np.concatenate(second)
 
 
+def spaced_clusters(labels, image_ids, matches: str) -> int:
+    """How many clusters :func:`cluster_pairs` hands over as log-spaced members under ``matches`` (``log``: every
+    cluster of 4 or more; below, log-spaced members are every two)."""
+    lab = np.asarray(labels, np.int64)
+    if matches == "auto":
+        lab = lab[sequence_clusters(lab, image_ids)]
+    elif matches != "log":
+        return 0
+    return int((np.unique(lab, return_counts=True)[1] >= 4).sum())
+
+
 def cluster_pairs(labels, image_ids, matches: str = "all") -> dict[tuple[int, int], np.ndarray]:
     """Every two members of every cluster (``matches="all"``; ``"log"``: :func:`log_spaced_pairs`; ``"auto"``:
-    every two in clusters of up to :data:`ALL_PAIRS_UP_TO` members, log-spaced in larger ones), grouped by
-    image pair.
+    log-spaced in the clusters :func:`sequence_clusters` marks, every two in the others), grouped by image pair.
 
     Returns ``{(a, b): (m, 2) int64 array of feature indices}`` with image ``a < b`` and column 0
     in image ``a``. Within a cluster the images differ (constraint C2), so no pair is dropped.
@@ -132,9 +167,8 @@ def cluster_pairs(labels, image_ids, matches: str = "all") -> dict[tuple[int, in
     ids = np.asarray(image_ids, np.int64)
     labels = np.asarray(labels, np.int64)
     if matches == "auto":
-        _, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
-        small = counts[inverse.ravel()] <= ALL_PAIRS_UP_TO
-        every, spaced = np.flatnonzero(small), np.flatnonzero(~small)
+        spaced = sequence_clusters(labels, ids)
+        every, spaced = np.flatnonzero(~spaced), np.flatnonzero(spaced)
         f1, g1 = member_pairs(labels[every])
         f2, g2 = log_spaced_pairs(labels[spaced], ids[spaced])
         f, g = np.concatenate([every[f1], spaced[f2]]), np.concatenate([every[g1], spaced[g2]])
@@ -269,6 +303,9 @@ class ExportSummary:
     #: image pairs not among either image's ``partners`` strongest, not written (:func:`strongest_partners`)
     n_pairs_beyond: int = 0
     partners: int = 0
+    #: clusters whose matches were log-spaced (``cluster_matches``: ``auto``'s tracks through a run of frames,
+    #: :func:`sequence_clusters`, or every cluster of 4+ members with ``log``)
+    n_spaced_clusters: int = 0
 
     def pairs_line(self) -> str:
         """``N matches in M image pairs`` and, where some were left out, how many and why."""
@@ -280,6 +317,8 @@ class ExportSummary:
         if self.n_pairs_beyond:
             why.append(f"{count(self.n_pairs_beyond, 'pair')} outside both images' {self.partners} strongest left "
                        "out")
+        if self.n_spaced_clusters:
+            why.append(f"log-spaced members of {count(self.n_spaced_clusters, 'cluster')}")
         return line + (f" ({'; '.join(why)})" if why else "")
 
     def verified_line(self) -> str:
@@ -522,7 +561,8 @@ def export_database(database, keypoints, image_ids, image_paths: Sequence, label
             db.close()
         summary = ExportSummary(database, folder, len(paths), n, len(pairs), n_matches, names=names,
                                 n_cameras=len(cameras), n_pairs_left_out=left_out, min_matches=least,
-                                n_pairs_beyond=beyond, partners=partners)
+                                n_pairs_beyond=beyond, partners=partners,
+                                n_spaced_clusters=spaced_clusters(labels, ids, cluster_matches))
         if verify and pairs:
             summary.n_verified_pairs = _verify(tmp, num_threads, seed, bar)
             summary.n_pairs_dropped = drop_weak_pairs(tmp)
@@ -733,7 +773,8 @@ def write_matches(database, labels, image_ids, *, overwrite: bool = False, verif
             db.close()
         summary = ExportSummary(database, None, len(images), len(ids), len(pairs), n_matches,
                                 names=[im.name for im in images], n_pairs_left_out=left_out, min_matches=least,
-                                n_pairs_beyond=beyond, partners=partners)
+                                n_pairs_beyond=beyond, partners=partners,
+                                n_spaced_clusters=spaced_clusters(labels, ids, cluster_matches))
         if verify and pairs:
             summary.n_verified_pairs = _verify(tmp, num_threads, seed, bar)
             summary.n_pairs_dropped = drop_weak_pairs(tmp)

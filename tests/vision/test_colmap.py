@@ -91,6 +91,79 @@ def test_log_spaced_cluster_matches_keep_each_cluster_one_track_in_far_fewer_mat
         colmap.cluster_pairs(labels, ids, "tree")
 
 
+def test_auto_cluster_matches_log_space_only_tracks_through_a_run_of_frames():
+    """--cluster-matches auto (the export's default): a cluster of more than SEQUENCE_FROM members in at least
+    SEQUENCE_FILL of the images from its first to its last (a video's track) gives its log-spaced members; every
+    other cluster (smaller, or its members scattered in image order: photos in no order) every two. Each cluster
+    checked against the other two rules on it alone; a 101-frame track is 101 * 6.x matches, not 5,050."""
+    rng = np.random.default_rng(5)
+    big = colmap.SEQUENCE_FROM + 1
+    fill = colmap.SEQUENCE_FILL
+
+    def run(s, first, holes):  # s members over s + holes consecutive frames from `first`
+        return first + np.sort(rng.permutation(s + holes)[:s])
+
+    clusters = [  # (image ids, log-spaced?)
+        (np.arange(3), False), (run(big - 1, 10, 0), False),  # too small, even in consecutive frames
+        (run(big, 0, 0), True), (run(big, 40, int(big / fill) - big), True),  # the fill just reached
+        (run(big, 40, int(big / fill) - big + 1), False),  # just missed
+        (np.sort(rng.permutation(101)[:40]), False),  # scattered: every two
+        (np.arange(101), True), (run(60, 5, 20), True)]
+    assert all(len(set(i.tolist())) == len(i) for i, _ in clusters)
+    labels = np.concatenate([np.full(len(i), k) for k, (i, _) in enumerate(clusters)])
+    ids = np.concatenate([i for i, _ in clusters])
+    rows = rng.permutation(len(labels))
+    labels, ids = labels[rows], ids[rows]
+    np.testing.assert_array_equal(colmap.sequence_clusters(labels, ids), [clusters[k][1] for k in labels])
+
+    def as_sets(pairs):
+        return {p for m in pairs.values() for p in map(tuple, m.tolist())}
+
+    got = colmap.cluster_pairs(labels, ids, "auto")
+    assert sum(map(len, got.values())) == len(as_sets(got))
+    assert all(ids[f] == a and ids[g] == b for (a, b), m in got.items() for f, g in m)
+    for k, (_, spaced) in enumerate(clusters):
+        mine = np.flatnonzero(labels == k)
+        alone = {(int(mine[f]), int(mine[g]))
+                 for f, g in as_sets(colmap.cluster_pairs(labels[mine], ids[mine], "log" if spaced else "all"))}
+        assert {p for p in as_sets(got) if labels[p[0]] == k} == alone, k
+    sizes = [len(i) for i, _ in clusters]
+    n_auto = sum(sum(s - 2 ** e for e in range(8) if 2 ** e < s) if spaced else s * (s - 1) // 2
+                 for s, (_, spaced) in zip(sizes, clusters))
+    assert sum(map(len, got.values())) == n_auto < sum(s * (s - 1) // 2 for s in sizes) / 3
+    assert colmap.spaced_clusters(labels, ids, "auto") == 4 and colmap.spaced_clusters(labels, ids, "all") == 0
+    assert colmap.spaced_clusters(labels, ids, "log") == len(clusters) - 1  # all but the 3-member one
+
+
+def test_the_export_hands_large_clusters_over_as_log_spaced_matches_by_default(scene, tmp_path, monkeypatch, capsys):
+    """export_database and dqm export colmap without --cluster-matches write the auto rule's matches: with the
+    size bound lowered to 3, the scene's 4-image clusters (in every image from the first to the last) give 5
+    matches (offsets 1, 1, 1, 2, 2), not 6; the others every pair; the summary says how many were log-spaced."""
+    from dqm.cli import main
+
+    def auto_matches(labels):
+        sizes = np.bincount(np.unique(labels, return_inverse=True)[1].ravel())
+        assert (sizes == 4).sum() > 20
+        return int(sum(s * (s - 1) // 2 for s in sizes if s <= 3) + 5 * (sizes == 4).sum()), int((sizes == 4).sum())
+
+    monkeypatch.setattr(colmap, "SEQUENCE_FROM", 3)  # a cluster of 4 images of 4 is a run of frames
+    want, fours = auto_matches(scene["labels"])
+    s = colmap.export_database(tmp_path / "auto.db", scene["kp"], scene["ids"], scene["paths"], scene["labels"],
+                               verify=False)
+    assert s.n_matches == want and s.n_spaced_clusters == fours
+    assert f"(log-spaced members of {fours} clusters)" in s.pairs_line()
+    every = colmap.export_database(tmp_path / "all.db", scene["kp"], scene["ids"], scene["paths"], scene["labels"],
+                                   verify=False, cluster_matches="all")
+    assert every.n_matches == want + fours
+    clusters = tmp_path / "clusters.npz"
+    assert main(["match", str(scene["folder"]), "--out", str(clusters), "--no-guided", "--quiet"]) == 0
+    want, _ = auto_matches(io.load_clusters(clusters)["labels"])
+    capsys.readouterr()
+    assert main(["export", "colmap", str(clusters), "--database", str(tmp_path / "cli.db"), "--no-verify"]) == 0
+    out = capsys.readouterr().out
+    assert f"{want} matches in" in out, out
+
+
 def test_strongest_partners_keep_each_images_pairs_with_the_most_matches():
     """A pair stays where it is among the N with the most matches of either of its images (ties: the lower
     other image); 0, or N at least the images less one, keeps every pair."""
