@@ -728,7 +728,8 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     points (185 after the last stage). Where a model has bogus cameras and its images share one size a folder
     with no EXIF focal length, they are mapped again with one camera per folder into shared-camera/<k>/, which
     replaces the first model (kept in sparse/<k>) where it registers as many images with fewer bogus cameras and
-    as many 3-D points. Here the mappings' models are spoiled as the global mapper spoiled cmu_hotel's (these
+    as many 3-D points; mapped again by the incremental mapper, which checks the cameras as it goes. Here the
+    mappings' models are spoiled as the global mapper spoiled cmu_hotel's (these
     generated views give it sound cameras): some cameras made bogus, some points taken away. The first model is
     kept where the second has fewer points, where the second cannot be made, and where the cameras are shared
     already (--single-camera), each with a warning."""
@@ -762,13 +763,17 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
         return capsys.readouterr(), json.loads((tmp_path / name / "sfm.json").read_text())
 
     monkeypatch.setattr(sfm, "reconstruct", spoiled)
+    global_from = sfm.GLOBAL_FROM
+    monkeypatch.setattr(sfm, "GLOBAL_FROM", 3)  # the first mapping by the global mapper, the second incremental
     captured, report = run("m", spoil={1: (5, 0.5)})
+    monkeypatch.setattr(sfm, "GLOBAL_FROM", global_from)
     assert "sparse/0: 5 of 5 registered images have a camera COLMAP calls bogus" in captured.out
     assert "it replaces sparse/0" in captured.out
     assert f"{tmp_path / 'm'}/shared-camera" in captured.out.splitlines()[-1]
     [again] = report["shared_camera_again"]
     assert again["taken"] and (again["images"], again["bogus_cameras"]) == (5, 5) and len(calls) == 2
     assert (again["registered_again"], again["bogus_cameras_again"]) == (5, 0)
+    assert report["options"]["mapper"] == "global" and again["mapper"] == "incremental"
     assert again["points_again"] > again["model_before"]["points"] > 0
     assert report["models"][0]["folder"] == "shared-camera/0/sparse/0" and report["model"]["bogus_cameras"] == 0
     assert report["model"]["registered"] == 5 and report["model"]["points"] > 0
