@@ -520,7 +520,7 @@ def run_clusters(run_dir: Path, scene_of: dict[str, str]):
         db.close()
     scenes = sorted(set(scene_of.values()))
     code = np.array([scenes.index(scene_of[n]) for n in names])
-    return z["labels"], code[z["image_ids"]], scenes
+    return z["labels"], z["image_ids"], code[z["image_ids"]], scenes
 
 
 def clusters_across_scenes(labels, scene) -> dict:
@@ -534,23 +534,27 @@ def clusters_across_scenes(labels, scene) -> dict:
             "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
 
 
-def mapper_input_by_scene(labels, scene, scenes) -> dict:
-    """Per scene (:func:`run_clusters`' arrays), what dqm's clusters hand the mapper (every two members of a
-    cluster a match, each cluster cut to its members in the scene): its features, the observations in clusters
-    of 2+, the matches, their ratio, the largest cluster and the share of the matches in clusters of 10 or more;
-    and ``apart``: the share of one pair scan over all the features that matching each scene apart would cost,
-    sum(n_s^2) / (sum n_s)^2."""
+def mapper_input_by_scene(labels, image_ids, scene, scenes, rule: str = "auto") -> dict:
+    """Per scene (:func:`run_clusters`' arrays), what dqm's clusters hand the mapper (the matches of ``rule``, the
+    run's ``--cluster-matches``: dqm.vision.colmap.cluster_pairs, each cluster cut to its members in the scene):
+    its features, the observations in clusters of 2+, the matches, their ratio, the largest cluster and the share
+    of the matches in clusters of 10 or more; and ``apart``: the share of one pair scan over all the features that
+    matching each scene apart would cost, sum(n_s^2) / (sum n_s)^2."""
     import numpy as np
 
-    out: dict = {"scenes": {}}
+    from dqm.vision.colmap import cluster_pairs
+
+    out: dict = {"rule": rule, "scenes": {}}
     for k, name in enumerate(scenes):
-        mine = labels[scene == k]
-        _, sizes = np.unique(mine, return_counts=True)
-        sizes = sizes[sizes > 1].astype(np.int64)
-        pairs = sizes * (sizes - 1) // 2
-        out["scenes"][name] = {"features": int(len(mine)), "observations": int(sizes.sum()),
-                               "matches": int(pairs.sum()), "largest": int(sizes.max(initial=0)),
-                               "matches_in_clusters_of_10": float(pairs[sizes >= 10].sum() / max(pairs.sum(), 1))}
+        mine = scene == k
+        lab, ids = labels[mine], image_ids[mine]
+        _, inverse, sizes = np.unique(lab, return_inverse=True, return_counts=True)
+        pairs = cluster_pairs(lab, ids, rule)
+        firsts = np.concatenate([m[:, 0] for m in pairs.values()]) if pairs else np.zeros(0, np.int64)
+        of_pair = sizes[inverse.ravel()[firsts]]  # each match's cluster size
+        out["scenes"][name] = {"features": int(len(lab)), "observations": int(sizes[sizes > 1].sum()),
+                               "matches": int(len(firsts)), "largest": int(sizes.max(initial=0)),
+                               "matches_in_clusters_of_10": float((of_pair >= 10).sum() / max(len(firsts), 1))}
     n = np.array([e["features"] for e in out["scenes"].values()], np.float64)
     out["apart"] = float((n ** 2).sum() / max(n.sum() ** 2, 1.0))
     return out
@@ -607,9 +611,10 @@ def run_collection(chosen, seeds, folders: list[Path], gts: list, work: Path) ->
     results: dict[str, list[dict]] = {}
     for name, run_dir, r in each_run(chosen, seeds, work, image_dir, options=["--recursive"]):
         if (run_dir / "clusters.npz").exists():  # dqm's runs
-            labels, scene, scenes = run_clusters(run_dir, scene_of)
+            labels, image_ids, scene, scenes = run_clusters(run_dir, scene_of)
             r["clusters_across_scenes"] = clusters_across_scenes(labels, scene)
-            r["mapper_input"] = mapper_input_by_scene(labels, scene, scenes)
+            rule = json.loads((run_dir / "sfm.json").read_text())["options"].get("cluster_matches", "all")
+            r["mapper_input"] = mapper_input_by_scene(labels, image_ids, scene, scenes, rule)
         folders = [m["folder"] for m in r["models"]] if "models" in r else None  # dqm's runs
         r["collection"] = score_collection(run_dir, scene_of, truths, folders)
         r["verified_pairs"] = verified_by_scene_pair(run_dir / "database.db", scene_of)
@@ -673,8 +678,9 @@ def collection_table(results: dict, counts: dict) -> list[str]:
         mi = runs[0].get("mapper_input")
         if not mi:
             continue
-        lines += ["", f"What {name}'s clusters hand the mapper, by scene (every two members of a cluster a match, "
-                      "each cluster cut to its members in the scene):", "",
+        rule = mi.get("rule", "all")
+        lines += ["", f"What {name}'s clusters hand the mapper, by scene (`--cluster-matches {rule}`, each cluster "
+                      "cut to its members in the scene):", "",
                   "| scene | features | observations in clusters of 2+ | matches | matches / observations | "
                   "largest cluster | matches in clusters of 10+ |", "|---|---|---|---|---|---|---|"]
         for scene, e in mi["scenes"].items():
