@@ -442,7 +442,8 @@ def run(args) -> int:
         "model_before_triangulation": mapped[0] if models else model_numbers(None),
         "pairs": {"written": s.n_image_pairs, "left_out": s.n_pairs_left_out,
                   "beyond_partners": s.n_pairs_beyond, "verified": s.n_verified_pairs,
-                  "dropped_as_weak": s.n_pairs_dropped},
+                  "dropped_as_weak": s.n_pairs_dropped, "matches": s.n_matches,
+                  "log_spaced_clusters": s.n_spaced_clusters},
         "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
         "shared_camera_again": again,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}

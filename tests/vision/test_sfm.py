@@ -938,6 +938,8 @@ def test_dqm_sfm_log_spaced_cluster_matches(tmp_path, capsys):
         written[how] = int(re.search(r"([\d,]+) matches in", out).group(1).replace(",", ""))
         report = json.loads((tmp_path / how / "sfm.json").read_text())
         assert report["options"]["cluster_matches"] == how and report["model"]["registered"] == 6
+        assert report["pairs"]["matches"] == written[how] and (report["pairs"]["log_spaced_clusters"] > 0) == (
+            how == "log")
     assert written["log"] < written["all"]  # the pairs with 15 matches or more (COLMAP verifies no fewer)
     sizes = np.bincount(load_clusters(tmp_path / "log" / "clusters.npz")["labels"])
     assert sizes.max() >= 4  # clusters where log-spaced matches are fewer than every two members
