@@ -272,8 +272,8 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
     and at least as many 3-D points (one camera for all of a true single camera's images is not better
     everywhere: docs/sfm.md); otherwise the first stays, with a warning. The images are mapped again with
     COLMAP's incremental mapper unless a mapper was asked for: it checks every camera against those bounds as it
-    registers images, the global mapper does not (on cmu_hotel the global mapper's model with one camera had 401
-    points, the incremental mapper's 2,697, the matches of ``--cluster-matches auto``; docs/sfm.md). Returns what
+    registers images, the global mapper does not (cmu_hotel with ``--cluster-matches auto``: the global mapper's model
+    with one camera had 401 points, the incremental mapper's 2,856; docs/sfm.md). Returns what
     was done, one entry a model, for sfm.json."""
     from ..vision import colmap
     from ..vision.sfm import bogus_cameras, choose_features, model_numbers, registered_names
