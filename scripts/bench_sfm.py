@@ -534,7 +534,7 @@ def clusters_across_scenes(labels, scene) -> dict:
             "of_multi_image_clusters": int((np.bincount(labels) > 1).sum())}
 
 
-def mapper_input_by_scene(labels, image_ids, scene, scenes, rule: str = "auto") -> dict:
+def mapper_input_by_scene(labels, image_ids, scene, scenes, rule: str = "all") -> dict:
     """Per scene (:func:`run_clusters`' arrays), what dqm's clusters hand the mapper (the matches of ``rule``, the
     run's ``--cluster-matches``: dqm.vision.colmap.cluster_pairs, each cluster cut to its members in the scene):
     its features, the observations in clusters of 2+, the matches, their ratio, the largest cluster and the share

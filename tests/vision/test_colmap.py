@@ -92,7 +92,7 @@ def test_log_spaced_cluster_matches_keep_each_cluster_one_track_in_far_fewer_mat
 
 
 def test_auto_cluster_matches_log_space_only_tracks_through_a_run_of_frames():
-    """--cluster-matches auto (the export's default): a cluster of more than SEQUENCE_FROM members in at least
+    """--cluster-matches auto: a cluster of more than SEQUENCE_FROM members in at least
     SEQUENCE_FILL of the images from its first to its last (a video's track) gives its log-spaced members; every
     other cluster (smaller, or its members scattered in image order: photos in no order) every two. Each cluster
     checked against the other two rules on it alone; a 101-frame track is 101 * 6.x matches, not 5,050."""
@@ -135,8 +135,8 @@ def test_auto_cluster_matches_log_space_only_tracks_through_a_run_of_frames():
     assert colmap.spaced_clusters(labels, ids, "log") == len(clusters) - 1  # all but the 3-member one
 
 
-def test_the_export_hands_large_clusters_over_as_log_spaced_matches_by_default(scene, tmp_path, monkeypatch, capsys):
-    """export_database and dqm export colmap without --cluster-matches write the auto rule's matches: with the
+def test_the_export_log_spaces_tracks_through_frames_when_asked(scene, tmp_path, monkeypatch, capsys):
+    """export_database and dqm export colmap with --cluster-matches auto write that rule's matches: with the
     size bound lowered to 3, the scene's 4-image clusters (in every image from the first to the last) give 5
     matches (offsets 1, 1, 1, 2, 2), not 6; the others every pair; the summary says how many were log-spaced."""
     from dqm.cli import main
@@ -149,17 +149,18 @@ def test_the_export_hands_large_clusters_over_as_log_spaced_matches_by_default(s
     monkeypatch.setattr(colmap, "SEQUENCE_FROM", 3)  # a cluster of 4 images of 4 is a run of frames
     want, fours = auto_matches(scene["labels"])
     s = colmap.export_database(tmp_path / "auto.db", scene["kp"], scene["ids"], scene["paths"], scene["labels"],
-                               verify=False)
+                               verify=False, cluster_matches="auto")
     assert s.n_matches == want and s.n_spaced_clusters == fours
     assert f"(log-spaced members of {fours} clusters)" in s.pairs_line()
     every = colmap.export_database(tmp_path / "all.db", scene["kp"], scene["ids"], scene["paths"], scene["labels"],
-                                   verify=False, cluster_matches="all")
+                                   verify=False)  # the default: every two members
     assert every.n_matches == want + fours
     clusters = tmp_path / "clusters.npz"
     assert main(["match", str(scene["folder"]), "--out", str(clusters), "--no-guided", "--quiet"]) == 0
     want, _ = auto_matches(io.load_clusters(clusters)["labels"])
     capsys.readouterr()
-    assert main(["export", "colmap", str(clusters), "--database", str(tmp_path / "cli.db"), "--no-verify"]) == 0
+    assert main(["export", "colmap", str(clusters), "--database", str(tmp_path / "cli.db"), "--no-verify",
+                 "--cluster-matches", "auto"]) == 0
     out = capsys.readouterr().out
     assert f"{want} matches in" in out, out
 
