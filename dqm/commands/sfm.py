@@ -215,48 +215,82 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     ``auto`` choice (the SIFT preset, the mapper: :func:`dqm.vision.sfm.choose_preset`, :func:`choose_mapper`)
     that a model of fewer images would not make, that model's registered images go through the stages before the
     triangulation again, alone, with the choices of their own number, into ``out/scenes/<model>/`` (its own
-    clusters.npz, database.db and sparse/0; names as in the collection). Its model replaces the collection's in
-    ``models``, ``mapped`` and ``sources`` where it registers at least as many of the images; the collection's
-    stays in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
-    redone). Returns what was done, one entry a model redone, for sfm.json."""
-    from ..vision.sfm import choose_features, choose_mapper, model_numbers, registered_names
+    clusters.npz, database.db and sparse/0; names as in the collection). Where several models are such and all
+    their images together would get the same choices, they are redone together, into ``out/scenes/<first
+    model>/``: a scene the collection's mapper cut apart or mixed with another's images is then whole again
+    (the 270-photo collection of docs/sfm.md with ``--cluster-matches auto``: the global mapper put 8 of
+    entry-P10's photos with sacre_coeur's 10 in one model, sharing no 3-D point, and the other 2 in a model of
+    their own). The models made alone replace the collection's in ``models``, ``mapped`` and ``sources`` where
+    they register at least as many of the images (each counted once), and, where they are several, where no
+    collection model holds two of them joined by 3-D points (:func:`dqm.vision.sfm.linked_across`: the
+    collection's mapper held them as one scene that the incremental mapper alone could not). The collection's
+    stay in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
+    redone). Returns what was done, one entry a run alone, for sfm.json."""
+    from ..vision.sfm import choose_features, choose_mapper, linked_across, model_numbers, registered_names
 
     if len(models) < 2:
         return []
     by_name = {name: k for k, name in enumerate(export.names)}
     paths = [str(Path(export.image_dir) / name) for name in export.names]
-    collection_mapper = choose_mapper(args.mapper, export.n_images)
-    done = []
-    for k, m in enumerate(list(models)):
-        n = int(m.rec.num_reg_images())
-        preset, max_features = choose_features(asked.preset, asked.max_features, n)
-        if (preset, max_features) == (args.preset, args.max_features) and \
-                choose_mapper(asked.mapper, n) == collection_mapper:
-            continue
-        names = sorted(registered_names(m.rec), key=by_name.get)
-        folder = out / "scenes" / m.folder.name
+
+    def choices(n: int):
+        return choose_features(asked.preset, asked.max_features, n), choose_mapper(asked.mapper, n)
+
+    collection = ((args.preset, args.max_features), choose_mapper(args.mapper, export.n_images))
+    todo = [k for k, m in enumerate(models) if choices(int(m.rec.num_reg_images())) != collection]
+    together = set().union(*(registered_names(models[k].rec) for k in todo)) if todo else set()
+    same = {choices(int(models[k].rec.num_reg_images())) for k in todo} == {choices(len(together))}
+    batches = [todo] if len(todo) > 1 and same else [[k] for k in todo]
+    done, replaced = [], {}
+    for batch in batches:
+        first = models[batch[0]]
+        names = sorted(set().union(*(registered_names(models[k].rec) for k in batch)), key=by_name.get)
+        n = len(names)
+        (preset, max_features), _ = choices(n)
+        folder = out / "scenes" / first.folder.name
         sub = _args_again(args, [paths[by_name[name]] for name in names], (preset, max_features), asked.mapper)
-        say = f"{_folder(m, out)} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
+        what = " and ".join(_folder(models[k], out) for k in batch)
+        say = f"{what} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
         print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
-        entry = {"collection_folder": _folder(m, out), "images": n, "preset": preset, "max_features": max_features}
+        entry = {"collection_folder": _folder(first, out), "collection_folders": [_folder(models[k], out)
+                                                                               for k in batch],
+                 "images": n, "preset": preset, "max_features": max_features}
         done.append(entry)
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
                                                       image_dir=export.image_dir, say=say)
-        except InputError as e:  # the collection's model stands; what was written stays
-            print(f"{say}not redone ({e}); the collection's model {entry['collection_folder']} is kept", flush=True)
+        except InputError as e:  # the collection's models stand; what was written stays
+            print(f"{say}not redone ({e}); the collection's model {what} is kept", flush=True)
             entry.update(taken=False, error=str(e))
             continue
+        taken, seen = [], set()  # the models alone that hold images no larger one does
+        for m in own:
+            if registered_names(m.rec) - seen:
+                taken.append(m)
+                seen |= registered_names(m.rec)
+        groups = [registered_names(m.rec) for m in taken]
+        joined = next((_folder(models[k], out) for k in batch if len(groups) > 1 and
+                       linked_across(models[k].rec, groups)), None)
         got = int(own[0].rec.num_reg_images()) if own else 0
-        taken = got >= n
-        entry.update(mapper=mapper, registered_alone=got, models_alone=len(own), taken=taken,
-                     collection_model=mapped[k])
-        if taken:
-            models[k], mapped[k], sources[k] = own[0], model_numbers(own[0].rec), (folder / "database.db", s, fs)
-            entry["folder"] = _folder(own[0], out)
-        kept = "it replaces the collection's" if taken else \
-            f"the collection's model {entry['collection_folder']} is kept"
-        print(f"{say}{got} of {n} images registered in its largest model; {kept}", flush=True)
+        ok = len(seen) >= n and joined is None
+        entry.update(mapper=mapper, registered_alone=got, registered_in_its_models=len(seen), models_alone=len(own),
+                     taken=ok, collection_model=mapped[batch[0]],
+                     collection_models=[mapped[k] for k in batch])
+        if ok:
+            replaced[batch[0]] = [(m, model_numbers(m.rec), (folder / "database.db", s, fs)) for m in taken]
+            replaced.update({k: [] for k in batch[1:]})
+            entry["folder"] = _folder(taken[0], out)
+            entry["folders"] = [_folder(m, out) for m in taken]
+        kept = f"it replaces the collection's ({count(len(taken), 'model')} for {count(len(batch), 'model')})" \
+            if ok else f"the collection's model {what} is kept" + (
+                f" ({joined} holds images of two of them joined by 3-D points)" if joined else "")
+        print(f"{say}{len(seen)} of {n} images registered in {count(len(own), 'model')}, {got} in its largest; "
+              f"{kept}", flush=True)
+    if replaced:
+        rows = [[(models[k], mapped[k], sources[k])] if k not in replaced else replaced[k] for k in range(len(models))]
+        firsts = [row[0] for row in rows if row]
+        rest = [more for row in rows for more in row[1:]]
+        models[:], mapped[:], sources[:] = (list(t) for t in zip(*(firsts + rest)))
     return done
 
 

@@ -223,6 +223,18 @@ def scene_groups(rec, least: int = MIN_SHARED_POINTS) -> list[list[int]]:
     return many
 
 
+def linked_across(rec, groups: list[set[str]], least: int = MIN_SHARED_POINTS) -> bool:
+    """Whether two registered images of a model (pycolmap's Reconstruction) that lie in two of ``groups`` (sets of
+    image names; a name in several counts in the first) share ``least`` 3-D points or more: the model holds the
+    groups together by its structure, not by chance points (:func:`scene_groups`)."""
+    group_of: dict[str, int] = {}
+    for g, names in enumerate(groups):
+        for name in names:
+            group_of.setdefault(name, g)
+    where = {i: group_of.get(rec.image(i).name, -1) for i in rec.reg_image_ids()}
+    return any(where[a] >= 0 and where[b] >= 0 and where[a] != where[b] for a, b in covisible_pairs(rec, least))
+
+
 def split_scenes(models: list[Model], out: Path) -> list[Model]:
     """Each model whose images fall in groups that share (almost) no 3-D point (:func:`scene_groups`) as one model
     per group, written to ``out``: the largest group keeps the model's key and folder, the others take the next free

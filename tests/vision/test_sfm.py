@@ -445,6 +445,66 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
     assert [m["folder"] for m in given["models"]] == ["sparse/0", "sparse/1"]
 
 
+def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, capsys, monkeypatch):
+    """Several models a collection's size gave other choices than their own, whose images together would get
+    the same choices, are redone together, alone: a scene the collection's mapper cut apart or mixed with
+    another's photos is whole again (the 270-photo collection with --cluster-matches auto: 8 of entry-P10's photos
+    in sacre_coeur's model, 2 in one of their own). Three generated scenes of 10, 5 and 4 images with the
+    threshold at 10: the large one keeps the collection's choices; the two small ones are mapped again together,
+    into scenes/<the first's folder>/, and make a model each there, which replace the collection's two. Where a
+    collection model holds two of the models made alone joined by its 3-D points (a scene the collection's
+    mapper held together and the mapper alone could not), the collection's models are kept."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import sfm
+
+    scenes = [generate_scene3d(seed=seed, n_images=n).save(tmp_path / name)
+              for seed, n, name in ((0, 10, "c"), (2, 4, "a"), (5, 5, "b"))]
+    monkeypatch.setattr(sfm, "GLOBAL_FROM", 10)
+    argv = ["sfm", *map(str, scenes), "--quiet", "--no-triangulate"]
+    assert main([*argv, "--out", str(tmp_path / "m")]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    [alone] = report["scenes_alone"]
+    assert alone["collection_folders"] == ["sparse/1", "sparse/2"] and alone["images"] == 9 and alone["taken"]
+    assert (alone["registered_in_its_models"], alone["models_alone"]) == (9, 2)
+    assert "sparse/1 and sparse/2 (9 images) again alone" in out and "(2 models for 2 models)" in out
+    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1/sparse/0", "scenes/1/sparse/1"]
+    assert [m["registered"] for m in report["models"]] == [10, 5, 4]
+    for m in report["models"][1:]:
+        rec = pycolmap.Reconstruction(str(tmp_path / "m" / m["folder"]))
+        assert len({image.name.split("/")[0] for image in rec.images.values() if image.has_pose}) == 1
+
+    monkeypatch.setattr(sfm, "linked_across", lambda rec, groups: True)
+    assert main([*argv, "--out", str(tmp_path / "held")]) == 0
+    out = capsys.readouterr().out
+    [alone] = json.loads((tmp_path / "held" / "sfm.json").read_text())["scenes_alone"]
+    assert not alone["taken"] and "sparse/1 holds images of two of them joined by 3-D points" in out
+    assert [m["folder"] for m in json.loads((tmp_path / "held" / "sfm.json").read_text())["models"]] == [
+        "sparse/0", "sparse/1", "sparse/2"]
+
+
+def test_linked_across_asks_whether_a_model_joins_two_groups_of_images_by_its_points():
+    """:func:`dqm.vision.sfm.linked_across`: two images of two groups that share 15 3-D points or more."""
+    from types import SimpleNamespace as NS
+
+    from dqm.vision.sfm import linked_across
+
+    def model(shared):  # {(image a, image b): points both see}; images 1-4, named "i<k>"
+        points = [NS(track=NS(elements=[NS(image_id=a), NS(image_id=b)])) for (a, b), n in shared.items()
+                  for _ in range(n)]
+        return NS(points3D=dict(enumerate(points)), reg_image_ids=lambda: [1, 2, 3, 4],
+                  image=lambda i: NS(name=f"i{i}"))
+
+    rec = model({(1, 2): 40, (3, 4): 40, (2, 3): 14})
+    assert not linked_across(rec, [{"i1", "i2"}, {"i3", "i4"}])  # 14 chance points across
+    assert linked_across(model({(1, 2): 40, (3, 4): 40, (2, 3): 15}), [{"i1", "i2"}, {"i3", "i4"}])
+    assert linked_across(rec, [{"i1"}, {"i2", "i3", "i4"}])  # 1 and 2 see 40 points
+    assert not linked_across(rec, [{"i1", "i2", "i3", "i4"}]) and not linked_across(rec, [{"i1", "i2"}, {"x"}])
+    assert not linked_across(rec, [{"i1", "i2"}, {"i1", "i3", "i4"}])  # i1 counts in the first group only
+
+
 def test_a_scene_that_cannot_be_redone_alone_keeps_the_collections_model(tmp_path, capsys, monkeypatch):
     """The fallbacks of the scenes redone alone (the test before): a scene whose run alone stops on bad input,
     and one whose run alone registers fewer of its images, keep the collection's model (in sparse/<k>, from
