@@ -220,7 +220,10 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     model>/``: a scene the collection's mapper cut apart or mixed with another's images is then whole again
     (the 270-photo collection of docs/sfm.md with ``--cluster-matches auto``: the global mapper put 8 of
     entry-P10's photos with sacre_coeur's 10 in one model, sharing no 3-D point, and the other 2 in a model of
-    their own). The models made alone replace the collection's in ``models``, ``mapped`` and ``sources`` where
+    their own); each model they make there is then made again from its own images alone, into
+    ``scenes/<first model>/scene-<j>/``, and replaces the one made together where it registers as many of them:
+    each scene as it is alone, not matched with the other's photos. The models made alone replace the collection's
+    in ``models``, ``mapped`` and ``sources`` where
     they register at least as many of the images (each counted once), and, where they are several, where no
     collection model holds two of them joined by 3-D points (:func:`dqm.vision.sfm.linked_across`: the
     collection's mapper held them as one scene that the incremental mapper alone could not). The collection's
@@ -241,51 +244,66 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     together = set().union(*(registered_names(models[k].rec) for k in todo)) if todo else set()
     same = {choices(int(models[k].rec.num_reg_images())) for k in todo} == {choices(len(together))}
     batches = [todo] if len(todo) > 1 and same else [[k] for k in todo]
-    done, replaced = [], {}
-    for batch in batches:
-        first = models[batch[0]]
-        names = sorted(set().union(*(registered_names(models[k].rec) for k in batch)), key=by_name.get)
+
+    def redo(names: list[str], folder: Path, before: list, what: str) -> tuple[dict, list]:
+        """``names`` through the stages again alone into ``folder``, against the models ``before`` ((model,
+        its numbers) each) that held them; what was done, and the models made alone that replace them ((model,
+        numbers, source) each; none where they are kept)."""
         n = len(names)
         (preset, max_features), _ = choices(n)
-        folder = out / "scenes" / first.folder.name
         sub = _args_again(args, [paths[by_name[name]] for name in names], (preset, max_features), asked.mapper)
-        what = " and ".join(_folder(models[k], out) for k in batch)
         say = f"{what} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
         print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
-        entry = {"collection_folder": _folder(first, out), "collection_folders": [_folder(models[k], out)
-                                                                               for k in batch],
+        entry = {"collection_folder": _folder(before[0][0], out),
+                 "collection_folders": [_folder(m, out) for m, _ in before],
                  "images": n, "preset": preset, "max_features": max_features}
-        done.append(entry)
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
                                                       image_dir=export.image_dir, say=say)
-        except InputError as e:  # the collection's models stand; what was written stays
-            print(f"{say}not redone ({e}); the collection's model {what} is kept", flush=True)
+        except InputError as e:  # the models before stand; what was written stays
+            print(f"{say}not redone ({e}); {what} is kept", flush=True)
             entry.update(taken=False, error=str(e))
-            continue
+            return entry, []
         taken, seen = [], set()  # the models alone that hold images no larger one does
         for m in own:
             if registered_names(m.rec) - seen:
                 taken.append(m)
                 seen |= registered_names(m.rec)
         groups = [registered_names(m.rec) for m in taken]
-        joined = next((_folder(models[k], out) for k in batch if len(groups) > 1 and
-                       linked_across(models[k].rec, groups)), None)
+        joined = next((_folder(m, out) for m, _ in before if len(groups) > 1 and linked_across(m.rec, groups)),
+                      None)
         got = int(own[0].rec.num_reg_images()) if own else 0
         ok = len(seen) >= n and joined is None
         entry.update(mapper=mapper, registered_alone=got, registered_in_its_models=len(seen), models_alone=len(own),
-                     taken=ok, collection_model=mapped[batch[0]],
-                     collection_models=[mapped[k] for k in batch])
+                     taken=ok, collection_model=before[0][1], collection_models=[numbers for _, numbers in before])
         if ok:
-            replaced[batch[0]] = [(m, model_numbers(m.rec), (folder / "database.db", s, fs)) for m in taken]
-            replaced.update({k: [] for k in batch[1:]})
             entry["folder"] = _folder(taken[0], out)
             entry["folders"] = [_folder(m, out) for m in taken]
-        kept = f"it replaces the collection's ({count(len(taken), 'model')} for {count(len(batch), 'model')})" \
-            if ok else f"the collection's model {what} is kept" + (
-                f" ({joined} holds images of two of them joined by 3-D points)" if joined else "")
+        kept = f"it replaces {what} ({count(len(taken), 'model')} for {count(len(before), 'model')})" if ok else \
+            f"{what} is kept" + (f" ({joined} holds images of two of them joined by 3-D points)" if joined else "")
         print(f"{say}{len(seen)} of {n} images registered in {count(len(own), 'model')}, {got} in its largest; "
               f"{kept}", flush=True)
+        return entry, [(m, model_numbers(m.rec), (folder / "database.db", s, fs)) for m in taken] if ok else []
+
+    done, replaced = [], {}
+    for batch in batches:
+        names = sorted(set().union(*(registered_names(models[k].rec) for k in batch)), key=by_name.get)
+        folder = out / "scenes" / models[batch[0]].folder.name
+        what = " and ".join(_folder(models[k], out) for k in batch)
+        entry, taken = redo(names, folder, [(models[k], mapped[k]) for k in batch], f"the collection's {what}")
+        done.append(entry)
+        if len(taken) > 1:  # the scenes the images make alone, each alone again: as good as that scene alone
+            pieces = []
+            for j, (m, numbers, source) in enumerate(taken):
+                own = sorted(registered_names(m.rec), key=by_name.get)
+                part, again = redo(own, folder / f"scene-{j}", [(m, numbers)], _folder(m, out))
+                entry.setdefault("scenes", []).append(part)
+                pieces += again or [(m, numbers, source)]
+            taken = pieces
+            entry["folders"] = [_folder(m, out) for m, _, _ in taken]
+        if taken:
+            replaced[batch[0]] = taken
+            replaced.update({k: [] for k in batch[1:]})
     if replaced:
         rows = [[(models[k], mapped[k], sources[k])] if k not in replaced else replaced[k] for k in range(len(models))]
         firsts = [row[0] for row in rows if row]

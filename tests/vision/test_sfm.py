@@ -451,7 +451,8 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     another's photos is whole again (the 270-photo collection with --cluster-matches auto: 8 of entry-P10's photos
     in sacre_coeur's model, 2 in one of their own). Three generated scenes of 10, 5 and 4 images with the
     threshold at 10: the large one keeps the collection's choices; the two small ones are mapped again together,
-    into scenes/<the first's folder>/, and make a model each there, which replace the collection's two. Where a
+    into scenes/<the first's folder>/, and make a model each there; each of these is made again from its own
+    images alone (scenes/<k>/scene-<j>/: as that scene alone), and they replace the collection's two. Where a
     collection model holds two of the models made alone joined by its 3-D points (a scene the collection's
     mapper held together and the mapper alone could not), the collection's models are kept."""
     import pycolmap
@@ -470,7 +471,10 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     assert alone["collection_folders"] == ["sparse/1", "sparse/2"] and alone["images"] == 9 and alone["taken"]
     assert (alone["registered_in_its_models"], alone["models_alone"]) == (9, 2)
     assert "sparse/1 and sparse/2 (9 images) again alone" in out and "(2 models for 2 models)" in out
-    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1/sparse/0", "scenes/1/sparse/1"]
+    assert [(e["images"], e["taken"], e["collection_folder"]) for e in alone["scenes"]] == [
+        (5, True, "scenes/1/sparse/0"), (4, True, "scenes/1/sparse/1")]  # each scene alone again
+    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1/scene-0/sparse/0",
+                                                       "scenes/1/scene-1/sparse/0"] == ["sparse/0", *alone["folders"]]
     assert [m["registered"] for m in report["models"]] == [10, 5, 4]
     for m in report["models"][1:]:
         rec = pycolmap.Reconstruction(str(tmp_path / "m" / m["folder"]))
