@@ -59,18 +59,20 @@ def add_camera_sharing_options(group) -> None:
                              "COLMAP's ImageReader.single_camera_per_folder")
 
 
-def add_cluster_matches_option(group, default: str | None = "all") -> None:
-    """--cluster-matches: which members of a cluster COLMAP gets as matches (dqm export colmap, dqm sfm; None as
-    the default: not given, which is ``all``, so that dqm export hloc can tell it was not given)."""
-    from ..vision.colmap import CLUSTER_MATCHES, SEQUENCE_FILL, SEQUENCE_FROM
+def add_cluster_matches_option(group, given_only: bool = False) -> None:
+    """--cluster-matches: which members of a cluster COLMAP gets as matches (dqm export colmap, dqm sfm), default
+    :data:`dqm.vision.colmap.DEFAULT_CLUSTER_MATCHES`; ``given_only``: None where not given, so that dqm export
+    hloc can tell it was not given."""
+    from ..vision.colmap import CLUSTER_MATCHES, DEFAULT_CLUSTER_MATCHES, SEQUENCE_FILL, SEQUENCE_FROM
 
-    group.add_argument("--cluster-matches", choices=CLUSTER_MATCHES, default=default,
-                       help=f"all (default): every two members of a cluster; auto: every two, but log-spaced "
-                            f"members in a track through a run of frames (more than {SEQUENCE_FROM} members, in "
+    group.add_argument("--cluster-matches", choices=CLUSTER_MATCHES,
+                       default=None if given_only else DEFAULT_CLUSTER_MATCHES,
+                       help=f"auto (default): every two members of a cluster, but log-spaced members in a track "
+                            f"through a run of frames (more than {SEQUENCE_FROM} members, in "
                             f"{SEQUENCE_FILL * 100:.0f}%% or more of the images from its first to its last: a "
-                            f"video's; the mapper's input and time cut, docs/sfm.md); log: each member with those "
-                            f"1, 2, 4, ... places after it in image order, at most s log2 s matches for a cluster "
-                            f"of s, one track still")
+                            f"video's; the mapper's input and time cut, docs/sfm.md); all: every two members; log: "
+                            f"each member with those 1, 2, 4, ... places after it in image order, at most s log2 s "
+                            f"matches for a cluster of s, one track still")
 
 
 def camera_sharing(args) -> str:
@@ -109,7 +111,7 @@ def add_arguments(p) -> None:
                         "(e.g. f,cx,cy,k for SIMPLE_RADIAL), as COLMAP's ImageReader.camera_params; marked as "
                         "a prior (default: EXIF or 1.2 x the larger side, image centre, no distortion)")
     add_camera_sharing_options(g)
-    add_cluster_matches_option(g, default=None)
+    add_cluster_matches_option(g, given_only=True)
     g = p.add_argument_group("hloc")
     g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file (.h5) to write")
     g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file (.txt) to write")
@@ -193,7 +195,7 @@ def _run_colmap(args, t0: float):
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
                                verify=not args.no_verify, camera=camera, partners=args.partners,
-                               cluster_matches=args.cluster_matches or "all",
+                               cluster_matches=args.cluster_matches or colmap.DEFAULT_CLUSTER_MATCHES,
                                progress=not args.quiet)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
           f"{s.pairs_line()}"
@@ -213,7 +215,7 @@ def _run_colmap_into(args, t0: float):
     c = _load(args, ("image_names", "image_ids"))
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
                              names=[str(n) for n in c["image_names"]], partners=args.partners,
-                             cluster_matches=args.cluster_matches or "all",
+                             cluster_matches=args.cluster_matches or colmap.DEFAULT_CLUSTER_MATCHES,
                              progress=not args.quiet)
     verified = "" if args.no_verify else f", {s.verified_line()}"
     print(f"wrote into {db}: {s.pairs_line()}{verified} "

@@ -82,10 +82,14 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     return pycolmap
 
 
-#: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): ``all`` (the export's
-#: default) every two; ``auto`` every two, but in a track through a run of frames (:func:`sequence_clusters`)
-#: log-spaced ones; ``log`` each member with those 1, 2, 4, ... places after it in image order
+#: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): ``all`` every two;
+#: ``auto`` every two, but in a track through a run of frames (:func:`sequence_clusters`) log-spaced ones;
+#: ``log`` each member with those 1, 2, 4, ... places after it in image order
 CLUSTER_MATCHES = ("all", "auto", "log")
+#: the export's choice (dqm export colmap, dqm sfm, :func:`export_database`, :func:`write_matches`): a video's
+#: tracks cut, every other cluster as ``all`` (docs/sfm.md: cmu_hotel 0.97x COLMAP's points in 0.60x its time,
+#: every pair 1.01x in 0.91x; the photo sets with cameras and the 270-photo collection as with every pair)
+DEFAULT_CLUSTER_MATCHES = "auto"
 
 #: ``cluster_matches="auto"``: a cluster of more than this many members whose members are in at least
 #: :data:`SEQUENCE_FILL` of the images from its first to its last (image order) gets log-spaced matches. Every
@@ -487,7 +491,8 @@ def _camera_groups(names: Sequence[str], facts: Sequence[tuple[int, int, float]]
 def export_database(database, keypoints, image_ids, image_paths: Sequence, labels, *,
                     image_dir=None, descriptors=None, verify: bool = True,
                     num_threads: int = -1, camera: CameraOptions | None = None, seed: int = 0,
-                    partners: int = 0, cluster_matches: str = "all", progress: ProgressArg = None) -> ExportSummary:
+                    partners: int = 0, cluster_matches: str = DEFAULT_CLUSTER_MATCHES,
+                    progress: ProgressArg = None) -> ExportSummary:
     """Write a COLMAP database from clusters (see the module docstring); refuses an existing file.
 
     ``keypoints``: (n, >=2) OpenCV pixel coordinates; ``image_ids``: 0..m-1 indexing
@@ -728,7 +733,8 @@ def _check_images(database: Path, images: list, ids: np.ndarray, names: Sequence
 
 def write_matches(database, labels, image_ids, *, overwrite: bool = False, verify: bool = True,
                   num_threads: int = -1, seed: int = 0, names: Sequence[str] | None = None,
-                  partners: int = 0, cluster_matches: str = "all", progress: ProgressArg = None) -> ExportSummary:
+                  partners: int = 0, cluster_matches: str = DEFAULT_CLUSTER_MATCHES,
+                  progress: ProgressArg = None) -> ExportSummary:
     """Write the matches the clusters imply, and COLMAP's verified two-view geometries of them, into the COLMAP
     database the features were read from (:func:`import_database`), as COLMAP's own matchers do: its cameras,
     images, keypoints and descriptors stay as they are, so its mapper runs next.
