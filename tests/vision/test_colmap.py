@@ -135,9 +135,9 @@ def test_auto_cluster_matches_log_space_only_tracks_through_a_run_of_frames():
     assert colmap.spaced_clusters(labels, ids, "log") == len(clusters) - 1  # all but the 3-member one
 
 
-def test_the_export_log_spaces_tracks_through_frames_when_asked(scene, tmp_path, monkeypatch, capsys):
-    """export_database and dqm export colmap with --cluster-matches auto write that rule's matches: with the
-    size bound lowered to 3, the scene's 4-image clusters (in every image from the first to the last) give 5
+def test_the_export_log_spaces_tracks_through_frames_by_default(scene, tmp_path, monkeypatch, capsys):
+    """export_database and dqm export colmap with --cluster-matches auto (their default) write that rule's matches:
+    with the size bound lowered to 3, the scene's 4-image clusters (in every image from the first to the last) give 5
     matches (offsets 1, 1, 1, 2, 2), not 6; the others every pair; the summary says how many were log-spaced."""
     from dqm.cli import main
 
@@ -153,16 +153,20 @@ def test_the_export_log_spaces_tracks_through_frames_when_asked(scene, tmp_path,
     assert s.n_matches == want and s.n_spaced_clusters == fours
     assert f"(log-spaced members of {fours} clusters)" in s.pairs_line()
     every = colmap.export_database(tmp_path / "all.db", scene["kp"], scene["ids"], scene["paths"], scene["labels"],
-                                   verify=False)  # the default: every two members
-    assert every.n_matches == want + fours
+                                   verify=False, cluster_matches="all")
+    assert every.n_matches == want + fours and every.n_spaced_clusters == 0
+    default = colmap.export_database(tmp_path / "default.db", scene["kp"], scene["ids"], scene["paths"],
+                                     scene["labels"], verify=False)  # the default: auto
+    assert (default.n_matches, default.n_spaced_clusters) == (want, fours)
     clusters = tmp_path / "clusters.npz"
     assert main(["match", str(scene["folder"]), "--out", str(clusters), "--no-guided", "--quiet"]) == 0
     want, _ = auto_matches(io.load_clusters(clusters)["labels"])
     capsys.readouterr()
-    assert main(["export", "colmap", str(clusters), "--database", str(tmp_path / "cli.db"), "--no-verify",
-                 "--cluster-matches", "auto"]) == 0
-    out = capsys.readouterr().out
-    assert f"{want} matches in" in out, out
+    for k, given in enumerate((["--cluster-matches", "auto"], [])):  # not given: the default, auto
+        assert main(["export", "colmap", str(clusters), "--database", str(tmp_path / f"cli{k}.db"), "--no-verify",
+                     *given]) == 0
+        out = capsys.readouterr().out
+        assert f"{want} matches in" in out, out
 
 
 def test_strongest_partners_keep_each_images_pairs_with_the_most_matches():

@@ -1040,7 +1040,8 @@ def test_dqm_sfm_one_camera_per_folder(tmp_path, capsys):
 
 def test_dqm_sfm_log_spaced_cluster_matches(tmp_path, capsys):
     """--cluster-matches log hands the mapper each cluster as fewer matches (one track still) and registers every
-    image of a generated scene; the option is in sfm.json; dqm export colmap takes it too."""
+    image of a generated scene; the option is in sfm.json; dqm export colmap takes it too (not given there: None,
+    which the export reads as DEFAULT_CLUSTER_MATCHES, auto, as dqm sfm's default is)."""
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
@@ -1055,6 +1056,11 @@ def test_dqm_sfm_log_spaced_cluster_matches(tmp_path, capsys):
         assert report["pairs"]["matches"] == written[how] and (report["pairs"]["log_spaced_clusters"] > 0) == (
             how == "log")
     assert written["log"] < written["all"]  # the pairs with 15 matches or more (COLMAP verifies no fewer)
+    from dqm.cli import build_parser
+
+    parser = build_parser()  # auto, the default of both commands: a video's tracks log-spaced, every other as all
+    assert parser.parse_args(["sfm", str(images), "--out", "x"]).cluster_matches == "auto"
+    assert parser.parse_args(["export", "colmap", "c.npz", "--database", "d.db"]).cluster_matches is None
     sizes = np.bincount(load_clusters(tmp_path / "log" / "clusters.npz")["labels"])
     assert sizes.max() >= 4  # clusters where log-spaced matches are fewer than every two members
     for how, want in (("all", sum(s * (s - 1) // 2 for s in sizes)),
