@@ -216,16 +216,16 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     that a model of fewer images would not make, that model's registered images go through the stages before the
     triangulation again, alone, with the choices of their own number, into ``out/scenes/<model>/`` (its own
     clusters.npz, database.db and sparse/0; names as in the collection). Where several models are such and all
-    their images together would get the same choices, they are redone together, into ``out/scenes/<first
-    model>/``: a scene the collection's mapper cut apart or mixed with another's images is then whole again
-    (the 270-photo collection of docs/sfm.md with ``--cluster-matches auto``: the global mapper put 8 of
-    entry-P10's photos with sacre_coeur's 10 in one model, sharing no 3-D point, and the other 2 in a model of
-    their own); each model they make there is then made again from its own images alone, into
-    ``scenes/<first model>/scene-<j>/``, and replaces the one made together where it registers as many of them:
-    each scene as it is alone, not matched with the other's photos. The models made alone replace the collection's
-    in ``models``, ``mapped`` and ``sources`` where
-    they register at least as many of the images (each counted once), and, where they are several, where no
-    collection model holds two of them joined by 3-D points (:func:`dqm.vision.sfm.linked_across`: the
+    their images together would get the same choices, they are redone together, into ``out/scenes/<model>+<model>
+    .../``: a scene the collection's mapper cut apart or mixed with another's images is then whole again (the
+    270-photo collection of docs/sfm.md with ``--cluster-matches auto``: the global mapper put 8 of entry-P10's
+    photos with sacre_coeur's 10 in one model, sharing no 3-D point, and the other 2 in a model of their own);
+    each model they make there is then made again from its own images alone, into ``scene-<j>/`` there, and
+    replaces the one made together where it registers as many of them: each scene as it is alone, not matched
+    with the other's photos. Where the models made together are not taken, each collection model is redone
+    alone instead. The models made alone replace the collection's in ``models``, ``mapped`` and ``sources``
+    where they register at least as many of the images (each counted once), and, where they are several, where
+    no collection model holds two of them joined by 3-D points (:func:`dqm.vision.sfm.linked_across`: the
     collection's mapper held them as one scene that the incremental mapper alone could not). The collection's
     stay in ``sparse/<model>``. Only for a collection the mapper made several models of (one scene alone is not
     redone). Returns what was done, one entry a run alone, for sfm.json."""
@@ -286,19 +286,22 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
         return entry, [(m, model_numbers(m.rec), (folder / "database.db", s, fs)) for m in taken] if ok else []
 
     done, replaced = [], {}
-    for batch in batches:
+    while batches:
+        batch = batches.pop(0)
         names = sorted(set().union(*(registered_names(models[k].rec) for k in batch)), key=by_name.get)
-        folder = out / "scenes" / models[batch[0]].folder.name
+        folder = out / "scenes" / "+".join(models[k].folder.name for k in batch)
         what = " and ".join(_folder(models[k], out) for k in batch)
         entry, taken = redo(names, folder, [(models[k], mapped[k]) for k in batch], f"the collection's {what}")
         done.append(entry)
+        if not taken and len(batch) > 1:  # together they are kept: each model alone instead
+            batches += [[k] for k in batch]
         if len(taken) > 1:  # the scenes the images make alone, each alone again: as good as that scene alone
             pieces = []
             for j, (m, numbers, source) in enumerate(taken):
-                own = sorted(registered_names(m.rec), key=by_name.get)
-                part, again = redo(own, folder / f"scene-{j}", [(m, numbers)], _folder(m, out))
+                its = sorted(registered_names(m.rec), key=by_name.get)
+                part, alone = redo(its, folder / f"scene-{j}", [(m, numbers)], _folder(m, out))
                 entry.setdefault("scenes", []).append(part)
-                pieces += again or [(m, numbers, source)]
+                pieces += alone or [(m, numbers, source)]
             taken = pieces
             entry["folders"] = [_folder(m, out) for m, _, _ in taken]
         if taken:

@@ -71,10 +71,11 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     another's photos is whole again (the 270-photo collection with --cluster-matches auto: 8 of entry-P10's photos
     in sacre_coeur's model, 2 in one of their own). Three generated scenes of 10, 5 and 4 images with the
     threshold at 10: the large one keeps the collection's choices; the two small ones are mapped again together,
-    into scenes/<the first's folder>/, and make a model each there; each of these is made again from its own
-    images alone (scenes/<k>/scene-<j>/: as that scene alone), and they replace the collection's two. Where a
+    into scenes/<k>+<l>/, and make a model each there; each of these is made again from its own images alone
+    (scenes/<k>+<l>/scene-<j>/: as that scene alone), and they replace the collection's two. Where a
     collection model holds two of the models made alone joined by its 3-D points (a scene the collection's
-    mapper held together and the mapper alone could not), the collection's models are kept."""
+    mapper held together and the mapper alone could not), the models made together are not taken, and each
+    collection model is redone alone instead."""
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
@@ -92,9 +93,9 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     assert (alone["registered_in_its_models"], alone["models_alone"]) == (9, 2)
     assert "sparse/1 and sparse/2 (9 images) again alone" in out and "(2 models for 2 models)" in out
     assert [(e["images"], e["taken"], e["collection_folder"]) for e in alone["scenes"]] == [
-        (5, True, "scenes/1/sparse/0"), (4, True, "scenes/1/sparse/1")]  # each scene alone again
-    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1/scene-0/sparse/0",
-                                                       "scenes/1/scene-1/sparse/0"] == ["sparse/0", *alone["folders"]]
+        (5, True, "scenes/1+2/sparse/0"), (4, True, "scenes/1+2/sparse/1")]  # each scene alone again
+    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1+2/scene-0/sparse/0",
+                                                       "scenes/1+2/scene-1/sparse/0"] == ["sparse/0", *alone["folders"]]
     assert [m["registered"] for m in report["models"]] == [10, 5, 4]
     for m in report["models"][1:]:
         rec = pycolmap.Reconstruction(str(tmp_path / "m" / m["folder"]))
@@ -103,10 +104,12 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     monkeypatch.setattr(sfm, "linked_across", lambda rec, groups: True)
     assert main([*argv, "--out", str(tmp_path / "held")]) == 0
     out = capsys.readouterr().out
-    [alone] = json.loads((tmp_path / "held" / "sfm.json").read_text())["scenes_alone"]
-    assert not alone["taken"] and "sparse/1 holds images of two of them joined by 3-D points" in out
-    assert [m["folder"] for m in json.loads((tmp_path / "held" / "sfm.json").read_text())["models"]] == [
-        "sparse/0", "sparse/1", "sparse/2"]
+    report = json.loads((tmp_path / "held" / "sfm.json").read_text())
+    together, *apart = report["scenes_alone"]
+    assert not together["taken"] and "sparse/1 holds images of two of them joined by 3-D points" in out
+    # kept together: each collection model is then redone alone, as a model of one scene
+    assert [(e["collection_folders"], e["taken"]) for e in apart] == [(["sparse/1"], True), (["sparse/2"], True)]
+    assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1/sparse/0", "scenes/2/sparse/0"]
 
 
 def test_linked_across_asks_whether_a_model_joins_two_groups_of_images_by_its_points():
