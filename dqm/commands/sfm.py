@@ -264,14 +264,15 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
             print(f"{say}not redone ({e}); {what} is kept", flush=True)
             entry.update(taken=False, error=str(e))
             return entry, []
-        taken, seen = [], set()  # the models alone that hold images no larger one does
+        taken, groups, seen = [], [], set()  # the models alone that hold images no larger one does; their images
         for m in own:
-            if registered_names(m.rec) - seen:
+            held = registered_names(m.rec)
+            if held - seen:
                 taken.append(m)
-                seen |= registered_names(m.rec)
-        groups = [registered_names(m.rec) for m in taken]
-        joined = next((_folder(m, out) for m, _ in before if len(groups) > 1 and linked_across(m.rec, groups)),
-                      None)
+                groups.append(held)
+                seen |= held
+        joined = next((_folder(m, out) for m, _ in before if linked_across(m.rec, groups)), None) \
+            if len(groups) > 1 else None
         got = int(own[0].rec.num_reg_images()) if own else 0
         ok = len(seen) >= n and joined is None
         entry.update(mapper=mapper, registered_alone=got, registered_in_its_models=len(seen), models_alone=len(own),
@@ -341,8 +342,10 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
     by_name = {name: k for k, name in enumerate(export.names)}
     done = {}
     for k, m in enumerate(list(models)):
+        if only is not None and k not in only:
+            continue
         bad, n = bogus_cameras(m.rec), int(m.rec.num_reg_images())
-        if not bad or (only is not None and k not in only):
+        if not bad:
             continue
         names = list(export.names) if len(models) == 1 else sorted(registered_names(m.rec), key=by_name.get)
         paths = [str(Path(export.image_dir) / name) for name in names]
@@ -445,7 +448,6 @@ def run(args) -> int:
     from ..vision.sfm import (
         GLOBAL_FROM,
         SMALL_SCENE_PRESET,
-        bogus_cameras,
         choose_features,
         model_figure,
         model_numbers,
@@ -501,9 +503,8 @@ def run(args) -> int:
         last_stage(range(len(models)))
         # cameras the last stage's bundle adjustment left bogus where the mapper's were not: mapped again as the
         # mapper's would have been, and the new model through the last stage
-        spoiled = {k for k, m in enumerate(models) if k not in again and bogus_cameras(m.rec)}
-        later = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources, only=spoiled,
-                                     after="triangulate") if spoiled else {}
+        later = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
+                                     only=set(range(len(models))) - set(again), after="triangulate")
         last_stage(sorted(k for k, e in later.items() if e["taken"]))
         again.update(later)
     report = {"images": s.n_images, "features": len(fs), "options": {
