@@ -43,7 +43,7 @@ HELP = "export clusters as a COLMAP database or hloc matches / pairs / features 
 #: the options that only one format takes (dest name -> format)
 _ONLY_FOR = {"database": "colmap", "into_database": "colmap", "no_verify": "colmap", "camera_model": "colmap",
              "camera_params": "colmap", "single_camera": "colmap", "single_camera_per_folder": "colmap",
-             "partners": "colmap", "cluster_matches": "colmap", "matches": "hloc", "pairs": "hloc", "features": "hloc"}
+             "partners": "colmap", "matches": "hloc", "pairs": "hloc", "features": "hloc"}
 
 LOG = logging.getLogger("dqm.commands")
 
@@ -59,14 +59,12 @@ def add_camera_sharing_options(group) -> None:
                              "COLMAP's ImageReader.single_camera_per_folder")
 
 
-def add_cluster_matches_option(group, given_only: bool = False) -> None:
-    """--cluster-matches: which members of a cluster COLMAP gets as matches (dqm export colmap, dqm sfm), default
-    :data:`dqm.vision.colmap.DEFAULT_CLUSTER_MATCHES`; ``given_only``: None where not given, so that dqm export
-    hloc can tell it was not given."""
+def add_cluster_matches_option(group) -> None:
+    """--cluster-matches: which members of a cluster the mapper gets as matches (dqm export colmap and hloc, dqm
+    sfm), default :data:`dqm.vision.colmap.DEFAULT_CLUSTER_MATCHES`."""
     from ..vision.colmap import CLUSTER_MATCHES, DEFAULT_CLUSTER_MATCHES, SEQUENCE_FILL, SEQUENCE_FROM
 
-    group.add_argument("--cluster-matches", choices=CLUSTER_MATCHES,
-                       default=None if given_only else DEFAULT_CLUSTER_MATCHES,
+    group.add_argument("--cluster-matches", choices=CLUSTER_MATCHES, default=DEFAULT_CLUSTER_MATCHES,
                        help=f"auto (default): every two members of a cluster, but log-spaced members in a track "
                             f"through a run of frames (more than {SEQUENCE_FROM} members, in "
                             f"{SEQUENCE_FILL * 100:.0f}%% or more of the images from its first to its last: a "
@@ -111,7 +109,8 @@ def add_arguments(p) -> None:
                         "(e.g. f,cx,cy,k for SIMPLE_RADIAL), as COLMAP's ImageReader.camera_params; marked as "
                         "a prior (default: EXIF or 1.2 x the larger side, image centre, no distortion)")
     add_camera_sharing_options(g)
-    add_cluster_matches_option(g, given_only=True)
+    g = p.add_argument_group("colmap and hloc")
+    add_cluster_matches_option(g)
     g = p.add_argument_group("hloc")
     g.add_argument("--matches", default=None, metavar="H5", help="hloc matches file (.h5) to write")
     g.add_argument("--pairs", default=None, metavar="TXT", help="hloc pairs file (.txt) to write")
@@ -195,7 +194,7 @@ def _run_colmap(args, t0: float):
     s = colmap.export_database(db, c["keypoints"], c["image_ids"], paths, c["labels"],
                                image_dir=args.image_dir, descriptors=c.get("descriptors"),
                                verify=not args.no_verify, camera=camera, partners=args.partners,
-                               cluster_matches=args.cluster_matches or colmap.DEFAULT_CLUSTER_MATCHES,
+                               cluster_matches=args.cluster_matches,
                                progress=not args.quiet)
     print(f"wrote {db}: {s.n_images} images, {s.n_cameras} {camera.model} camera(s), {s.n_keypoints} keypoints, "
           f"{s.pairs_line()}"
@@ -215,7 +214,7 @@ def _run_colmap_into(args, t0: float):
     c = _load(args, ("image_names", "image_ids"))
     s = colmap.write_matches(db, c["labels"], c["image_ids"], overwrite=args.overwrite, verify=not args.no_verify,
                              names=[str(n) for n in c["image_names"]], partners=args.partners,
-                             cluster_matches=args.cluster_matches or colmap.DEFAULT_CLUSTER_MATCHES,
+                             cluster_matches=args.cluster_matches,
                              progress=not args.quiet)
     verified = "" if args.no_verify else f", {s.verified_line()}"
     print(f"wrote into {db}: {s.pairs_line()}{verified} "
@@ -250,7 +249,7 @@ def _run_hloc(args, t0: float):
         if not described:
             print(f"note: {args.clusters} holds no descriptors (a distributed job's clusters): {args.features} has "
                   "keypoints only, which is what hloc's reconstruction and triangulation read")
-    m = hloc.write_h5_matches(outs["--matches"], c["labels"], c["image_ids"], names)
+    m = hloc.write_h5_matches(outs["--matches"], c["labels"], c["image_ids"], names, matches=args.cluster_matches)
     hloc.write_pairs(outs["--pairs"], m.pairs)
     wrote = ", ".join(str(p) for p in outs.values())
     print(f"wrote {wrote}: {len(names)} images under {image_dir}, {m.n_matches} matches in {len(m.pairs)} "

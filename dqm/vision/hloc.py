@@ -69,6 +69,7 @@ from numpy.typing import ArrayLike
 from ..io import FeatureSet
 from ..outputs import atomic_output
 from ..validation import InputError
+from .colmap import DEFAULT_CLUSTER_MATCHES
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -408,10 +409,12 @@ class MatchesSummary:
 
 
 def write_h5_matches(path: PathLike, labels: ArrayLike, image_ids: ArrayLike, names: Sequence[str], *,
-                     overwrite: bool = False) -> MatchesSummary:
+                     overwrite: bool = False, matches: str = DEFAULT_CLUSTER_MATCHES) -> MatchesSummary:
     """Write the matches that clusters imply as an hloc matches file (``match_features`` layout).
 
-    Every two members of a cluster, in two different images, are a match. One group per image
+    ``matches``: which members of a cluster, in two different images, are a match
+    (:func:`dqm.vision.colmap.cluster_pairs`: ``auto``, the default, every two but log-spaced members in a
+    track through a run of frames; ``all``, every two; ``log``, log-spaced ones everywhere). One group per image
     pair with at least one match, named ``names_to_pair(names[a], names[b])`` with image ``a``
     before ``b`` in image-id order, holding ``matches0`` (int32, one entry per feature of image
     ``a`` in row order: the index of its match among image ``b``'s features, -1 for none) and
@@ -434,7 +437,7 @@ def write_h5_matches(path: PathLike, labels: ArrayLike, image_ids: ArrayLike, na
     names = check_pair_names(names)
     if len(ids) and (ids.min() < 0 or ids.max() >= len(names)):
         raise InputError(f"image ids must index the {len(names)} image names (0..{len(names) - 1})")
-    pairs = cluster_pairs(labels, ids)
+    pairs = cluster_pairs(labels, ids, matches)
     local = local_indices(ids)
     counts = np.bincount(ids, minlength=len(names))
     written: list[tuple[str, str]] = []

@@ -1,5 +1,7 @@
 """dqm export: COLMAP camera options (model, shared cameras, parameters) and the hloc export (matches, pairs,
 features), read back as hloc reads them and reconstructed by pycolmap."""
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -133,8 +135,6 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
         (["colmap", f, "--database", str(db), "--partners", "-3"], "--partners must be >= 0"),
         (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--partners", "3"],
          "--partners is an option of dqm export colmap"),
-        (["hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt"), "--cluster-matches",
-          "log"], "--cluster-matches is an option of dqm export colmap"),
     ]
     for argv, msg in cases:
         capsys.readouterr()
@@ -189,6 +189,45 @@ def test_hloc_export_writes_every_cluster_pair_in_hlocs_layout(clusters, tmp_pat
     assert main(["export", "hloc", str(c["file"]), "--matches", str(out / "m2.h5"), "--pairs",
                  str(out / "p2.txt"), "--features", str(out / "features.h5")]) == 2
     assert not (out / "m2.h5").exists() and not (out / "p2.txt").exists()
+
+
+def test_hloc_export_takes_the_cluster_matches_rule(tmp_path, capsys):
+    """dqm export hloc writes the matches that --cluster-matches names, as dqm export colmap does: a track of 24
+    members through 24 frames gets its log-spaced matches under auto (the default) and log, every two under all;
+    short clusters every two under each rule."""
+    n_img = 24
+    rng = np.random.default_rng(1)
+    ids = np.repeat(np.arange(n_img), 5)
+    labels = np.arange(len(ids))
+    labels[ids * 5] = 0  # the first feature of every frame: one track through all 24 frames
+    pair = np.flatnonzero(ids < 2) % 5 == 1
+    labels[np.flatnonzero(ids < 2)[pair]] = 1  # the second feature of frames 0 and 1: a cluster of two
+    images = tmp_path / "frames"
+    images.mkdir()
+    kp = np.c_[rng.uniform(0, 64, (len(ids), 2)), np.ones(len(ids)), np.zeros(len(ids))].astype(np.float32)
+    fs = io.FeatureSet(descriptors=rng.normal(size=(len(ids), 8)).astype(np.float32), image_ids=ids, keypoints=kp,
+                       image_names=np.array([str(images / f"f{k:02d}.jpg") for k in range(n_img)]))
+    r = dqm.quickmatch(fs.descriptors, ids)
+    io.save_clusters(tmp_path / "clusters.npz", fs, dataclasses.replace(r, labels=labels))
+    names = [f"f{k:02d}.jpg" for k in range(n_img)]
+    got = {}
+    for rule in (None, "auto", "log", "all"):
+        out = tmp_path / str(rule)
+        argv = ["export", "hloc", str(tmp_path / "clusters.npz"), "--matches", str(out / "m.h5"), "--pairs",
+                str(out / "p.txt"), "--image-dir", str(images)] + (["--cluster-matches", rule] if rule else [])
+        assert main(argv) == 0
+        want = colmap.cluster_pairs(labels, ids, rule or colmap.DEFAULT_CLUSTER_MATCHES)
+        pairs = [tuple(line.split()) for line in (out / "p.txt").read_text().splitlines()]
+        assert pairs == [(names[a], names[b]) for a, b in sorted(want)]
+        got[rule] = {}
+        for a, b in sorted(want):
+            m = hloc.read_h5_matches(out / "m.h5", names[a], names[b])
+            got[rule][(a, b)] = {(int(i) + 5 * a, int(j) + 5 * b) for i, j in m}
+            assert got[rule][(a, b)] == {tuple(e) for e in want[(a, b)].tolist()}
+        assert f"{sum(len(v) for v in want.values())} matches in {len(want)} image pairs" in capsys.readouterr().out
+    n = {rule: sum(len(v) for v in g.values()) for rule, g in got.items()}
+    assert got[None] == got["auto"] == got["log"] and n["all"] == n_img * (n_img - 1) // 2 + 1 > n["log"]
+    assert got["all"][(0, 1)] == {(0, 5), (1, 6)} and got["auto"][(0, 1)] == got["all"][(0, 1)]
 
 
 def test_hloc_names_must_survive_the_pairs_file_and_names_to_pair():
