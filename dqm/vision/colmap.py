@@ -29,6 +29,7 @@ pycolmap is an optional dependency (``pip install 'dqm[colmap]'``).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import posixpath
@@ -76,10 +77,35 @@ def require_pycolmap(quiet: bool = True, what: str = "this command"):
     except ImportError:
         raise InputError(f"{what} needs pycolmap: pip install 'dqm[colmap]'") from None
     if hasattr(pycolmap, "logging"):
-        pycolmap.logging.logtostderr = True
+        log = pycolmap.logging
+        log.logtostderr = True
         verbose = not quiet or logging.getLogger("dqm").isEnabledFor(logging.INFO)
-        pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING if verbose else pycolmap.logging.FATAL)
+        log.minloglevel = int(log.WARNING if verbose else log.FATAL)
+        for level in (log.INFO, log.WARNING, log.ERROR, log.FATAL) if hasattr(log, "set_log_destination") else ():
+            log.set_log_destination(level, "")  # glog's "no file": a call that turns logtostderr off writes none
     return pycolmap
+
+
+#: the glog flags that :func:`require_pycolmap` sets and :func:`colmap_log_kept` keeps
+_LOG_FLAGS = ("logtostderr", "alsologtostderr", "minloglevel")
+
+
+@contextlib.contextmanager
+def colmap_log_kept(pycolmap, at_least: int | None = None):
+    """COLMAP's log settings (glog's flags, as :func:`require_pycolmap` set them) the same after the block as before
+    it; ``at_least``: the level raised to that within the block (COLMAP warns that its extraction uses every core; it
+    is asked to). ``pycolmap.bundle_adjustment`` (pycolmap 4.2: COLMAP's OptionManager) sets them to its defaults,
+    INFO and log files, and leaves them so: every COLMAP call after it would log, quiet or not (its own two
+    INFO lines, a heading and its time, still reach stderr while it runs)."""
+    log = pycolmap.logging
+    kept = {name: getattr(log, name) for name in _LOG_FLAGS}
+    if at_least is not None:
+        log.minloglevel = max(kept["minloglevel"], int(at_least))
+    try:
+        yield
+    finally:
+        for name, value in kept.items():
+            setattr(log, name, value)
 
 
 #: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): ``all`` every two;

@@ -283,7 +283,7 @@ def extract_colmap(images: Sequence, max_features: int = 0, progress=None,
     """
     import tempfile
 
-    from .colmap import import_database, require_pycolmap
+    from .colmap import colmap_log_kept, import_database, require_pycolmap
 
     pycolmap = require_pycolmap()
     images = list(images)
@@ -302,16 +302,12 @@ def extract_colmap(images: Sequence, max_features: int = 0, progress=None,
         options = pycolmap.FeatureExtractionOptions()
         options.sift.max_num_features = int(max_features) or COLMAP_MAX_FEATURES
         db = Path(tmp) / "features.db"
-        level = pycolmap.logging.minloglevel  # COLMAP warns that it uses every core; it is asked to
-        pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
         logging.getLogger("dqm.vision").info("COLMAP's SIFT (pycolmap's extractor): %d images", len(names))
-        try:
-            with ticking(progress, "sift (COLMAP's extractor)"):  # it reports no images: its time, then them
-                signals.interruptible(pycolmap.extract_features, str(db), str(root), image_names=names,
-                                      camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
-                                      device=pycolmap.Device.cpu)
-        finally:
-            pycolmap.logging.minloglevel = level
+        with colmap_log_kept(pycolmap, pycolmap.logging.ERROR), ticking(progress, "sift (COLMAP's extractor)"):
+            # it reports no images: its time, then them
+            signals.interruptible(pycolmap.extract_features, str(db), str(root), image_names=names,
+                                  camera_mode=pycolmap.CameraMode.PER_IMAGE, extraction_options=options,
+                                  device=pycolmap.Device.cpu)
         fs = import_database(db)
     where = {str(nm): k for k, nm in enumerate(fs.image_names)}
     descs, ids, kps = [], [], []

@@ -20,7 +20,7 @@ import numpy as np
 from .. import signals
 from ..progress import ProgressArg, resolve_progress, ticking
 from ..validation import InputError
-from .colmap import require_pycolmap
+from .colmap import colmap_log_kept, require_pycolmap
 from .features import COLMAP_MAX_FEATURES
 from .triangulation import MIN_SHARED_POINTS, covisible_pairs
 
@@ -465,13 +465,9 @@ def colmap_pipeline(image_dir, work_dir, *, seed: int | None = None, mapper: str
     database = work / "database.db"
     times = {}
     t0 = time.perf_counter()
-    level = pycolmap.logging.minloglevel  # COLMAP warns that its extraction uses every core; it is meant to
-    pycolmap.logging.minloglevel = max(level, int(pycolmap.logging.ERROR))
-    try:
+    with colmap_log_kept(pycolmap, pycolmap.logging.ERROR):  # its warning that the extraction uses every core
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
         signals.interruptible(pycolmap.extract_features, str(database), str(image_dir), camera_mode=mode)
-    finally:
-        pycolmap.logging.minloglevel = level
     times["extract"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     two_view = pycolmap.TwoViewGeometryOptions()

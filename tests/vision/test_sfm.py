@@ -1,11 +1,13 @@
 """dqm sfm end to end on a generated 3-D scene with known cameras: the model, its cameras against the
 ground truth (--gt, both formats), the same model bit for bit on a second run, scripts/bench_sfm.py
 (small, on a generated scene), and the shared photos' ground-truth cameras."""
+import glob
 import json
 import os
 import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -226,6 +228,7 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     from generators.scenes3d import generate_scene3d
 
     from dqm import io
+    from dqm.vision import colmap
     from dqm.vision.triangulation import model_guided_matches
 
     scene = generate_scene3d(seed=2, n_images=5)
@@ -248,8 +251,20 @@ def test_model_guided_triangulation_adds_true_points_and_keeps_the_cameras(tmp_p
     assert report["model"]["points"] == dense.num_points3D() and "triangulate" in report["times"]
     assert report["options"]["bundle_adjust"] is False
 
-    # the default adjusts the triangulated model once: the same points, cameras moved, a lower error
+    # the default adjusts the triangulated model once: the same points, cameras moved, a lower error. COLMAP's log
+    # stays quiet and writes no file: pycolmap's bundle adjustment sets glog's flags to INFO and log files (in the
+    # temporary folder, named after this process) and leaves them so
+    flags = {name: getattr(pycolmap.logging, name) for name in ("logtostderr", "minloglevel")}
+    assert flags == {"logtostderr": True, "minloglevel": int(pycolmap.logging.FATAL)}
     assert main(["sfm", str(images), "--out", str(tmp_path / "ba"), "--quiet", "--gt", str(gt)]) == 0
+    assert {name: getattr(pycolmap.logging, name) for name in flags} == flags
+    folders = {tempfile.gettempdir(), "/tmp", os.environ.get("TMPDIR") or "/tmp", os.environ.get("TMP") or "/tmp"}
+    assert not [f for d in folders for f in glob.glob(f"{d}/*.log.*.{os.getpid()}", include_hidden=True)]
+    # and the flags as they were after pycolmap's bundle adjustment too, within colmap_log_kept
+    flags = {name: getattr(pycolmap.logging, name) for name in ("logtostderr", "alsologtostderr", "minloglevel")}
+    with colmap.colmap_log_kept(pycolmap):
+        pycolmap.bundle_adjustment(pycolmap.Reconstruction(str(tmp_path / "ba/sparse/0")))
+    assert {name: getattr(pycolmap.logging, name) for name in flags} == flags
     line = [ln for ln in capsys.readouterr().out.splitlines() if "bundle adjustment" in ln][0]
     before, after = map(float, re.search(r"error ([0-9.]+) -> ([0-9.]+) px", line).groups())
     assert after <= before, line  # the mapper adjusted this small clean scene already: equal to 3 digits
