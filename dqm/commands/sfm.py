@@ -316,28 +316,104 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     return done
 
 
+def _map_again_per_folder(args, asked, out: Path, stage: _Stages, threads: int, export, names: list[str],
+                          folder: Path, say: str):
+    """The images ``names`` (relative to the export's image folder) through the stages before the triangulation
+    again into ``folder``, with one camera per folder; mapped by COLMAP's incremental mapper unless a mapper was
+    asked for (it checks every camera against COLMAP's bounds as it registers images, the global mapper does not:
+    cmu_hotel with ``--cluster-matches auto``, the global mapper's model with one camera had 401 points, the
+    incremental mapper's 2,856; docs/sfm.md). Returns :func:`_match_and_map`'s result."""
+    from ..vision import colmap
+    from ..vision.sfm import choose_features
+
+    paths = [str(Path(export.image_dir) / name) for name in names]
+    mapper = "incremental" if asked.mapper == "auto" else asked.mapper
+    sub = _args_again(args, paths, choose_features(asked.preset, asked.max_features, len(names)), mapper,
+                      single_camera=False, single_camera_per_folder=True)
+    camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
+    return _match_and_map(sub, folder, stage, camera, threads, image_dir=export.image_dir, say=say)
+
+
+def _shared_camera_unfit(args, export, names: list[str]) -> str | None:
+    """Why the images ``names`` are not mapped again with one camera per folder, or None
+    (:func:`dqm.vision.colmap.shared_camera_unfit`: one size a folder, no EXIF focal length)."""
+    from ..vision import colmap
+
+    if camera_sharing(args) != "per-image":
+        return "the images share cameras already"
+    return colmap.shared_camera_unfit([str(Path(export.image_dir) / name) for name in names], export.image_dir)
+
+
+def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, export, models, mapped,
+                          sources) -> dict | None:
+    """Where the mapper's models hold fewer than half of the images, each with a camera of its own, and one camera
+    per folder fits them (one size a folder, no EXIF focal length: a video's frames), every image mapped again with
+    one camera per folder into ``out/shared-camera/all/``: COLMAP's incremental mapper, which drops an image whose
+    camera it calls bogus, registered 12 of cmu_hotel's 101 frames with a camera a frame (``--mapper
+    incremental``; the same mapper with one camera, 101). The new models replace all of ``models``, ``mapped`` and
+    ``sources`` where their largest registers more images than the first's, with no more bogus cameras (a model
+    whose every image a larger one holds is left out); otherwise the first stay, with a warning. Returns what was
+    done, for sfm.json (None: nothing to do)."""
+    from ..vision.sfm import bogus_cameras, model_numbers, registered_names
+
+    registered = registered_images(models)[0]
+    if 2 * registered >= export.n_images or _shared_camera_unfit(args, export, list(export.names)) is not None:
+        return None
+    n, bad = (int(models[0].rec.num_reg_images()), bogus_cameras(models[0].rec)) if models else (0, [])
+    folder = out / "shared-camera" / "all"
+    entry = {"model_folder": _folder(models[0], out) if models else None, "images": n, "bogus_cameras": len(bad),
+             "after": "map", "registered_of": export.n_images, "taken": False}
+    say = "every image again, one camera per folder: "
+    print(f"{registered} of {export.n_images} images registered with a camera each; they share one size a folder "
+          f"and have no EXIF focal length, so they are mapped again with one camera per folder into {folder} ...",
+          flush=True)
+    try:
+        fs, _, _, s, mapper, own = _map_again_per_folder(args, asked, out, stage, threads, export,
+                                                         list(export.names), folder, say)
+    except InputError as e:  # the first models stand; what was written stays
+        entry["error"] = str(e)
+        LOG.warning("the images not mapped again (%s); the first models are kept", e)
+        return entry
+    held: set[str] = set()  # a model whose every image a larger one holds adds nothing (cmu_hotel: 2 frames
+    for m in list(own):  # again on their own, with a camera of their own that COLMAP calls bogus)
+        names = registered_names(m.rec)
+        if names <= held:
+            own.remove(m)
+        held |= names
+    numbers = model_numbers(own[0].rec if own else None)
+    got, still = numbers["registered"], numbers["bogus_cameras"]
+    entry.update(mapper=mapper, registered_again=got, bogus_cameras_again=still, points_again=numbers["points"],
+                 taken=got > n and still <= len(bad), model_before=mapped[0] if mapped else model_numbers(None))
+    if entry["taken"]:
+        models[:], mapped[:] = own, [model_numbers(m.rec) for m in own]
+        sources[:] = [(folder / "database.db", s, fs)] * len(own)
+        entry["folder"] = _folder(own[0], out)
+        print(f"{say}{got} of {export.n_images} images registered, {still} bogus cameras, "
+              f"{own[0].rec.num_points3D():,} 3-D points: its models replace the first", flush=True)
+    else:
+        LOG.warning("every image again with one camera per folder: %d of %d registered in its largest model (%d "
+                    "before); the first models are kept", got, export.n_images, n)
+    return entry
+
+
 def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, export, models, mapped,
                          sources, only=None, after: str = "map") -> dict[int, dict]:
     """A model with cameras COLMAP calls bogus (:func:`dqm.vision.sfm.bogus_cameras`; its incremental mapper
-    drops such an image) mapped again with one camera per folder, where each image had a camera of its own and
-    one per folder fits (:func:`dqm.vision.colmap.shared_camera_unfit`: one size a folder, no EXIF focal length):
-    a video's frames, where a camera a frame leaves focal length and distortion free for every frame (cmu_hotel
-    alone: 101 bogus of 101; in the 270-photo collection: 30 of 101). Its images (every image of the run where
-    the mapper made one model) go through the stages before the triangulation again into
+    drops such an image) mapped again with one camera per folder (:func:`_map_again_per_folder`), where each image
+    had a camera of its own and one per folder fits (:func:`dqm.vision.colmap.shared_camera_unfit`: one size a
+    folder, no EXIF focal length): a video's frames, where a camera a frame leaves focal length and distortion free
+    for every frame (cmu_hotel alone: 101 bogus of 101; in the 270-photo collection: 30 of 101). Its images (every
+    image of the run where the mapper made one model) go through the stages before the triangulation again into
     ``out/shared-camera/<k>/``, ``k`` the model's place in ``models``. Its model replaces the first in
     ``models``, ``mapped`` and ``sources`` where it registers at least as many images with fewer bogus cameras
     and at least as many 3-D points (one camera for all of a true single camera's images is not better
-    everywhere: docs/sfm.md); otherwise the first stays, with a warning. The images are mapped again with
-    COLMAP's incremental mapper unless a mapper was asked for: it checks every camera against those bounds as it
-    registers images, the global mapper does not (cmu_hotel with ``--cluster-matches auto``: the global mapper's model
-    with one camera had 401 points, the incremental mapper's 2,856; docs/sfm.md). ``only``: the places in
-    ``models`` to look at (None: every model); ``after``: the stage whose cameras are looked at, ``map`` or
-    ``triangulate`` (the last stage's bundle adjustment can leave cameras bogus that the mapper's were not: cmu_hotel
-    in the 270-photo collection with ``--cluster-matches auto``, 0 bogus before it and 33 after; the points compared
-    are the mappers' in both cases). Returns what was done, one entry a model by its place in ``models``, for
+    everywhere: docs/sfm.md); otherwise the first stays, with a warning. ``only``: the places in ``models`` to look
+    at (None: every model); ``after``: the stage whose cameras are looked at, ``map`` or ``triangulate`` (the last
+    stage's bundle adjustment can leave cameras bogus that the mapper's were not: cmu_hotel in the 270-photo
+    collection with ``--cluster-matches auto``, 0 bogus before it and 33 after; the points compared are the
+    mappers' in both cases). Returns what was done, one entry a model by its place in ``models``, for
     sfm.json."""
-    from ..vision import colmap
-    from ..vision.sfm import bogus_cameras, choose_features, model_numbers, registered_names
+    from ..vision.sfm import bogus_cameras, model_numbers, registered_names
 
     by_name = {name: k for k, name in enumerate(export.names)}
     done = {}
@@ -348,31 +424,25 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
         if not bad:
             continue
         names = list(export.names) if len(models) == 1 else sorted(registered_names(m.rec), key=by_name.get)
-        paths = [str(Path(export.image_dir) / name) for name in names]
         entry = {"model_folder": _folder(m, out), "images": n, "bogus_cameras": len(bad), "after": after,
                  "taken": False}
         done[k] = entry
         when = " after the last stage's bundle adjustment" if after == "triangulate" else ""
         bogus = f"{_folder(m, out)}: {len(bad)} of {n} registered images have a camera COLMAP calls bogus{when} " \
                 f"(focal length or distortion out of bounds, e.g. {bad[0]})"
-        unfit = "the images share cameras already" if camera_sharing(args) != "per-image" else \
-            colmap.shared_camera_unfit(paths, export.image_dir)
+        unfit = _shared_camera_unfit(args, export, names)
         if unfit is not None:
             entry["unfit"] = unfit
             LOG.warning("%s; not mapped again with one camera per folder (%s): the model's cameras are not to be "
                         "trusted", bogus, unfit)
             continue
         folder = out / "shared-camera" / str(k)
-        mapper = "incremental" if asked.mapper == "auto" else asked.mapper
-        sub = _args_again(args, paths, choose_features(asked.preset, asked.max_features, len(names)), mapper,
-                          single_camera=False, single_camera_per_folder=True)
-        camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
         say = f"{_folder(m, out)} again, one camera per folder: "
         print(f"{bogus}; its {count(len(names), 'image')} share one size a folder and have no EXIF focal length, "
               f"so they are mapped again with one camera per folder into {folder} ...", flush=True)
         try:
-            fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
-                                                      image_dir=export.image_dir, say=say)
+            fs, _, _, s, mapper, own = _map_again_per_folder(args, asked, out, stage, threads, export, names, folder,
+                                                             say)
         except InputError as e:  # the first model stands; what was written stays
             entry["error"] = str(e)
             LOG.warning("%s not mapped again (%s); %s is kept and its cameras are not to be trusted",
@@ -489,7 +559,10 @@ def run(args) -> int:
     mapped = [model_numbers(m.rec) for m in models]
     sources = [(out / "database.db", s, fs)] * len(models)  # each model's database, export and features
     alone = _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
-    again = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources)
+    few = _few_registered_again(args, asked, out, stage, threads, s, models, mapped, sources)
+    shared = few is not None and few["taken"]  # the models have a camera per folder now
+    again = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
+                                 only=set() if shared else None)
 
     def last_stage(places) -> None:
         with stage("triangulate"):
@@ -504,7 +577,8 @@ def run(args) -> int:
         # cameras the last stage's bundle adjustment left bogus where the mapper's were not: mapped again as the
         # mapper's would have been, and the new model through the last stage
         later = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
-                                     only=set(range(len(models))) - set(again), after="triangulate")
+                                     only=set() if shared else set(range(len(models))) - set(again),
+                                     after="triangulate")
         last_stage(sorted(k for k, e in later.items() if e["taken"]))
         again.update(later)
     report = {"images": s.n_images, "features": len(fs), "options": {
@@ -520,7 +594,7 @@ def run(args) -> int:
                   "dropped_as_weak": s.n_pairs_dropped, "matches": s.n_matches,
                   "log_spaced_clusters": s.n_spaced_clusters},
         "models": _models_report(models, mapped, truth, out), "scenes_alone": alone,
-        "shared_camera_again": [again[k] for k in sorted(again)],
+        "shared_camera_again": [again[k] for k in sorted(again)], "few_registered_again": few,
         "clusters_across_models": _clusters_across_models(models, s, fs, result.labels)}
     report["times"] = dict(stage.times, total=time.perf_counter() - t0)
     report["peak_memory_bytes"] = stage.peaks
@@ -555,6 +629,6 @@ def run(args) -> int:
         figures.append(out / ("model.png" if k == 0 else f"model-{k + 1}.png"))
         model_figure(m.rec, figures[-1], f"{_folder(m, out)}: {entry['registered']} of {s.n_images} images, "
                                          f"{entry['points']:,} points")
-    redone = "".join(f"{out}/{where}, " for where, done in (("scenes", alone), ("shared-camera", again)) if done)
+    redone = "".join(f"{out}/{where}, " for where, done in (("scenes", alone), ("shared-camera", again or few)) if done)
     print(f"wrote {out}/sparse, {redone}{', '.join(str(f) for f in figures)}, {out / 'sfm.json'}")
     return 0

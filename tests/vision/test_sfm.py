@@ -703,6 +703,7 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     assert again["points_again"] > again["model_before"]["points"] > 0
     assert report["models"][0]["folder"] == "shared-camera/0/sparse/0" and report["model"]["bogus_cameras"] == 0
     assert report["model"]["registered"] == 5 and report["model"]["points"] > 0
+    assert report["few_registered_again"] is None  # every image registered: no reason to map them all again
     shared = pycolmap.Reconstruction(str(tmp_path / "m" / "shared-camera/0/sparse/0"))
     assert {image.camera_id for image in shared.images.values()} == {1}  # one camera for the folder
     first = pycolmap.Reconstruction(str(tmp_path / "m" / "sparse/0"))  # the first model stays (as written)
@@ -740,6 +741,54 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
            "of its bounds): their poses are not to be trusted" in captured.err
     assert [e["taken"] for e in report["shared_camera_again"]] == [False] and len(calls) == 1
     assert report["model"]["bogus_cameras"] == 5 and not (tmp_path / "one" / "shared-camera").exists()
+
+
+def test_a_mapping_that_registers_few_images_a_camera_each_is_done_again_with_one_camera_per_folder(
+        tmp_path, capsys, monkeypatch):
+    """cmu_hotel's 101 video frames with --mapper incremental, a camera a frame: COLMAP's incremental mapper,
+    which drops an image whose camera it calls bogus, registered 12 of them. Where the mapper's models hold fewer
+    than half of the images, each with a camera of its own, and one camera per folder fits them (one size a folder,
+    no EXIF focal length), every image is mapped again with one camera per folder into shared-camera/all/, whose
+    models replace the first where their largest registers more images. Here the first mapping keeps 2 of 5
+    images, as the incremental mapper kept cmu_hotel's; with --single-camera nothing is mapped again."""
+    import pycolmap
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.vision import sfm
+
+    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    real, calls = sfm.reconstruct, []
+
+    def few(database, *args, **kwargs):  # the first mapping keeps two images registered
+        models, seconds = real(database, *args, **kwargs)
+        calls.append(database)
+        if len(calls) == 1:
+            for m in models:
+                for image_id in sorted(m.rec.reg_image_ids())[2:]:
+                    m.rec.deregister_frame(m.rec.image(image_id).frame_id)
+        return models, seconds
+
+    monkeypatch.setattr(sfm, "reconstruct", few)
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m"), "--quiet", "--mapper", "incremental"]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    entry = report["few_registered_again"]
+    assert "2 of 5 images registered with a camera each" in out and "its models replace the first" in out
+    assert entry["taken"] and (entry["images"], entry["registered_again"], entry["registered_of"]) == (2, 5, 5)
+    assert entry["model_folder"] == "sparse/0" and entry["folder"] == "shared-camera/all/sparse/0" and len(calls) == 2
+    assert report["models"][0]["folder"] == "shared-camera/all/sparse/0" and report["model"]["registered"] == 5
+    assert report["shared_camera_again"] == [] and report["model"]["points"] > report["model_before_triangulation"][
+        "points"] > 0  # the new model went through the last stage
+    model = pycolmap.Reconstruction(str(tmp_path / "m" / "shared-camera/all/sparse/0"))
+    assert {image.camera_id for image in model.images.values()} == {1}  # one camera for the folder
+    assert f"{tmp_path / 'm'}/shared-camera" in out.splitlines()[-1]
+
+    calls.clear()
+    assert main(["sfm", str(images), "--out", str(tmp_path / "one"), "--quiet", "--mapper", "incremental",
+                 "--single-camera", "--no-triangulate"]) == 0
+    report = json.loads((tmp_path / "one" / "sfm.json").read_text())
+    assert report["few_registered_again"] is None and report["model"]["registered"] == 2 and len(calls) == 1
+    assert not (tmp_path / "one" / "shared-camera").exists()
 
 
 def test_cameras_the_last_stage_leaves_bogus_are_mapped_again_with_one_camera_per_folder(tmp_path, capsys,
