@@ -198,6 +198,9 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
             done = f"joined into {_folder(m, out)}" if e["joined"] else f"kept apart from {_folder(m, out)}"
             print(f"{say}model {e['model']} ({count(e['images'], 'image')}) {done}: COLMAP's incremental mapper "
                   f"continuing that model registered {e['registered']} of them ({e['seconds']:.1f} s)", flush=True)
+        for e in m.repeats:
+            print(f"{say}model {e['model']} ({count(e['images'], 'image')}) left out: each of its images is in "
+                  f"{_folder(m, out)}", flush=True)
     return fs, result, extra, s, mapper, models
 
 
@@ -351,10 +354,9 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
     one camera per folder into ``out/shared-camera/all/``: COLMAP's incremental mapper, which drops an image whose
     camera it calls bogus, registered 12 of cmu_hotel's 101 frames with a camera a frame (``--mapper
     incremental``; the same mapper with one camera, 101). The new models replace all of ``models``, ``mapped`` and
-    ``sources`` where their largest registers more images than the first's, with no more bogus cameras (a model
-    whose every image a larger one holds is left out); otherwise the first stay, with a warning. Returns what was
-    done, for sfm.json (None: nothing to do)."""
-    from ..vision.sfm import bogus_cameras, model_numbers, registered_names
+    ``sources`` where their largest registers more images than the first's, with no more bogus cameras; otherwise
+    the first stay, with a warning. Returns what was done, for sfm.json (None: nothing to do)."""
+    from ..vision.sfm import bogus_cameras, model_numbers
 
     registered = registered_images(models)[0]
     if 2 * registered >= export.n_images or _shared_camera_unfit(args, export, list(export.names)) is not None:
@@ -374,12 +376,6 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
         entry["error"] = str(e)
         LOG.warning("the images not mapped again (%s); the first models are kept", e)
         return entry
-    held: set[str] = set()  # a model whose every image a larger one holds adds nothing (cmu_hotel: 2 frames
-    for m in list(own):  # again on their own, with a camera of their own that COLMAP calls bogus)
-        names = registered_names(m.rec)
-        if names <= held:
-            own.remove(m)
-        held |= names
     numbers = model_numbers(own[0].rec if own else None)
     got, still = numbers["registered"], numbers["bogus_cameras"]
     entry.update(mapper=mapper, registered_again=got, bogus_cameras_again=still, points_again=numbers["points"],
@@ -485,7 +481,8 @@ def _models_report(models, mapped, truth, model_dir: Path) -> list[dict]:
 
     out = []
     for m, before in zip(models, mapped):
-        entry = dict(model_numbers(m.rec), folder=_folder(m, model_dir), before_triangulation=before, joins=m.joins)
+        entry = dict(model_numbers(m.rec), folder=_folder(m, model_dir), before_triangulation=before, joins=m.joins,
+                     repeats=m.repeats)
         if truth is not None:
             names = {Path(image.name).name for image in m.rec.images.values()}
             own = {k: v for k, v in truth.items() if Path(k).name in names}

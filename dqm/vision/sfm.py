@@ -101,13 +101,16 @@ def mapper_options(mapper: str = "incremental", seed: int = DEFAULT_SEED, num_th
 
 @dataclass
 class Model:
-    """One model of a mapping: pycolmap's Reconstruction, the mapper's key for it and its folder, and the smaller
-    models tried into it (:func:`join_small_models`: one dict each, ``joined`` true where it was)."""
+    """One model of a mapping: pycolmap's Reconstruction, the mapper's key for it and its folder, the smaller
+    models tried into it (:func:`join_small_models`: one dict each, ``joined`` true where it was) and those it
+    repeats (:func:`drop_repeats`)."""
 
     key: int
     rec: object
     folder: Path
     joins: list = field(default_factory=list)
+    #: the smaller models whose every image this one holds, left out (:func:`drop_repeats`): one dict each
+    repeats: list = field(default_factory=list)
 
 
 def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", seed: int = DEFAULT_SEED,
@@ -158,7 +161,41 @@ def reconstruct(database, image_dir, out_dir, *, mapper: str = "incremental", se
     if join:
         models = join_small_models(models, database, image_dir, seed=seed, num_threads=num_threads,
                                    progress=progress)
-    return models, time.perf_counter() - t0
+    return drop_repeats(models), time.perf_counter() - t0
+
+
+def linked_names(rec, least: int = MIN_SHARED_POINTS) -> set[str]:
+    """The registered images of a model (pycolmap's Reconstruction) that share ``least`` 3-D points or more with
+    another of its images (:func:`scene_groups`: the others are held by chance points)."""
+    return {rec.image(i).name for pair in covisible_pairs(rec, least) for i in pair}
+
+
+def drop_repeats(models: list[Model]) -> list[Model]:
+    """``models`` (largest first) less each model whose every registered image one larger model holds too, each
+    joined there to another image by its 3-D points (:func:`linked_names`): it adds no image, and two poses of an
+    image are one too many. COLMAP's incremental mapper can start a model from images another model has
+    registered (sacre_coeur's 10 photos: a model of all 10 and one of 2 of them; cmu_hotel's frames with one
+    camera, --mapper incremental: one of 101 and one of 2). An image the larger model holds by chance points only
+    (another scene's photo placed there) keeps the smaller model. Such a model is recorded in the larger one's
+    ``repeats`` (``model``: its key, ``images``: its registered images); its folder stays."""
+    kept: list[Model] = []
+    linked: dict[int, set[str]] = {}  # of each kept model, by its place in kept
+    for m in models:
+        names = registered_names(m.rec)
+        holder = None
+        for j, k in enumerate(kept):
+            if j not in linked:
+                linked[j] = linked_names(k.rec)
+            if names <= linked[j]:
+                holder = k
+                break
+        if holder is None:
+            kept.append(m)
+            continue
+        holder.repeats.append({"model": m.key, "images": len(names)})
+        LOG.info("model %s (%d images) left out: each of its images is in model %s", m.folder, len(names),
+                 holder.folder)
+    return kept
 
 
 def _count_images(database) -> int:

@@ -1,6 +1,7 @@
 """dqm sfm on a collection of several scenes: each scene's model as that scene alone (issue 59), on generated
 scenes with the size thresholds lowered."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -130,6 +131,32 @@ def test_linked_across_asks_whether_a_model_joins_two_groups_of_images_by_its_po
     assert linked_across(rec, [{"i1"}, {"i2", "i3", "i4"}])  # 1 and 2 see 40 points
     assert not linked_across(rec, [{"i1", "i2", "i3", "i4"}]) and not linked_across(rec, [{"i1", "i2"}, {"x"}])
     assert not linked_across(rec, [{"i1", "i2"}, {"i1", "i3", "i4"}])  # i1 counts in the first group only
+
+
+def test_a_smaller_model_of_images_a_larger_one_holds_is_left_out():
+    """:func:`dqm.vision.sfm.drop_repeats`: COLMAP's incremental mapper started a model of 2 of sacre_coeur's 10
+    photos beside the model of all 10 (and one of 2 of cmu_hotel's frames beside all 101): a smaller model whose
+    every image one larger model holds, joined there to another image by 15 3-D points or more, is left out and
+    recorded in the larger one's repeats; one that adds an image, or whose image the larger one holds by chance
+    points only, stays."""
+    from types import SimpleNamespace as NS
+
+    from dqm.vision.sfm import Model, drop_repeats
+
+    def model(key, images, shared):  # images: ids named "i<k>"; shared: {(image a, image b): points both see}
+        points = [NS(track=NS(elements=[NS(image_id=a), NS(image_id=b)])) for (a, b), n in shared.items()
+                  for _ in range(n)]
+        rec = NS(points3D=dict(enumerate(points)), reg_image_ids=lambda: list(images),
+                 image=lambda i: NS(name=f"i{i}"))
+        return Model(key, rec, Path(str(key)))
+
+    large = model(0, [1, 2, 3, 4], {(1, 2): 40, (2, 3): 40, (3, 4): 14})  # image 4: 14 chance points
+    kept = drop_repeats([large, model(1, [2, 3], {(2, 3): 30}), model(2, [3, 5], {(3, 5): 30}),
+                         model(3, [3, 4], {(3, 4): 30})])
+    assert [m.key for m in kept] == [0, 2, 3] and large.repeats == [{"model": 1, "images": 2}]
+    assert all(m.repeats == [] for m in kept[1:])
+    single = model(4, [1, 2], {(1, 2): 40})
+    assert drop_repeats([single]) == [single] and single.repeats == []
 
 
 def test_a_scene_that_cannot_be_redone_alone_keeps_the_collections_model(tmp_path, capsys, monkeypatch):
