@@ -97,9 +97,9 @@ def colmap_log_kept(pycolmap, at_least: int | None = None):
     is asked to). ``pycolmap.bundle_adjustment`` (pycolmap 4.2: COLMAP's OptionManager) sets them to its defaults,
     INFO and log files, and leaves them so: every COLMAP call after it would log, quiet or not (its own two
     INFO lines, a heading and its time, still reach stderr while it runs)."""
-    log = pycolmap.logging
-    kept = {name: getattr(log, name) for name in _LOG_FLAGS}
-    if at_least is not None:
+    log = getattr(pycolmap, "logging", None)
+    kept = {name: getattr(log, name) for name in _LOG_FLAGS if hasattr(log, name)}  # those this pycolmap has
+    if at_least is not None and "minloglevel" in kept:
         log.minloglevel = max(kept["minloglevel"], int(at_least))
     try:
         yield
