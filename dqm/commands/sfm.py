@@ -374,7 +374,7 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
                                                          list(export.names), folder, say)
     except InputError as e:  # the first models stand; what was written stays
         entry["error"] = str(e)
-        LOG.warning("the images not mapped again (%s); the first models are kept", e)
+        LOG.warning("the images not mapped again (%s); the first mapping stands", e)
         return entry
     numbers = model_numbers(own[0].rec if own else None)
     got, still = numbers["registered"], numbers["bogus_cameras"]
@@ -388,7 +388,7 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
               f"{own[0].rec.num_points3D():,} 3-D points: its models replace the first", flush=True)
     else:
         LOG.warning("every image again with one camera per folder: %d of %d registered in its largest model (%d "
-                    "before); the first models are kept", got, export.n_images, n)
+                    "before); the first mapping stands", got, export.n_images, n)
     return entry
 
 

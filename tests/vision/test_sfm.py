@@ -418,8 +418,8 @@ def test_a_model_of_two_scenes_that_share_almost_no_point_is_split(tmp_path, cap
 
     from dqm.vision import colmap, sfm
 
-    a = generate_scene3d(seed=2, n_images=4).save(tmp_path / "a")
-    b = generate_scene3d(seed=5, n_images=5).save(tmp_path / "b")
+    a = generate_scene3d(seed=2, n_images=4, width=480, height=360).save(tmp_path / "a")
+    b = generate_scene3d(seed=5, n_images=5, width=480, height=360).save(tmp_path / "b")
     monkeypatch.setattr(colmap, "drop_weak_pairs", lambda database: 0)
     argv = ["sfm", str(a), str(b), "--mapper", "global", "--quiet", "--no-triangulate"]
     real = sfm.split_scenes
@@ -645,7 +645,12 @@ def test_where_the_global_mapper_auto_chose_makes_no_model_the_incremental_one_r
     assert report["options"]["mapper"] == "incremental" and report["model"]["registered"] == 5
     assert main(["sfm", str(images), "--out", str(tmp_path / "asked"), "--mapper", "global", "--quiet"]) == 1
     out = capsys.readouterr().out
-    assert len(calls) == 2 and "no model" in out and "instead" not in out
+    assert "no model" in out and "instead" not in out
+    # no image registered, a camera each: mapped again with one camera per folder, by the mapper asked for
+    assert len(calls) == 3 and "0 of 5 images registered with a camera each" in out
+    assert Path(calls[2]) == tmp_path / "asked" / "shared-camera" / "all" / "database.db"
+    report = json.loads((tmp_path / "asked" / "sfm.json").read_text())
+    assert not report["few_registered_again"]["taken"] and report["few_registered_again"]["mapper"] == "global"
 
 
 def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp_path, capsys, monkeypatch):
@@ -919,7 +924,7 @@ def test_dqm_sfm_one_camera_per_folder(tmp_path, capsys):
     from generators.scenes3d import generate_scene3d
 
     for name, seed in (("one", 2), ("two", 5)):
-        generate_scene3d(seed=seed, n_images=4).save(tmp_path / "photos" / name)
+        generate_scene3d(seed=seed, n_images=4, width=480, height=360).save(tmp_path / "photos" / name)
     photos = str(tmp_path / "photos")
     for flag, cameras in (("--single-camera-per-folder", 2), ("--single-camera", 1)):
         out = tmp_path / flag.strip("-")
@@ -969,9 +974,11 @@ def test_dqm_sfm_log_spaced_cluster_matches(tmp_path, capsys):
     assert written["log"] < written["all"]  # the pairs with 15 matches or more (COLMAP verifies no fewer)
     from dqm.cli import build_parser
 
-    parser = build_parser()  # auto, the default of both commands: a video's tracks log-spaced, every other as all
+    parser = build_parser()  # auto, the default of every command: a video's tracks log-spaced, every other as all
     assert parser.parse_args(["sfm", str(images), "--out", "x"]).cluster_matches == "auto"
-    assert parser.parse_args(["export", "colmap", "c.npz", "--database", "d.db"]).cluster_matches is None
+    assert parser.parse_args(["export", "colmap", "c.npz", "--database", "d.db"]).cluster_matches == "auto"
+    assert parser.parse_args(["export", "hloc", "c.npz", "--matches", "m.h5", "--pairs", "p.txt"]).cluster_matches \
+        == "auto"
     sizes = np.bincount(load_clusters(tmp_path / "log" / "clusters.npz")["labels"])
     assert sizes.max() >= 4  # clusters where log-spaced matches are fewer than every two members
     for how, want in (("all", sum(s * (s - 1) // 2 for s in sizes)),

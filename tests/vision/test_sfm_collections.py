@@ -82,7 +82,7 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
 
     from dqm.vision import sfm
 
-    scenes = [generate_scene3d(seed=seed, n_images=n).save(tmp_path / name)
+    scenes = [generate_scene3d(seed=seed, n_images=n, width=480, height=360).save(tmp_path / name)
               for seed, n, name in ((0, 10, "c"), (2, 4, "a"), (5, 5, "b"))]
     monkeypatch.setattr(sfm, "GLOBAL_FROM", 10)
     argv = ["sfm", *map(str, scenes), "--quiet", "--no-triangulate"]
