@@ -671,7 +671,7 @@ def test_a_model_of_bogus_cameras_is_mapped_again_with_one_camera_per_folder(tmp
     from dqm.validation import InputError
     from dqm.vision import sfm
 
-    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    images = generate_scene3d(seed=0, n_images=5, width=480, height=360).save(tmp_path / "img")
     real, calls, plan = sfm.reconstruct, [], {}
 
     def spoiled(database, *args, **kwargs):  # plan: {mapping: (bogus cameras, share of the points kept)}
@@ -761,7 +761,7 @@ def test_a_mapping_that_registers_few_images_a_camera_each_is_done_again_with_on
 
     from dqm.vision import sfm
 
-    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    images = generate_scene3d(seed=0, n_images=5, width=480, height=360).save(tmp_path / "img")
     real, calls = sfm.reconstruct, []
 
     def few(database, *args, **kwargs):  # the first mapping keeps two images registered
@@ -809,7 +809,7 @@ def test_cameras_the_last_stage_leaves_bogus_are_mapped_again_with_one_camera_pe
     from dqm.commands import sfm as command
     from dqm.vision import sfm
 
-    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    images = generate_scene3d(seed=0, n_images=5, width=480, height=360).save(tmp_path / "img")
     real, folders = command._triangulate, []
 
     def spoiled(rec, database, *args):
@@ -895,7 +895,7 @@ def test_a_model_the_mapper_left_without_a_point_is_left_out(tmp_path, capsys, m
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
-    images = generate_scene3d(seed=0, n_images=5).save(tmp_path / "img")
+    images = generate_scene3d(seed=0, n_images=5, width=480, height=360).save(tmp_path / "img")
     real = pycolmap.incremental_mapping
 
     def with_a_model_without_points(database, image_dir, out, *args, **kwargs):
