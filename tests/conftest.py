@@ -11,7 +11,12 @@ def pytest_configure(config):
     PYTHONDONTWRITEBYTECODE is set (as in this project's sandboxes and CI) each of them would
     otherwise compile every module it imports from source again (about 0.2 s of every start-up;
     cached .pyc files are read whatever that variable says). Under pytest-xdist the controller
-    compiles before its workers start; they find it done."""
+    compiles before its workers start; they find it done.
+
+    Tests that call pycolmap themselves, before any dqm command set COLMAP's log up in their process
+    (:func:`dqm.vision.colmap.require_pycolmap`), would have glog write a log file into the temporary
+    folder at each run: glog reads GLOG_logtostderr when pycolmap loads, so it is set here first."""
+    os.environ.setdefault("GLOG_logtostderr", "1")
     if hasattr(config, "workerinput"):
         return
     compileall.compile_dir(Path(__file__).resolve().parents[1] / "dqm", quiet=1)
