@@ -558,8 +558,7 @@ def run(args) -> int:
     alone = _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
     few = _few_registered_again(args, asked, out, stage, threads, s, models, mapped, sources)
     shared = few is not None and few["taken"]  # the models have a camera per folder now
-    again = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
-                                 only=set() if shared else None)
+    again = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources)
 
     def last_stage(places) -> None:
         with stage("triangulate"):
@@ -573,9 +572,8 @@ def run(args) -> int:
         last_stage(range(len(models)))
         # cameras the last stage's bundle adjustment left bogus where the mapper's were not: mapped again as the
         # mapper's would have been, and the new model through the last stage
-        later = _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
-                                     only=set() if shared else set(range(len(models))) - set(again),
-                                     after="triangulate")
+        later = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
+                                                       only=set(range(len(models))) - set(again), after="triangulate")
         last_stage(sorted(k for k, e in later.items() if e["taken"]))
         again.update(later)
     report = {"images": s.n_images, "features": len(fs), "options": {

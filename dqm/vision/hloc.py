@@ -69,7 +69,7 @@ from numpy.typing import ArrayLike
 from ..io import FeatureSet
 from ..outputs import atomic_output
 from ..validation import InputError
-from .colmap import DEFAULT_CLUSTER_MATCHES
+from .colmap import DEFAULT_CLUSTER_MATCHES, cluster_pairs, local_indices
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -424,8 +424,6 @@ def write_h5_matches(path: PathLike, labels: ArrayLike, image_ids: ArrayLike, na
     :func:`check_pair_names`). An existing ``path`` is refused unless ``overwrite``; the file is
     written to a temporary name and renamed.
     """
-    from .colmap import cluster_pairs, local_indices
-
     h5py = require_h5py()
     path = Path(path)
     if path.exists() and not overwrite:
