@@ -10,7 +10,15 @@ clusters on the same features (QuickMatch and guided growth, the ``sfm`` preset:
 docs/match-defaults) with the truth pairs they find, and the F1 a matcher would have that finds every
 real correspondence and nothing else (precision 1, recall = real / truth).
 
-    python scripts/truth_chance.py graf wall boat bikes --out docs/match-defaults/truth-chance.md
+A second table checks the truth itself against the matches (``--fit``): per image pair, a homography
+fitted to the matches `dqm match`'s clusters imply (USAC, MAGSAC++ at 4 px, as the verification fits;
+15 inliers at least), how far its inliers lie from the truth, and whether it agrees with its own
+compositions through every third image (H_kj H_ik against H_ij at the inliers: independent matches, so
+a fitted homography that agrees with them is the images' own geometry, not a fit to wrong matches). The
+pairs where the truth puts more than a fifth of such inliers beyond its 5 px are listed: there
+precision counts correct matches as wrong.
+
+    python scripts/truth_chance.py graf wall boat bikes --fit --out docs/match-defaults/truth-chance.md
 """
 from __future__ import annotations
 
@@ -42,6 +50,51 @@ def chance_rows(bench: benchmark.Benchmark) -> dict:
     return {"truth": int(total), "chance": chance, "real_lo": lo, "real_hi": hi}
 
 
+def _apply(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    q = xy @ H[:, :2].T + H[:, 2]
+    return q[:, :2] / q[:, 2:]
+
+
+def fit_rows(bench: benchmark.Benchmark, labels: np.ndarray, threshold: float = 4.0, min_inliers: int = 15,
+             seed: int = 0) -> list:
+    """Per image pair: the homography fitted to the matches ``labels`` imply, its inliers' errors under the
+    truth, and its disagreement with its compositions through the other images (module docstring)."""
+    import cv2
+
+    from dqm.vision.colmap import cluster_pairs
+
+    truth = bench.truth()
+    xy = truth.xy
+    cv2.setRNGSeed(int(seed))
+    fitted, inl = {}, {}
+    for (i, j), m in sorted(cluster_pairs(labels, bench.image_ids).items()):
+        if len(m) < min_inliers:
+            continue
+        H, mask = cv2.findHomography(xy[m[:, 0]].astype(np.float32), xy[m[:, 1]].astype(np.float32),
+                                     cv2.USAC_MAGSAC, threshold, None, 10000, 0.999)
+        if H is None or mask is None or mask.sum() < min_inliers:
+            continue
+        fitted[(i, j)], inl[(i, j)] = H / H[2, 2], m[mask.ravel().astype(bool)]
+
+    def h(a: int, b: int):
+        if (a, b) in fitted:
+            return fitted[(a, b)]
+        return np.linalg.inv(fitted[(b, a)]) if (b, a) in fitted else None
+
+    images = sorted({k for pair in fitted for k in pair})
+    rows = []
+    for (i, j), m in inl.items():
+        xa, xb = xy[m[:, 0]], xy[m[:, 1]]
+        own = np.linalg.norm(_apply(fitted[(i, j)], xa) - xb, axis=1)
+        err = evaluation.reprojection_error(truth.H[(i, j)], xa, xb)
+        chain = [np.median(np.linalg.norm(_apply(h(k, j) @ h(i, k), xa) - _apply(fitted[(i, j)], xa), axis=1))
+                 for k in images if k not in (i, j) and h(i, k) is not None and h(k, j) is not None]
+        rows.append({"pair": (i, j), "inliers": len(m), "own_median": float(np.median(own)),
+                     "truth_median": float(np.median(err)), "beyond": float(np.mean(err > truth.tol)),
+                     "chain_median": float(np.median(chain)) if chain else float("nan"), "chains": len(chain)})
+    return rows
+
+
 def f1(p: float, r: float) -> float:
     return 2 * p * r / (p + r) if p + r else 0.0
 
@@ -50,9 +103,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data", nargs="+", help="homography data sets (graf, wall, boat, bikes, scene:N)")
     ap.add_argument("--preset", default="sfm", help="SIFT preset (default sfm: dqm match's on images)")
+    ap.add_argument("--fit", action="store_true",
+                    help="also check the truth against homographies fitted to dqm match's matches (second table)")
     ap.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
     args = ap.parse_args(argv)
-    rows = []
+    rows, fits = [], []
     for name in args.data:
         bench = benchmark.load_benchmark(name, preset=args.preset)
         if bench.kind != "homography":
@@ -61,10 +116,17 @@ def main(argv=None) -> int:
         grown = benchmark.evaluate(bench, ["quickmatch-guided"], curves=False)[0].scores
         found = grown.recall * c["truth"]
         rows.append((name, len(bench), c, grown, found))
+        if args.fit:
+            from dqm.core import quickmatch
+            from dqm.vision.guided import guided_labels
+
+            labels, _ = guided_labels(quickmatch(bench.descriptors, bench.image_ids, rho=benchmark.DEFAULT_RHO),
+                                      bench.keypoints, bench.descriptors, seed=0)
+            fits.append((name, fit_rows(bench, labels)))
         print(f"{name}: {c['truth']} truth pairs, {c['chance']:.0f} by chance, real {c['real_lo']:.0f}-"
               f"{c['real_hi']:.0f}; dqm match finds {found:.0f} (F1 {grown.f1:.3f})", flush=True)
     lines = [f"Generated by `python scripts/truth_chance.py {' '.join(args.data)}"
-             + (f" --preset {args.preset}" if args.preset != "sfm" else "")
+             + (f" --preset {args.preset}" if args.preset != "sfm" else "") + (" --fit" if args.fit else "")
              + (f" --out {args.out}`" if args.out else "`") + ". Truth: one-to-one keypoint pairs within 5 px "
              "under the true homography (`dqm evaluate`'s); chance: the same under the homography and a shift "
              "of 40-70 px (mean of four); real: bounds from `dqm.evaluation.real_truth_pairs`; dqm match: "
@@ -78,6 +140,20 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | {n:,} | {c['truth']:,} | {c['chance']:,.0f} | {c['real_lo']:,.0f} - "
                      f"{c['real_hi']:,.0f} | {lo:.2f} - {hi:.2f} | {found:,.0f} ({g.recall:.3f}) | "
                      f"{g.precision:.3f} / {g.f1:.3f} | {f1(1.0, lo):.3f} - {f1(1.0, hi):.3f} |")
+    if args.fit:
+        lines += ["", "The truth against the matches' own homographies (`--fit`): image pairs (images numbered from 1) "
+                  "where more than a fifth of the inliers of a homography fitted to `dqm match`'s matches lie beyond "
+                  "the truth's 5 px. Chain: the median distance, at those inliers, between the fitted homography and "
+                  "its compositions through each third image (median over the third images).", "",
+                  "| data | image pair | inliers (4 px) | their residual under the fit, median px | under the truth: "
+                  "median px, share beyond 5 px | chain, median px (third images) |", "|---|---|---|---|---|---|"]
+        for name, fit in fits:
+            off = [r for r in fit if r["beyond"] > 0.2]
+            lines += [f"| {name} | {r['pair'][0] + 1}-{r['pair'][1] + 1} | {r['inliers']:,} | {r['own_median']:.2f} | "
+                      f"{r['truth_median']:.1f}, {r['beyond']:.2f} | {r['chain_median']:.2f} ({r['chains']}) |"
+                      for r in off]
+            if not off:
+                lines.append(f"| {name} | none of {len(fit)} | | | | |")
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out is not None:

@@ -6,6 +6,8 @@ generated scenes. It holds at dqm's default rho 0.9 (at the former default
 0.75 it did not on two scenes and hotel: docs/evaluation-notes.md); the tests
 after it pin down where QuickMatch's remaining errors come from.
 """
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import assert_consistent, require_data
@@ -144,13 +146,36 @@ def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp
 
     mod = load_script("truth_chance")
     out = tmp_path / "t.md"
-    assert mod.main(["scene:0", "--out", str(out)]) == 0
+    assert mod.main(["scene:0", "--fit", "--out", str(out)]) == 0
     features = BM.load_benchmark("scene:0", preset="sfm")  # the script's default preset, dqm match's
     c = mod.chance_rows(features)
     assert 0 < c["chance"] < c["truth"] and c["chance"] > 0.02 * c["truth"]
     assert 0 <= c["real_lo"] <= c["real_hi"] <= c["truth"]
     grown = BM.evaluate(features, ["quickmatch-guided"], curves=False)[0].scores
     text = out.read_text()
-    assert "`python scripts/truth_chance.py scene:0 --out" in text
+    assert "`python scripts/truth_chance.py scene:0 --fit --out" in text
     row = next(line for line in text.splitlines() if line.startswith("| scene:0 |"))
     assert f"{c['truth']:,}" in row and f"{grown.precision:.3f} / {grown.f1:.3f}" in row
+    # --fit: the generated scene's truth is exact, so no image pair is listed ...
+    assert "| scene:0 | none of " in text
+    from dqm.core import quickmatch
+    from dqm.vision.guided import guided_labels
+
+    labels, _ = guided_labels(quickmatch(features.descriptors, features.image_ids, rho=BM.DEFAULT_RHO),
+                              features.keypoints, features.descriptors, seed=0)
+    exact = {r["pair"]: r for r in mod.fit_rows(features, labels)}
+    assert len(exact) >= 3 and all(r["beyond"] < 0.2 and r["truth_median"] < 2 for r in exact.values())
+    # ... and a truth whose last image is 8 px off lists every pair with that image, whose fitted homographies
+    # still agree with their compositions through the other images
+    last = features.n_images - 1
+    shift = np.array([[1.0, 0, 8], [0, 1, 0], [0, 0, 1]])
+    true_h = features.homography
+
+    def off_by_8px(i, j):
+        H = true_h(i, j)
+        return shift @ H if j == last else H @ np.linalg.inv(shift) if i == last else H
+
+    wrong = dataclasses.replace(features, homography=off_by_8px, _truth=None)
+    listed = {r["pair"]: r for r in mod.fit_rows(wrong, labels) if r["beyond"] > 0.2}
+    assert set(listed) == {pair for pair in exact if last in pair} != set()
+    assert all(r["chain_median"] < 1 and r["truth_median"] > 5 for r in listed.values())
