@@ -216,7 +216,11 @@ def run(args) -> int:
         raise InputError(f"all {len(fs)} features come from one image; matching needs at least two images")
     result, extra = cluster(args, fs)
     if args.out is not None:
-        io.save_clusters(args.out, fs, result, extra)
+        from ..vision.colmap import is_database
+
+        extracted = not any(is_database(p) or is_features_file(p) for p in args.inputs)
+        sift = {"preset": args.preset, "max_features": args.max_features} if extracted else {}
+        io.save_clusters(args.out, fs, result, dict(extra or {}, **sift) or None)
     if args.tracks_csv:
         n = io.save_tracks_csv(args.tracks_csv, result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         print(f"wrote {n} tracks to {args.tracks_csv}")

@@ -4,6 +4,7 @@ a figure of the model and, with --gt, its cameras against ground truth.
     dqm sfm photos/ --out model/
     dqm sfm photos/ --out model/ --gt gt_cameras/        # + pose errors and AUC (Strecha files or a COLMAP model)
     dqm sfm photos/ --out model/ --preset colmap --camera-model OPENCV --single-camera
+    dqm sfm --clusters model/clusters.npz --out model2/  # from a run's clusters: no SIFT, no QuickMatch
 
 MODEL_DIR (new or empty) receives clusters.npz (dqm's CLUSTERS file), database.db (the COLMAP
 database: cameras, keypoints, the clusters' matches, verified geometries), sparse/0 ... (the
@@ -17,7 +18,10 @@ cameras COLMAP calls bogus (a focal length or a distortion out of its bounds, as
 video can get) and its images, a camera each, have one size a folder and no EXIF focal length, they are
 mapped again with one camera per folder (shared-camera/<k>/), which replaces the model where it
 registers as many images with fewer bogus cameras and as many 3-D points (the cameras are looked at after the
-mapper and again after the last stage, whose bundle adjustment can leave them bogus). It is the chain
+mapper and again after the last stage, whose bundle adjustment can leave them bogus; images mapped again with
+the run's SIFT choice take their features from the run's, and every image its clusters too). With --clusters
+FILE (a run's clusters.npz, or dqm match's on images) the run starts from its features and clusters: no
+extraction or matching, and no scene made again alone. It is the chain
 `dqm match` -> `dqm export colmap` -> pycolmap's mapper with the same options (docs/sfm.md). Every
 random choice is seeded (--seed): the same photos and options give the same model. Needs pycolmap:
 pip install 'dqm[colmap]'.
@@ -27,6 +31,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import shutil
 import time
 from pathlib import Path
 
@@ -57,6 +62,11 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="*", metavar="IMAGES",
                    help="image folders / globs / files (or none, with --image-list)")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="folder to create (or an empty one)")
+    p.add_argument("--clusters", default=None, metavar="CLUSTERS",
+                   help="start from a CLUSTERS file instead of images (a dqm sfm run's clusters.npz, or dqm match's "
+                        "on images): its features and clusters go to the export, the mapper and the last stage, "
+                        "with no extraction or matching; its images are read where it names them. To go on where a "
+                        "run stopped, or to map again with other options")
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
                            f"{LARGE_SCENE_PRESET} with each image's {LARGE_SCENE_MAX_FEATURES:,} strongest features "
@@ -96,6 +106,60 @@ def add_arguments(p) -> None:
                    help="ground-truth cameras (a folder of Strecha *.camera files, or a COLMAP model): print the "
                         "model's pose errors and pairwise pose AUC@1/2/5 degrees (docs/sfm.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    # what only the extraction and the matching use: refused with --clusters, whose file made both
+    p.set_defaults(matching_defaults={dest: p.get_default(dest) for dest in _MATCHING})
+
+
+#: the options of the extraction and the matching (with --clusters their file's choices stand)
+_MATCHING = ("image_list", "recursive", "preset", "max_features", "skip_bad_images", "rho", "ratio_density",
+             "kernel", "parent", "engine", "approximate", "neighbors", "verify", "guided")
+
+
+def _from_clusters(args):
+    """``--clusters FILE``: its features, its clusters (as QuickMatch's result: the labels) and the choices it was
+    made with, checked before any work: every option of the extraction or the matching is refused (the file's
+    stand: its QuickMatch parameters and geometric steps are set on ``args`` for any images matched again), the
+    arrays the stages need must be there, and the clusters must hold at most one feature of an image each."""
+    import types
+
+    import numpy as np
+
+    where = f"--clusters {args.clusters}"
+    if args.inputs:
+        raise InputError(f"{where} holds the features and the clusters; give images or --clusters, not both")
+    given = [dest for dest, default in args.matching_defaults.items() if getattr(args, dest) != default]
+    if given:
+        raise InputError(f"--{given[0].replace('_', '-')} is a choice of the extraction or the matching; {where} "
+                         "made both (give images instead to choose them)")
+    c = io.load_clusters(args.clusters)
+    for key in ("descriptors", "keypoints", "image_names"):
+        if key not in c:
+            raise InputError(f"{where}: no {key!r} array; dqm sfm needs the features' descriptors, keypoints and "
+                             "images (match images with dqm match or dqm sfm)")
+    fs = io.FeatureSet(descriptors=c["descriptors"], image_ids=c["image_ids"],
+                       **{name: c.get(name) for name in io.OPTIONAL_FIELDS}).validate(where)
+    labels = np.asarray(c["labels"])
+    if labels.shape != (len(fs),) or labels.dtype.kind not in "iu":
+        raise InputError(f"{where}: labels must be one integer per feature ({len(fs)}), got {labels.dtype} "
+                         f"{labels.shape}")
+    order = np.lexsort((fs.image_ids, labels))
+    twice = np.flatnonzero((np.diff(labels[order]) == 0) & (np.diff(fs.image_ids[order]) == 0))
+    if len(twice):
+        a, b = sorted(order[twice[0]:twice[0] + 2].tolist())
+        raise InputError(f"{where}: cluster {labels[a]} holds two features of image {fs.image_names[fs.image_ids[a]]} "
+                         f"(rows {a} and {b}); dqm sfm maps clusters of at most one feature an image")
+    missing = next((str(name) for name in fs.image_names if io.find_image(str(name)) is None), None)
+    if missing is not None:
+        raise InputError(f"{where} names image {missing}, which is not there: dqm sfm reads the images where the file "
+                         "names them")
+    params = c["params"]
+    for dest in ("rho", "ratio_density", "kernel", "parent"):
+        if dest in params:
+            setattr(args, dest, params[dest])
+    args.guided, args.verify = bool(params.get("guided")), bool(params.get("verify"))
+    args.preset, args.max_features = params.get("preset"), params.get("max_features")
+    extra = {key: params[key] for key in ("verify", "guided") if key in params} or None
+    return fs, types.SimpleNamespace(labels=labels.astype(np.int64)), extra
 
 
 def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads,
@@ -158,21 +222,32 @@ def _folder(model, out: Path) -> str:
     return model.folder.relative_to(out).as_posix()
 
 
-def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_dir=None, say: str = ""):
+def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_dir=None, say: str = "",
+                   features=None, clusters=None):
     """The stages before the triangulation on the images ``args`` names, written into ``out``: SIFT, QuickMatch,
     clusters.npz, tracks.csv and database.db (image names relative to ``image_dir``, default the images' common
-    folder), and the mapper's models in ``out/sparse``. Returns the features, QuickMatch's result and extras, the
-    export's summary, the mapper chosen and the models (largest first)."""
+    folder), and the mapper's models in ``out/sparse``. ``features``: these images' features, made before (no
+    extraction); ``clusters``: QuickMatch's result and extras on them, made before (no matching, and no
+    clusters.npz or tracks.csv: they are written where they were made). Returns the features, QuickMatch's
+    result and extras, the export's summary, the mapper chosen and the models (largest first)."""
     from ..vision import colmap
     from ..vision.sfm import choose_mapper, reconstruct
 
-    with stage("extract"):
-        fs = extract(args, min_images=2)
-    with stage("match"):
-        result, extra = cluster(args, fs)
+    if features is None:
+        with stage("extract"):
+            fs = extract(args, min_images=2)
+    else:
+        fs = features
+    if clusters is None:
+        with stage("match"):
+            result, extra = cluster(args, fs)
+    else:
+        result, extra = clusters
     with stage("export"):
-        io.save_clusters(out / "clusters.npz", fs, result, extra)
-        io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+        if clusters is None:  # with the SIFT choice, for a run that starts from this file (--clusters)
+            io.save_clusters(out / "clusters.npz", fs, result,
+                             dict(extra or {}, preset=args.preset, max_features=args.max_features))
+            io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
                                    image_dir=image_dir, descriptors=fs.descriptors, camera=camera, seed=args.seed,
@@ -319,22 +394,50 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     return done
 
 
+def _features_of(fs: io.FeatureSet, ids: list[int]) -> io.FeatureSet:
+    """The features of the images ``ids`` of ``fs``, those images numbered 0.. in the order given."""
+    import numpy as np
+
+    renumber = np.full(len(fs.image_names), -1, np.int64)
+    renumber[ids] = np.arange(len(ids))
+    rows = np.flatnonzero(renumber[fs.image_ids] >= 0)
+    rows = rows[np.argsort(renumber[fs.image_ids[rows]], kind="stable")]  # image by image, in the order given
+    pick = {name: (None if getattr(fs, name) is None else getattr(fs, name)[rows])
+            for name in ("keypoints", "point_ids", "feature_ids")}
+    return io.FeatureSet(descriptors=fs.descriptors[rows], image_ids=renumber[fs.image_ids[rows]],
+                         image_names=np.asarray(fs.image_names)[ids], **pick)
+
+
 def _map_again_per_folder(args, asked, out: Path, stage: _Stages, threads: int, export, names: list[str],
-                          folder: Path, say: str):
+                          folder: Path, say: str, first):
     """The images ``names`` (relative to the export's image folder) through the stages before the triangulation
     again into ``folder``, with one camera per folder; mapped by COLMAP's incremental mapper unless a mapper was
     asked for (it checks every camera against COLMAP's bounds as it registers images, the global mapper does not:
     cmu_hotel with ``--cluster-matches auto``, the global mapper's model with one camera had 401 points, the
-    incremental mapper's 2,856; docs/sfm.md). Returns :func:`_match_and_map`'s result."""
+    incremental mapper's 2,856; docs/sfm.md). ``first``: the run's features (every image, in the export's
+    order), QuickMatch's result and extras; where the images get the run's SIFT choice (or the run started from
+    --clusters), their features are taken from it rather than extracted again (each image's features are its
+    own), and where they are every image, its clusters too (only the cameras differ). Returns
+    :func:`_match_and_map`'s result."""
     from ..vision import colmap
     from ..vision.sfm import choose_features
 
     paths = [str(Path(export.image_dir) / name) for name in names]
     mapper = "incremental" if asked.mapper == "auto" else asked.mapper
-    sub = _args_again(args, paths, choose_features(asked.preset, asked.max_features, len(names)), mapper,
-                      single_camera=False, single_camera_per_folder=True)
+    run_choice = (args.preset, args.max_features)
+    choice = run_choice if args.clusters else choose_features(asked.preset, asked.max_features, len(names))
+    sub = _args_again(args, paths, choice, mapper, single_camera=False, single_camera_per_folder=True)
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
-    return _match_and_map(sub, folder, stage, camera, threads, image_dir=export.image_dir, say=say)
+    features = clusters = None
+    if choice == run_choice:
+        fs, result, extra = first
+        if list(names) == list(export.names):
+            features, clusters = fs, (result, extra)
+        else:
+            by_name = {name: k for k, name in enumerate(export.names)}
+            features = _features_of(fs, [by_name[name] for name in names])
+    return _match_and_map(sub, folder, stage, camera, threads, image_dir=export.image_dir, say=say,
+                          features=features, clusters=clusters)
 
 
 def _shared_camera_unfit(args, export, names: list[str]) -> str | None:
@@ -348,7 +451,7 @@ def _shared_camera_unfit(args, export, names: list[str]) -> str | None:
 
 
 def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, export, models, mapped,
-                          sources) -> dict | None:
+                          sources, first) -> dict | None:
     """Where the mapper's models hold fewer than half of the images, each with a camera of its own, and one camera
     per folder fits them (one size a folder, no EXIF focal length: a video's frames), every image mapped again with
     one camera per folder into ``out/shared-camera/all/``: COLMAP's incremental mapper, which drops an image whose
@@ -371,7 +474,7 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
           flush=True)
     try:
         fs, _, _, s, mapper, own = _map_again_per_folder(args, asked, out, stage, threads, export,
-                                                         list(export.names), folder, say)
+                                                         list(export.names), folder, say, first)
     except InputError as e:  # the first models stand; what was written stays
         entry["error"] = str(e)
         LOG.warning("the images not mapped again (%s); the first mapping stands", e)
@@ -393,7 +496,7 @@ def _few_registered_again(args, asked, out: Path, stage: _Stages, threads: int, 
 
 
 def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, export, models, mapped,
-                         sources, only=None, after: str = "map") -> dict[int, dict]:
+                         sources, first, only=None, after: str = "map") -> dict[int, dict]:
     """A model with cameras COLMAP calls bogus (:func:`dqm.vision.sfm.bogus_cameras`; its incremental mapper
     drops such an image) mapped again with one camera per folder (:func:`_map_again_per_folder`), where each image
     had a camera of its own and one per folder fits (:func:`dqm.vision.colmap.shared_camera_unfit`: one size a
@@ -438,7 +541,7 @@ def _shared_camera_again(args, asked, out: Path, stage: _Stages, threads: int, e
               f"so they are mapped again with one camera per folder into {folder} ...", flush=True)
         try:
             fs, _, _, s, mapper, own = _map_again_per_folder(args, asked, out, stage, threads, export, names, folder,
-                                                             say)
+                                                             say, first)
         except InputError as e:  # the first model stands; what was written stays
             entry["error"] = str(e)
             LOG.warning("%s not mapped again (%s); %s is kept and its cameras are not to be trusted",
@@ -530,35 +633,57 @@ def run(args) -> int:
     if args.max_features is not None and args.max_features < 0:
         raise InputError(f"--max-features must be >= 0 (0 = no limit), got {args.max_features}")
     threads = args.mapper_threads or -1
-    if not args.inputs and not args.image_list:
+    made = None
+    if args.clusters is not None:
+        made = _from_clusters(args)
+    elif not args.inputs and not args.image_list:
         raise InputError("no images: give image folders, globs or files, or --image-list")
     truth = None
     # as asked, before auto chooses for the collection
     asked = argparse.Namespace(preset=args.preset, max_features=args.max_features, mapper=args.mapper)
     n_images = 0
-    if args.gt or args.preset == "auto" or mode != "per-image":  # the images named before any work
+    if args.gt or args.preset == "auto" or mode != "per-image" or made:  # the images named before any work
         from ..vision.features import collect_images
 
-        paths = collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)
+        paths = colmap.resolve_images(made[0].image_names) if made else \
+            collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)
         names = [p.name for p in paths]
         n_images = len(names)
         if args.gt:  # read and matched to the images' names
             truth = poses.restrict(poses.read_ground_truth(args.gt), names, f"--gt {args.gt}")
         colmap.check_camera_sharing(paths, camera)  # a shared camera needs one image size
-    args.preset, args.max_features = choose_features(args.preset, args.max_features, n_images)
-    if asked.preset == "auto":
+    if made:
+        grown = " grown by geometry (dqm match's default on images; dqm sfm's is not to grow them: docs/sfm.md)" \
+            if args.guided else ""
+        print(f"features and clusters of {args.clusters}{grown}: {count(len(made[0]), 'feature')} of "
+              f"{count(n_images, 'image')}", flush=True)
+    else:
+        args.preset, args.max_features = choose_features(args.preset, args.max_features, n_images)
+    if asked.preset == "auto" and not made:
         cap = f", at most {args.max_features:,} features an image" if args.max_features else ""
         print(f"SIFT preset {args.preset}{cap} (auto: {count(n_images, 'image')}, {SMALL_SCENE_PRESET} below "
               f"{GLOBAL_FROM})", flush=True)
     out = _out_dir(args.out)
     stage = _Stages()
-    fs, result, _, s, mapper, models = _match_and_map(args, out, stage, camera, threads)
+    if made:  # MODEL_DIR holds its clusters as a run from images does
+        fs, result, extra = made
+        with stage("export"):
+            with outputs.atomic_output(out / "clusters.npz") as tmp:
+                shutil.copyfile(args.clusters, tmp)
+            io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
+    fs, result, extra, s, mapper, models = _match_and_map(args, out, stage, camera, threads,
+                                                          features=made and made[0], clusters=made and made[1:])
+    first = (fs, result, extra)
     mapped = [model_numbers(m.rec) for m in models]
     sources = [(out / "database.db", s, fs)] * len(models)  # each model's database, export and features
-    alone = _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
-    few = _few_registered_again(args, asked, out, stage, threads, s, models, mapped, sources)
+    if made and len(models) > 1:
+        print(f"note: the {len(models)} models are not made again alone with the choices of their size (the "
+              f"features are {args.clusters}'s; give the images for that)", flush=True)
+    alone = [] if made else _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
+    few = _few_registered_again(args, asked, out, stage, threads, s, models, mapped, sources, first)
     shared = few is not None and few["taken"]  # the models have a camera per folder now
-    again = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources)
+    again = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
+                                                   first)
 
     def last_stage(places) -> None:
         with stage("triangulate"):
@@ -573,13 +698,14 @@ def run(args) -> int:
         # cameras the last stage's bundle adjustment left bogus where the mapper's were not: mapped again as the
         # mapper's would have been, and the new model through the last stage
         later = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,
-                                                       only=set(range(len(models))) - set(again), after="triangulate")
+                                                       first, only=set(range(len(models))) - set(again),
+                                                       after="triangulate")
         last_stage(sorted(k for k, e in later.items() if e["taken"]))
         again.update(later)
     report = {"images": s.n_images, "features": len(fs), "options": {
         "preset": args.preset, "max_features": args.max_features, "guided": bool(args.guided),
         "verify": bool(args.verify), "mapper": mapper, "seed": args.seed, "partners": args.partners,
-        "cluster_matches": args.cluster_matches,
+        "cluster_matches": args.cluster_matches, "clusters": args.clusters,
         "mapper_threads": args.mapper_threads, "triangulate": bool(args.triangulate),
         "bundle_adjust": bool(args.triangulate and args.bundle_adjust)},
         "model": model_numbers(models[0].rec if models else None),

@@ -70,6 +70,74 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
         assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
 
 
+def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys):
+    """--clusters FILE: a run's clusters.npz (or dqm match's on images) goes to the export, the mapper and the last
+    stage with no extraction or matching; from a dqm sfm run's own file the model is the same bit for bit. The
+    options of the extraction and the matching, images beside the file, a file whose images are gone and clusters
+    with two features of one image are refused in one line before any work."""
+    from generators.scenes3d import generate_scene3d
+
+    from dqm import io
+
+    images = generate_scene3d(seed=1, n_images=5, width=480, height=360).save(tmp_path / "img")
+    assert main(["sfm", str(images), "--out", str(tmp_path / "m1"), "--quiet"]) == 0
+    made = tmp_path / "m1" / "clusters.npz"
+    assert io.load_clusters(made)["params"]["preset"] == "budget"  # the SIFT choice is recorded
+    capsys.readouterr()
+    assert main(["sfm", "--clusters", str(made), "--out", str(tmp_path / "m2"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"features and clusters of {made}:" in out and "grown" not in out
+    report = json.loads((tmp_path / "m2" / "sfm.json").read_text())
+    assert set(report["times"]) == {"export", "map", "triangulate", "total"}  # nothing extracted or matched
+    assert report["options"]["clusters"] == str(made) and report["options"]["preset"] == "budget"
+    assert (tmp_path / "m2" / "clusters.npz").read_bytes() == made.read_bytes()
+    assert (tmp_path / "m2" / "tracks.csv").read_bytes() == (tmp_path / "m1" / "tracks.csv").read_bytes()
+    for name in ("images.bin", "points3D.bin", "cameras.bin"):
+        assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
+
+    # dqm match's file (grown by geometry, its default on images) is taken as it is, and said so
+    assert main(["match", str(images), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
+    assert io.load_clusters(tmp_path / "c.npz")["params"]["preset"] == "sfm"
+    assert main(["sfm", "--clusters", str(tmp_path / "c.npz"), "--out", str(tmp_path / "m3"), "--quiet"]) == 0
+    assert "grown by geometry" in capsys.readouterr().out
+    assert json.loads((tmp_path / "m3" / "sfm.json").read_text())["options"]["guided"] is True
+
+    c = dict(np.load(made))
+    both = c["labels"].copy()
+    first_two = np.flatnonzero(c["image_ids"] == 0)[:2]
+    both[first_two[1]] = both[first_two[0]]
+    np.savez(tmp_path / "twice.npz", **dict(c, labels=both))
+    np.savez(tmp_path / "moved.npz", **dict(c, image_names=np.array([f"/nowhere/{k}.png" for k in range(5)])))
+    for extra, says in [([str(images)], "give images or --clusters, not both"),
+                        (["--rho", "0.8"], "--rho is a choice of the extraction or the matching"),
+                        (["--preset", "sfm"], "--preset is a choice of the extraction or the matching")]:
+        assert main(["sfm", "--clusters", str(made), "--out", str(tmp_path / "no"), *extra]) == 2
+        assert says in capsys.readouterr().err
+    assert main(["sfm", "--clusters", str(tmp_path / "twice.npz"), "--out", str(tmp_path / "no")]) == 2
+    assert f"cluster {both[first_two[0]]} holds two features of image " in capsys.readouterr().err
+    assert main(["sfm", "--clusters", str(tmp_path / "moved.npz"), "--out", str(tmp_path / "no")]) == 2
+    assert "names image /nowhere/0.png, which is not there" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+
+
+def test_images_mapped_again_take_their_features_from_the_run(tmp_path):
+    """A repair that maps some of the run's images again (their SIFT choice the run's) takes their features from
+    the run's rather than extracting them again: each image's features are its own, so they are the same arrays."""
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.commands.sfm import _features_of
+    from dqm.vision.features import extract_images
+
+    folder = generate_scene3d(seed=4, n_images=4, width=240, height=180, n_planes=2).save(tmp_path / "img")
+    paths = [str(folder / f"img{k}.png") for k in (1, 2, 3, 4)]
+    run = extract_images(paths, preset="budget")
+    alone = extract_images([paths[2], paths[0]], preset="budget")
+    taken = _features_of(run, [2, 0])
+    assert [str(n) for n in taken.image_names] == [str(n) for n in alone.image_names]
+    for name in ("descriptors", "image_ids", "keypoints"):
+        assert np.array_equal(getattr(taken, name), getattr(alone, name)), name
+
+
 def test_sfm_presets_follow_the_collections_size_as_the_mapper_does():
     """--preset auto: COLMAP's budget below GLOBAL_FROM images, the sfm preset capped at COLMAP's 8,192 features an
     image from there; a --max-features given is kept (0: no limit), and a preset given is never capped unasked."""
@@ -759,10 +827,14 @@ def test_a_mapping_that_registers_few_images_a_camera_each_is_done_again_with_on
     import pycolmap
     from generators.scenes3d import generate_scene3d
 
+    from dqm.commands import sfm as command
     from dqm.vision import sfm
 
     images = generate_scene3d(seed=0, n_images=5, width=480, height=360).save(tmp_path / "img")
     real, calls = sfm.reconstruct, []
+    made, real_extract, real_cluster = [], command.extract, command.cluster
+    monkeypatch.setattr(command, "extract", lambda *a, **kw: made.append("extract") or real_extract(*a, **kw))
+    monkeypatch.setattr(command, "cluster", lambda *a, **kw: made.append("match") or real_cluster(*a, **kw))
 
     def few(database, *args, **kwargs):  # the first mapping keeps two images registered
         models, seconds = real(database, *args, **kwargs)
@@ -787,6 +859,16 @@ def test_a_mapping_that_registers_few_images_a_camera_each_is_done_again_with_on
     model = pycolmap.Reconstruction(str(tmp_path / "m" / "shared-camera/all/sparse/0"))
     assert {image.camera_id for image in model.images.values()} == {1}  # one camera for the folder
     assert f"{tmp_path / 'm'}/shared-camera" in out.splitlines()[-1]
+    # the same frames with the same SIFT choice: their features and clusters are reused, only the cameras differ
+    assert made == ["extract", "match"] and not (tmp_path / "m" / "shared-camera/all/clusters.npz").exists()
+
+    # from the run's clusters.npz (--clusters) the repair is the same, with nothing extracted or matched
+    calls.clear()
+    made.clear()
+    assert main(["sfm", "--clusters", str(tmp_path / "m" / "clusters.npz"), "--out", str(tmp_path / "again"),
+                 "--quiet", "--mapper", "incremental"]) == 0
+    again = json.loads((tmp_path / "again" / "sfm.json").read_text())
+    assert made == [] and again["few_registered_again"]["taken"] and again["model"] == report["model"]
 
     calls.clear()
     assert main(["sfm", str(images), "--out", str(tmp_path / "one"), "--quiet", "--mapper", "incremental",
