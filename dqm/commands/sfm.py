@@ -125,7 +125,7 @@ def _from_clusters(args):
     import numpy as np
 
     where = f"--clusters {args.clusters}"
-    if args.inputs:
+    if args.inputs or args.image_list:
         raise InputError(f"{where} holds the features and the clusters; give images or --clusters, not both")
     given = [dest for dest, default in args.matching_defaults.items() if getattr(args, dest) != default]
     if given:
