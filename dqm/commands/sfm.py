@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import logging
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -619,8 +620,6 @@ def run(args) -> int:
         GLOBAL_FROM,
         SMALL_SCENE_PRESET,
         choose_features,
-        model_figure,
-        model_numbers,
     )
 
     t0 = time.perf_counter()
@@ -664,6 +663,24 @@ def run(args) -> int:
         print(f"SIFT preset {args.preset}{cap} (auto: {count(n_images, 'image')}, {SMALL_SCENE_PRESET} below "
               f"{GLOBAL_FROM})", flush=True)
     out = _out_dir(args.out)
+    try:
+        return _stages(args, out, made, asked, camera, threads, truth, t0)
+    except BaseException:  # Ctrl-C, a failed mapper, ...: the clusters made are not lost
+        if (out / "clusters.npz").exists():
+            print(f"note: {_goes_on(out)}", file=sys.stderr)
+        raise
+
+
+def _goes_on(out: Path) -> str:
+    return f"{out / 'clusters.npz'} holds the features and the clusters: dqm sfm --clusters {out / 'clusters.npz'} " \
+           "--out NEW_DIR goes on from them"
+
+
+def _stages(args, out: Path, made, asked, camera, threads: int, truth, t0: float) -> int:
+    """:func:`run`'s stages, its inputs checked: ``made``, what --clusters gave (None: extract and match)."""
+    from ..vision import poses
+    from ..vision.sfm import model_figure, model_numbers
+
     stage = _Stages()
     if made:  # MODEL_DIR holds its clusters as a run from images does
         fs, result, extra = made
@@ -722,7 +739,7 @@ def run(args) -> int:
     if not models:
         outputs.write_json(out / "sfm.json", report)
         print(f"no model: pycolmap's mapper registered no image pair ({stage.times['map']:.1f} s); the clusters and "
-              f"the database are in {out}")
+              f"the database are in {out} ({_goes_on(out)}, --mapper to choose another mapper)")
         return 1
     m = report["model"]
     print(f"model: {m['registered']} of {s.n_images} images registered, {m['points']:,} 3-D points, mean track "

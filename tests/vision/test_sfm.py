@@ -70,14 +70,16 @@ def test_dqm_sfm_cameras_against_ground_truth_and_the_same_model_twice(tmp_path,
         assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
 
 
-def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys):
+def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys, monkeypatch):
     """--clusters FILE: a run's clusters.npz (or dqm match's on images) goes to the export, the mapper and the last
-    stage with no extraction or matching; from a dqm sfm run's own file the model is the same bit for bit. The
-    options of the extraction and the matching, images beside the file, a file whose images are gone and clusters
-    with two features of one image are refused in one line before any work."""
+    stage with no extraction or matching; from a dqm sfm run's own file the model is the same bit for bit, and a
+    run stopped after its clusters were written says how to go on from them. The options of the extraction and
+    the matching, images beside the file, a file whose images are gone and clusters with two features of one
+    image are refused in one line before any work."""
     from generators.scenes3d import generate_scene3d
 
     from dqm import io
+    from dqm.vision import sfm
 
     images = generate_scene3d(seed=1, n_images=5, width=480, height=360).save(tmp_path / "img")
     assert main(["sfm", str(images), "--out", str(tmp_path / "m1"), "--quiet"]) == 0
@@ -94,6 +96,19 @@ def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys):
     assert (tmp_path / "m2" / "tracks.csv").read_bytes() == (tmp_path / "m1" / "tracks.csv").read_bytes()
     for name in ("images.bin", "points3D.bin", "cameras.bin"):
         assert (tmp_path / "m1/sparse/0" / name).read_bytes() == (tmp_path / "m2/sparse/0" / name).read_bytes(), name
+
+    def stopped(*args, **kwargs):  # Ctrl-C while the mapper runs
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(sfm, "reconstruct", stopped)
+        assert main(["sfm", str(images), "--out", str(tmp_path / "stopped"), "--quiet"]) == 130
+    kept = tmp_path / "stopped" / "clusters.npz"
+    assert f"note: {kept} holds the features and the clusters: dqm sfm --clusters {kept} --out NEW_DIR goes on " \
+           "from them" in capsys.readouterr().err
+    assert main(["sfm", "--clusters", str(kept), "--out", str(tmp_path / "went-on"), "--quiet"]) == 0
+    assert (tmp_path / "m1/sparse/0/points3D.bin").read_bytes() == \
+        (tmp_path / "went-on/sparse/0/points3D.bin").read_bytes()
 
     # dqm match's file (grown by geometry, its default on images) is taken as it is, and said so
     assert main(["match", str(images), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
