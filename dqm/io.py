@@ -367,6 +367,22 @@ def load_clusters(path) -> dict:
     return out
 
 
+def check_one_feature_an_image(labels, image_ids, image_names, source: str, use: str) -> None:
+    """InputError naming the cluster, the image and two rows where a cluster of ``labels`` holds two features of
+    one image: clusters are QuickMatch's (constraint C2), and what ``use`` does with them (matches between every
+    two members) would pair an image with itself."""
+    labels, ids = np.asarray(labels), np.asarray(image_ids)
+    if labels.shape != ids.shape or labels.ndim != 1:
+        return  # not one label an image id: the callers' own checks name that
+    order = np.lexsort((ids, labels))
+    twice = np.flatnonzero((np.diff(labels[order]) == 0) & (np.diff(ids[order]) == 0))
+    if len(twice):
+        a, b = sorted(order[twice[0]:twice[0] + 2].tolist())
+        image = image_names[ids[a]] if image_names is not None else ids[a]
+        raise InputError(f"{source}: cluster {labels[a]} holds two features of image {image} (rows {a} and {b}); "
+                         f"{use} takes clusters of at most one feature an image")
+
+
 def save_tracks_csv(path, labels, image_ids, keypoints=None, image_names=None, min_size: int = 2) -> int:
     """Write the clusters with ``min_size`` or more features as a TRACKS CSV; returns the track count."""
     labels = np.asarray(labels)

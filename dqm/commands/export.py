@@ -153,6 +153,9 @@ def _load(args, needs: tuple) -> dict:
         if key not in c:
             raise InputError(f"{args.clusters}: no {key!r} array; the export needs keypoints and image names "
                              "(match images, or FEATURES with keypoints and image_names)")
+    if "image_ids" in c:
+        io.check_one_feature_an_image(c["labels"], c["image_ids"], c.get("image_names"), args.clusters,
+                                      f"dqm export {args.format}")
     return c
 
 

@@ -143,12 +143,7 @@ def _from_clusters(args):
     if labels.shape != (len(fs),) or labels.dtype.kind not in "iu":
         raise InputError(f"{where}: labels must be one integer per feature ({len(fs)}), got {labels.dtype} "
                          f"{labels.shape}")
-    order = np.lexsort((fs.image_ids, labels))
-    twice = np.flatnonzero((np.diff(labels[order]) == 0) & (np.diff(fs.image_ids[order]) == 0))
-    if len(twice):
-        a, b = sorted(order[twice[0]:twice[0] + 2].tolist())
-        raise InputError(f"{where}: cluster {labels[a]} holds two features of image {fs.image_names[fs.image_ids[a]]} "
-                         f"(rows {a} and {b}); dqm sfm maps clusters of at most one feature an image")
+    io.check_one_feature_an_image(labels, fs.image_ids, fs.image_names, where, "dqm sfm")
     missing = next((str(name) for name in fs.image_names if io.find_image(str(name)) is None), None)
     if missing is not None:
         raise InputError(f"{where} names image {missing}, which is not there: dqm sfm reads the images where the file "

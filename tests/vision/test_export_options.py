@@ -147,6 +147,19 @@ def test_export_cli_refuses_bad_options_before_any_work(clusters, tmp_path, caps
     assert main(["export", "hloc", f, "--matches", str(tmp_path / "m.h5"), "--pairs", str(tmp_path / "p.txt")]) == 2
     assert "--pairs" in capsys.readouterr().err and (tmp_path / "p.txt").read_text() == "keep me\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.txt"]
+    # clusters with two features of one image (not QuickMatch's: C2) would match an image with itself: refused
+    labels, ids = clusters["labels"].copy(), clusters["fs"].image_ids
+    a, b = np.flatnonzero(ids == 0)[:2]
+    labels[b] = labels[a]
+    twice = clusters["root"] / "twice.npz"
+    io.write_clusters(twice, clusters["fs"], {"labels": labels}, {})
+    for argv in (["colmap", str(twice), "--database", str(tmp_path / "t.db")],
+                 ["hloc", str(twice), "--matches", str(tmp_path / "t.h5"), "--pairs", str(tmp_path / "t.txt")]):
+        assert main(["export"] + argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert f"cluster {labels[a]} holds two features of image {clusters['paths'][0]} (rows {a} and {b}); dqm " \
+               f"export {argv[0]} takes clusters of at most one feature an image" in err and err.count("\n") == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.txt"]
 
 
 def test_hloc_export_writes_every_cluster_pair_in_hlocs_layout(clusters, tmp_path, capsys):

@@ -129,7 +129,7 @@ def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys, monkeypatch):
         assert main(["sfm", "--clusters", str(made), "--out", str(tmp_path / "no"), *extra]) == 2
         assert says in capsys.readouterr().err
     assert main(["sfm", "--clusters", str(tmp_path / "twice.npz"), "--out", str(tmp_path / "no")]) == 2
-    assert f"cluster {both[first_two[0]]} holds two features of image " in capsys.readouterr().err
+    assert f"cluster {both[first_two[0]]} holds two features of image " in capsys.readouterr().err  # C2, as export
     assert main(["sfm", "--clusters", str(tmp_path / "moved.npz"), "--out", str(tmp_path / "no")]) == 2
     assert "names image /nowhere/0.png, which is not there" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
