@@ -7,7 +7,8 @@ coordinator; print the result and the traffic table.
 
 It writes the job's CLUSTERS file (default ./dqm-out/run/clusters.npz: the
 labels with the keypoints, image names and ground truth of the FEATURES), so
-that dqm plot, dqm export and dqm evaluate work on it as on dqm match output.
+that dqm plot, dqm export and dqm evaluate work on it as on dqm match output (and dqm sfm --clusters,
+with --features f.npz for the descriptors that stay with the agents).
 
 On a terminal it shows each agent's phase, features and bytes as the job runs.
 If an agent process dies, its images and cell go to the next live agent and

@@ -68,6 +68,10 @@ def add_arguments(p) -> None:
                         "on images): its features and clusters go to the export, the mapper and the last stage, "
                         "with no extraction or matching; its images are read where it names them. To go on where a "
                         "run stopped, or to map again with other options")
+    p.add_argument("--features", default=None, metavar="FEATURES",
+                   help="with --clusters of a distributed job (dqm run, dqm coordinator: the descriptors stay with "
+                        "the agents): the FEATURES file the job ran on, whose descriptors the last stage matches "
+                        "(without it, --no-triangulate maps the file's clusters alone)")
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
                            f"{LARGE_SCENE_PRESET} with each image's {LARGE_SCENE_MAX_FEATURES:,} strongest features "
@@ -133,12 +137,25 @@ def _from_clusters(args):
         raise InputError(f"--{given[0].replace('_', '-')} is a choice of the extraction or the matching; {where} "
                          "made both (give images instead to choose them)")
     c = io.load_clusters(args.clusters)
-    for key in ("descriptors", "keypoints", "image_names"):
+    for key in ("keypoints", "image_names"):
         if key not in c:
-            raise InputError(f"{where}: no {key!r} array; dqm sfm needs the features' descriptors, keypoints and "
-                             "images (match images with dqm match or dqm sfm)")
-    fs = io.FeatureSet(descriptors=c["descriptors"], image_ids=c["image_ids"],
+            raise InputError(f"{where}: no {key!r} array; dqm sfm needs the features' keypoints and images (match "
+                             "images with dqm match or dqm sfm)")
+    fs = io.FeatureSet(descriptors=np.zeros((len(c["labels"]), 1), np.uint8), image_ids=c["image_ids"],
                        **{name: c.get(name) for name in io.OPTIONAL_FIELDS}).validate(where)
+    if "descriptors" in c:
+        if args.features is not None:
+            raise InputError(f"--features {args.features}: {where} holds its descriptors already")
+        fs.descriptors = c["descriptors"]
+        fs.validate(where)
+    elif args.features is not None:
+        fs.descriptors = _descriptors_of(args.features, fs, where)
+    elif args.triangulate:
+        raise InputError(f"{where} has no descriptors (a distributed job's file: they stay with the agents), and the "
+                         "last stage matches them: give --features, the FEATURES file the job ran on, or "
+                         "--no-triangulate for the mapper's model of its clusters")
+    else:  # the export and the mapper need none; nothing is matched again (_map_again_per_folder)
+        fs.descriptors = np.zeros((len(fs), 0), np.uint8)
     labels = np.asarray(c["labels"])
     if labels.shape != (len(fs),) or labels.dtype.kind not in "iu":
         raise InputError(f"{where}: labels must be one integer per feature ({len(fs)}), got {labels.dtype} "
@@ -156,6 +173,29 @@ def _from_clusters(args):
     args.preset, args.max_features = params.get("preset"), params.get("max_features")
     extra = {key: params[key] for key in ("verify", "guided") if key in params} or None
     return fs, types.SimpleNamespace(labels=labels.astype(np.int64)), extra
+
+
+def _descriptors_of(path: str, fs: io.FeatureSet, where: str):
+    """The descriptors of the features of ``fs`` (a distributed job's CLUSTERS file: rows by ``feature_ids``) in
+    the FEATURES file ``path`` the job ran on (its ``feature_ids``, or its rows), checked to be those features:
+    every id present, the same keypoints."""
+    import numpy as np
+
+    features = io.load_features(path)
+    ids = np.arange(len(features)) if features.feature_ids is None else np.asarray(features.feature_ids, np.int64)
+    wanted = np.arange(len(fs)) if fs.feature_ids is None else np.asarray(fs.feature_ids, np.int64)
+    order = np.argsort(ids, kind="stable")
+    at = np.minimum(np.searchsorted(ids, wanted, sorter=order), len(ids) - 1) if len(ids) else wanted
+    rows = order[at] if len(ids) else at
+    absent = np.flatnonzero((ids[rows] != wanted) if len(ids) else np.ones(len(wanted), bool))
+    if len(absent):
+        raise InputError(f"--features {path}: feature {int(wanted[absent[0]])} of {where} is not in it (give the "
+                         "FEATURES file the job ran on)")
+    if features.keypoints is None or not np.array_equal(np.asarray(features.keypoints)[rows, :2],
+                                                        np.asarray(fs.keypoints)[:, :2]):
+        raise InputError(f"--features {path}: its keypoints are not those of {where}'s features (give the FEATURES "
+                         "file the job ran on)")
+    return features.descriptors[rows]
 
 
 def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads,
@@ -427,6 +467,9 @@ def _map_again_per_folder(args, asked, out: Path, stage: _Stages, threads: int, 
     features = clusters = None
     if choice == run_choice:
         fs, result, extra = first
+        if fs.descriptors.shape[1] == 0 and list(names) != list(export.names):
+            raise InputError("the features have no descriptors (a distributed job's CLUSTERS file without "
+                             "--features), so these images cannot be matched again")
         if list(names) == list(export.names):
             features, clusters = fs, (result, extra)
         else:
@@ -628,6 +671,9 @@ def run(args) -> int:
         raise InputError(f"--max-features must be >= 0 (0 = no limit), got {args.max_features}")
     threads = args.mapper_threads or -1
     made = None
+    if args.features is not None and args.clusters is None:
+        raise InputError("--features gives the descriptors of --clusters FILE (a distributed job's); without "
+                         "--clusters, give images")
     if args.clusters is not None:
         made = _from_clusters(args)
     elif not args.inputs and not args.image_list:

@@ -135,6 +135,36 @@ def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "no").exists()
 
 
+def test_dqm_sfm_maps_a_distributed_jobs_clusters(tmp_path, capsys):
+    """A distributed job's CLUSTERS file (dqm run: the descriptors stay with the agents) into dqm sfm --clusters:
+    with --features, the FEATURES file the job ran on, the last stage gets their descriptors; with
+    --no-triangulate the mapper's model alone; with neither, one line says so. A FEATURES file of other
+    features is refused."""
+    from generators.scenes3d import generate_scene3d
+
+    images = generate_scene3d(seed=1, n_images=5, width=480, height=360).save(tmp_path / "img")
+    features, job = tmp_path / "f.npz", tmp_path / "job.npz"
+    assert main(["extract", str(images), "--out", str(features), "--preset", "budget"]) == 0
+    assert main(["run", "--agents", "2", "--features", str(features), "--out", str(job)]) == 0
+    assert "descriptors" not in load_clusters(job)
+    capsys.readouterr()
+    assert main(["sfm", "--clusters", str(job), "--out", str(tmp_path / "no")]) == 2
+    assert "has no descriptors (a distributed job's file" in capsys.readouterr().err
+    assert main(["sfm", "--clusters", str(job), "--features", str(features), "--out", str(tmp_path / "m"),
+                 "--quiet"]) == 0
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert report["model"]["registered"] == 5 and report["model"]["points"] > report["model_before_triangulation"][
+        "points"] > 0  # the last stage matched the FEATURES' descriptors
+    assert main(["sfm", "--clusters", str(job), "--no-triangulate", "--out", str(tmp_path / "bare"), "--quiet"]) == 0
+    bare = json.loads((tmp_path / "bare" / "sfm.json").read_text())
+    assert bare["model"] == report["model_before_triangulation"] and "triangulate" not in bare["times"]
+    other = tmp_path / "other.npz"
+    assert main(["extract", str(images), "--out", str(other), "--preset", "sfm"]) == 0
+    capsys.readouterr()
+    assert main(["sfm", "--clusters", str(job), "--features", str(other), "--out", str(tmp_path / "no")]) == 2
+    assert f"--features {other}: " in capsys.readouterr().err and not (tmp_path / "no").exists()
+
+
 def test_images_mapped_again_take_their_features_from_the_run(tmp_path):
     """A repair that maps some of the run's images again (their SIFT choice the run's) takes their features from
     the run's rather than extracting them again: each image's features are its own, so they are the same arrays."""
