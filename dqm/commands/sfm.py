@@ -185,9 +185,8 @@ def _descriptors_of(path: str, fs: io.FeatureSet, where: str):
     ids = np.arange(len(features)) if features.feature_ids is None else np.asarray(features.feature_ids, np.int64)
     wanted = np.arange(len(fs)) if fs.feature_ids is None else np.asarray(fs.feature_ids, np.int64)
     order = np.argsort(ids, kind="stable")
-    at = np.minimum(np.searchsorted(ids, wanted, sorter=order), len(ids) - 1) if len(ids) else wanted
-    rows = order[at] if len(ids) else at
-    absent = np.flatnonzero((ids[rows] != wanted) if len(ids) else np.ones(len(wanted), bool))
+    rows = order[np.minimum(np.searchsorted(ids, wanted, sorter=order), max(len(ids) - 1, 0))] if len(ids) else None
+    absent = np.flatnonzero(ids[rows] != wanted) if len(ids) else np.arange(len(wanted))
     if len(absent):
         raise InputError(f"--features {path}: feature {int(wanted[absent[0]])} of {where} is not in it (give the "
                          "FEATURES file the job ran on)")
