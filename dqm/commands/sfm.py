@@ -72,6 +72,7 @@ def add_arguments(p) -> None:
                    help="with --clusters of a distributed job (dqm run, dqm coordinator: the descriptors stay with "
                         "the agents): the FEATURES file the job ran on, whose descriptors the last stage matches "
                         "(without it, --no-triangulate maps the file's clusters alone)")
+    before = {action.dest for action in p._actions}
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
                            f"{LARGE_SCENE_PRESET} with each image's {LARGE_SCENE_MAX_FEATURES:,} strongest features "
@@ -81,6 +82,9 @@ def add_arguments(p) -> None:
                                         f"{LARGE_SCENE_PRESET} ({GLOBAL_FROM} images or more: QuickMatch's time grows "
                                         f"with the square of the features), else no limit")
     add_cluster_options(p, "sfm")
+    # the options of the extraction and the matching, as those two helpers define them: refused with --clusters,
+    # whose file made both (the threads and the memory budget are not choices of the result: they stay)
+    matching = [action.dest for action in p._actions if action.dest not in before | _RESOURCES]
     p.add_argument("--camera-model", default=None, metavar="MODEL",
                    help="COLMAP camera model of every camera (default SIMPLE_RADIAL, as COLMAP's)")
     add_camera_sharing_options(p)
@@ -111,13 +115,11 @@ def add_arguments(p) -> None:
                    help="ground-truth cameras (a folder of Strecha *.camera files, or a COLMAP model): print the "
                         "model's pose errors and pairwise pose AUC@1/2/5 degrees (docs/sfm.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    # what only the extraction and the matching use: refused with --clusters, whose file made both
-    p.set_defaults(matching_defaults={dest: p.get_default(dest) for dest in _MATCHING})
+    p.set_defaults(matching_defaults={dest: p.get_default(dest) for dest in matching})
 
 
-#: the options of the extraction and the matching (with --clusters their file's choices stand)
-_MATCHING = ("image_list", "recursive", "preset", "max_features", "skip_bad_images", "rho", "ratio_density",
-             "kernel", "parent", "engine", "approximate", "neighbors", "verify", "guided")
+#: options of the matching that change how it runs, not what it gives: kept with --clusters (images matched again)
+_RESOURCES = {"threads", "max_memory"}
 
 
 def _from_clusters(args):

@@ -86,7 +86,7 @@ def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys, monkeypatch):
     made = tmp_path / "m1" / "clusters.npz"
     assert io.load_clusters(made)["params"]["preset"] == "budget"  # the SIFT choice is recorded
     capsys.readouterr()
-    assert main(["sfm", "--clusters", str(made), "--out", str(tmp_path / "m2"), "--quiet"]) == 0
+    assert main(["sfm", "--clusters", str(made), "--out", str(tmp_path / "m2"), "--quiet", "--threads", "1"]) == 0
     out = capsys.readouterr().out
     assert f"features and clusters of {made}:" in out and "grown" not in out
     report = json.loads((tmp_path / "m2" / "sfm.json").read_text())
