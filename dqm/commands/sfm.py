@@ -68,6 +68,9 @@ def add_arguments(p) -> None:
                         "on images): its features and clusters go to the export, the mapper and the last stage, "
                         "with no extraction or matching; its images are read where it names them. To go on where a "
                         "run stopped, or to map again with other options")
+    p.add_argument("--image-dir", default=None, metavar="DIR",
+                   help="with --clusters: the folder its images are in now, if they moved since (another host's "
+                        "paths in a distributed job's file): each found as named, else under DIR by its name")
     p.add_argument("--features", default=None, metavar="FEATURES",
                    help="with --clusters of a distributed job (dqm run, dqm coordinator: the descriptors stay with "
                         "the agents): the FEATURES file the job ran on, whose descriptors the last stage matches "
@@ -163,10 +166,20 @@ def _from_clusters(args):
         raise InputError(f"{where}: labels must be one integer per feature ({len(fs)}), got {labels.dtype} "
                          f"{labels.shape}")
     io.check_one_feature_an_image(labels, fs.image_ids, fs.image_names, where, "dqm sfm")
-    missing = next((str(name) for name in fs.image_names if io.find_image(str(name)) is None), None)
-    if missing is not None:
-        raise InputError(f"{where} names image {missing}, which is not there: dqm sfm reads the images where the file "
-                         "names them")
+    if args.image_dir is not None and not Path(args.image_dir).is_dir():
+        raise InputError(f"--image-dir {args.image_dir}: no such folder")
+    found = [io.find_image(str(name), args.image_dir) for name in fs.image_names]
+    if None in found:
+        missing = fs.image_names[found.index(None)]
+        where_else = f" nor under --image-dir {args.image_dir}" if args.image_dir else " (--image-dir: where it is now)"
+        raise InputError(f"{where} names image {missing}, which is not there{where_else}")
+    found = [p.resolve() for p in found]
+    if len(set(found)) < len(found):
+        twice = next(p for p in found if found.count(p) > 1)
+        a, b = [str(fs.image_names[k]) for k, p in enumerate(found) if p == twice][:2]
+        raise InputError(f"{where}: images {a} and {b} are both found as {twice}; give the folder they are in now "
+                         "with their own names")
+    fs.image_names = np.array([str(p) for p in found])  # where they are now: the export and the stages read them
     params = c["params"]
     for dest in ("rho", "ratio_density", "kernel", "parent"):
         if dest in params:
@@ -675,6 +688,9 @@ def run(args) -> int:
     if args.features is not None and args.clusters is None:
         raise InputError("--features gives the descriptors of --clusters FILE (a distributed job's); without "
                          "--clusters, give images")
+    if args.image_dir is not None and args.clusters is None:
+        raise InputError("--image-dir says where the images of --clusters FILE are now; without --clusters, give the "
+                         "images themselves")
     if args.clusters is not None:
         made = _from_clusters(args)
     elif not args.inputs and not args.image_list:

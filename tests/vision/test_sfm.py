@@ -5,6 +5,7 @@ import glob
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -131,8 +132,21 @@ def test_dqm_sfm_starts_from_a_clusters_file(tmp_path, capsys, monkeypatch):
     assert main(["sfm", "--clusters", str(tmp_path / "twice.npz"), "--out", str(tmp_path / "no")]) == 2
     assert f"cluster {both[first_two[0]]} holds two features of image " in capsys.readouterr().err  # C2, as export
     assert main(["sfm", "--clusters", str(tmp_path / "moved.npz"), "--out", str(tmp_path / "no")]) == 2
-    assert "names image /nowhere/0.png, which is not there" in capsys.readouterr().err
+    assert "names image /nowhere/0.png, which is not there (--image-dir: where it is now)" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+
+    # images moved since (another host's paths): --image-dir finds them by name, and the model is the same
+    shutil.copytree(images, tmp_path / "now")
+    old = [f"/elsewhere/{Path(str(name)).name}" for name in c["image_names"]]
+    np.savez(tmp_path / "elsewhere.npz", **dict(c, image_names=np.array(old)))
+    assert main(["sfm", "--clusters", str(tmp_path / "elsewhere.npz"), "--image-dir", str(tmp_path / "now"),
+                 "--out", str(tmp_path / "m4"), "--quiet"]) == 0
+    assert (tmp_path / "m1/sparse/0/points3D.bin").read_bytes() == (tmp_path / "m4/sparse/0/points3D.bin").read_bytes()
+    two = [f"/a/{Path(old[0]).name}", f"/b/{Path(old[0]).name}", *old[2:]]  # one file found for two images
+    np.savez(tmp_path / "two.npz", **dict(c, image_names=np.array(two)))
+    assert main(["sfm", "--clusters", str(tmp_path / "two.npz"), "--image-dir", str(tmp_path / "now"),
+                 "--out", str(tmp_path / "no")]) == 2
+    assert f"images {two[0]} and {two[1]} are both found as " in capsys.readouterr().err
 
 
 def test_dqm_sfm_maps_a_distributed_jobs_clusters(tmp_path, capsys):
