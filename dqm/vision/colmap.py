@@ -33,6 +33,7 @@ import contextlib
 import logging
 import os
 import posixpath
+import re
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -96,7 +97,7 @@ def colmap_log_kept(pycolmap, at_least: int | None = None):
     it; ``at_least``: the level raised to that within the block (COLMAP warns that its extraction uses every core; it
     is asked to). ``pycolmap.bundle_adjustment`` (pycolmap 4.2: COLMAP's OptionManager) sets them to its defaults,
     INFO and log files, and leaves them so: every COLMAP call after it would log, quiet or not (its own two
-    INFO lines, a heading and its time, still reach stderr while it runs)."""
+    INFO lines, a heading and its time, are written while it runs: :func:`glog_info_dropped` keeps them off stderr)."""
     log = getattr(pycolmap, "logging", None)
     kept = {name: getattr(log, name) for name in _LOG_FLAGS if hasattr(log, name)}  # those this pycolmap has
     if at_least is not None and "minloglevel" in kept:
@@ -106,6 +107,63 @@ def colmap_log_kept(pycolmap, at_least: int | None = None):
     finally:
         for name, value in kept.items():
             setattr(log, name, value)
+
+
+#: a glog INFO line as COLMAP writes it to stderr (after any colour reset): ``I<yyyymmdd> <time> <thread> <file>] ``
+_GLOG_INFO = re.compile(rb"^(?:\x1b\[[0-9;]*m)*I\d{8} \d\d:\d\d:\d\d\.\d+ +\d+ [^\]\n]*\] ")
+#: what may still become such a line: held back until its line ends, everything else passes at once
+_GLOG_INFO_START = re.compile(rb"^(?:\x1b(?:\[[0-9;]*m?)?)*(?:I[0-9 :.]*)?$")
+
+
+@contextlib.contextmanager
+def glog_info_dropped():
+    """stderr (file descriptor 2) through a pipe for the block: COLMAP's glog INFO lines are dropped, everything
+    else (its warnings and errors, progress bars, Python's own output) passes as it comes. ``pycolmap.
+    bundle_adjustment`` (pycolmap 4.2) logs a heading and its time at INFO whatever glog's flags
+    (:func:`colmap_log_kept`). Where stderr cannot be duplicated, the block runs as it is."""
+    import sys
+    import threading
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    read, write = os.pipe()
+    os.dup2(write, 2)
+    os.close(write)
+
+    def forward() -> None:
+        held, out = b"", saved
+        while True:
+            chunk = os.read(read, 65536)
+            if not chunk:
+                break
+            *lines, held = (held + chunk).split(b"\n")
+            text = b"".join(line + b"\n" for line in lines if not _GLOG_INFO.match(line))
+            if held and not _GLOG_INFO_START.match(held):
+                text, held = text + held, b""
+            while text and out is not None:
+                try:
+                    text = text[os.write(out, text):]
+                except OSError:  # stderr went away: drain the pipe, write nothing
+                    out = None
+        if held and out is not None and not _GLOG_INFO.match(held):
+            with contextlib.suppress(OSError):
+                os.write(out, held)
+        os.close(read)
+
+    thread = threading.Thread(target=forward, name="dqm-glog-filter", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.flush()
+        os.dup2(saved, 2)  # the pipe's last write end closes: the forwarder reads its end
+        thread.join(timeout=10)
+        os.close(saved)
 
 
 #: which members of a cluster are handed to COLMAP as matches (:func:`cluster_pairs`): ``all`` every two;

@@ -57,7 +57,7 @@ import numpy as np
 from .. import signals
 from ..core.pairs import default_threads
 from ..progress import ProgressArg, resolve_progress, ticking
-from .colmap import colmap_log_kept, require_pycolmap
+from .colmap import colmap_log_kept, glog_info_dropped, require_pycolmap
 from .guided import DEFAULT_RATIO, propose_links
 from .verify import PairModel
 
@@ -248,7 +248,7 @@ def triangulate(rec, database, image_dir, out_dir, keypoints: dict, descriptors:
         ba = pycolmap.BundleAdjustmentOptions()  # COLMAP's defaults: the principal points stay
         ba.print_summary = LOG.isEnabledFor(logging.INFO)  # its report only with -v
         ba.ceres.solver_options.num_threads = int(num_threads)
-        with ticking(progress, "bundle adjustment"), colmap_log_kept(pycolmap):
+        with glog_info_dropped(), ticking(progress, "bundle adjustment"), colmap_log_kept(pycolmap):
             signals.interruptible(pycolmap.bundle_adjustment, dense, ba)
         stats.reproj_after_adjust = dense.compute_mean_reprojection_error()
         stats.time_adjust = time.perf_counter() - t2

@@ -40,6 +40,31 @@ def expected_pairs(labels, ids):
     return out
 
 
+def test_colmaps_info_lines_are_dropped_from_stderr_and_all_else_passes(capfd):
+    """pycolmap's bundle adjustment logs a heading and its time at INFO whatever glog's flags: within
+    glog_info_dropped they do not reach stderr, while a warning, a progress bar's carriage-return update (no
+    newline) and other output pass in order, and stderr is the same file descriptor after the block."""
+    colmap.require_pycolmap()
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig, options.num_points3D = 3, 1, 1, 50
+    model = pycolmap.synthesize_dataset(options)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    capfd.readouterr()
+    warning = "W20261203 19:09:40.437831 139626085772160 x.cc:1] a warning"
+    with colmap.glog_info_dropped(), colmap.colmap_log_kept(pycolmap):
+        os.write(2, b"before\n")
+        pycolmap.bundle_adjustment(model, ba)
+        os.write(2, b"\rbar 1")  # (through file descriptor 2, as a process's output goes: pytest's sys.stderr does not)
+        os.write(2, (warning + "\n").encode())
+        os.write(2, b"I20261203 19:09:40.437831 139626085772160 y.cc:2] dropped too\n")
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == f"before\n\rbar 1{warning}\nafter\n"
+    with colmap.colmap_log_kept(pycolmap):  # outside the filter COLMAP's lines are there (the test can fail)
+        pycolmap.bundle_adjustment(model, ba)
+    assert "bundle_adjustment.cc" in capfd.readouterr().err
+
+
 def test_cluster_pairs_are_every_two_members():
     labels = np.array([0, 0, 0, 1, 1, 2, 3, 3])
     ids = np.array([2, 0, 1, 1, 0, 0, 2, 1])
