@@ -21,7 +21,7 @@ registers as many images with fewer bogus cameras and as many 3-D points (the ca
 mapper and again after the last stage, whose bundle adjustment can leave them bogus; images mapped again with
 the run's SIFT choice take their features from the run's, and every image its clusters too). With --clusters
 FILE (a run's clusters.npz, or dqm match's on images) the run starts from its features and clusters: no
-extraction or matching, and no scene made again alone. It is the chain
+extraction or matching of them, the later stages choosing as the file's run did. It is the chain
 `dqm match` -> `dqm export colmap` -> pycolmap's mapper with the same options (docs/sfm.md). Every
 random choice is seeded (--seed): the same photos and options give the same model. Needs pycolmap:
 pip install 'dqm[colmap]'.
@@ -186,6 +186,9 @@ def _from_clusters(args):
             setattr(args, dest, params[dest])
     args.guided, args.verify = bool(params.get("guided")), bool(params.get("verify"))
     args.preset, args.max_features = params.get("preset"), params.get("max_features")
+    asked = "asked_preset" in params
+    args.asked_preset = params["asked_preset"] if asked else args.preset
+    args.asked_max_features = params.get("asked_max_features") if asked else args.max_features
     extra = {key: params[key] for key in ("verify", "guided") if key in params} or None
     return fs, types.SimpleNamespace(labels=labels.astype(np.int64)), extra
 
@@ -294,9 +297,10 @@ def _match_and_map(args, out: Path, stage: _Stages, camera, threads: int, image_
     else:
         result, extra = clusters
     with stage("export"):
-        if clusters is None:  # with the SIFT choice, for a run that starts from this file (--clusters)
+        if clusters is None:  # with the SIFT choice and what was asked, for a run that starts from it (--clusters)
             io.save_clusters(out / "clusters.npz", fs, result,
-                             dict(extra or {}, preset=args.preset, max_features=args.max_features))
+                             dict(extra or {}, preset=args.preset, max_features=args.max_features,
+                                  asked_preset=args.asked_preset, asked_max_features=args.asked_max_features))
             io.save_tracks_csv(out / "tracks.csv", result.labels, fs.image_ids, fs.keypoints, fs.image_names)
         paths = colmap.resolve_images(fs.image_names, None)
         s = colmap.export_database(out / "database.db", fs.keypoints, fs.image_ids, paths, result.labels,
@@ -475,7 +479,7 @@ def _map_again_per_folder(args, asked, out: Path, stage: _Stages, threads: int, 
     paths = [str(Path(export.image_dir) / name) for name in names]
     mapper = "incremental" if asked.mapper == "auto" else asked.mapper
     run_choice = (args.preset, args.max_features)
-    choice = run_choice if args.clusters else choose_features(asked.preset, asked.max_features, len(names))
+    choice = run_choice if asked.preset is None else choose_features(asked.preset, asked.max_features, len(names))
     sub = _args_again(args, paths, choice, mapper, single_camera=False, single_camera_per_folder=True)
     camera = colmap.camera_options(args.camera_model or colmap.DEFAULT_CAMERA_MODEL, "per-folder", None)
     features = clusters = None
@@ -698,6 +702,9 @@ def run(args) -> int:
     truth = None
     # as asked, before auto chooses for the collection
     asked = argparse.Namespace(preset=args.preset, max_features=args.max_features, mapper=args.mapper)
+    if made:  # the file's: what its run asked for, else the choice it holds (None: unknown, as a distributed job's)
+        asked.preset, asked.max_features = args.asked_preset, args.asked_max_features
+    args.asked_preset, args.asked_max_features = asked.preset, asked.max_features
     n_images = 0
     if args.gt or args.preset == "auto" or mode != "per-image" or made:  # the images named before any work
         from ..vision.features import collect_images
@@ -751,10 +758,11 @@ def _stages(args, out: Path, made, asked, camera, threads: int, truth, t0: float
     first = (fs, result, extra)
     mapped = [model_numbers(m.rec) for m in models]
     sources = [(out / "database.db", s, fs)] * len(models)  # each model's database, export and features
-    if made and len(models) > 1:
-        print(f"note: the {len(models)} models are not made again alone with the choices of their size (the "
-              f"features are {args.clusters}'s; give the images for that)", flush=True)
-    alone = [] if made else _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
+    if made and asked.preset is None and len(models) > 1:
+        print(f"note: the {len(models)} models are not made again alone with the choices of their size "
+              f"({args.clusters} does not say how its features were made; give the images for that)", flush=True)
+    alone = [] if made and asked.preset is None else \
+        _scenes_alone(args, asked, out, stage, camera, threads, s, models, mapped, sources)
     few = _few_registered_again(args, asked, out, stage, threads, s, models, mapped, sources, first)
     shared = few is not None and few["taken"]  # the models have a camera per folder now
     again = {} if shared else _shared_camera_again(args, asked, out, stage, threads, s, models, mapped, sources,

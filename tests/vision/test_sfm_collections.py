@@ -58,6 +58,18 @@ def test_each_scene_of_a_collection_is_redone_alone_with_the_choices_of_its_own_
         assert e["collection_model"]["points"] == kept.num_points3D()
         assert (tmp_path / "m" / "scenes" / e["collection_folder"].split("/")[-1] / "clusters.npz").exists()
     assert f"{tmp_path / 'm'}/scenes" in out.splitlines()[-1]
+    # from the collection's clusters.npz (--clusters: no extraction or matching of the collection), the same: the
+    # file says what was asked (auto), so the scenes are made again alone as above, and the models are the same
+    assert main(["sfm", "--clusters", str(tmp_path / "m" / "clusters.npz"), "--out", str(tmp_path / "m2"), "--quiet",
+                 "--no-triangulate"]) == 0
+    again = json.loads((tmp_path / "m2" / "sfm.json").read_text())
+    assert [(e["images"], e["preset"], e["taken"]) for e in again["scenes_alone"]] == \
+        [(e["images"], e["preset"], e["taken"]) for e in alone]
+    assert [(m["folder"], m["points"]) for m in again["models"]] == \
+        [(m["folder"], m["points"]) for m in report["models"]]
+    for m in report["models"]:
+        assert (tmp_path / "m" / m["folder"] / "points3D.bin").read_bytes() == \
+            (tmp_path / "m2" / m["folder"] / "points3D.bin").read_bytes()
     argv = ["sfm", str(a), str(b), "--quiet", "--no-triangulate", "--preset", "sfm", "--mapper", "global"]
     assert main([*argv, "--out", str(tmp_path / "given")]) == 0
     given = json.loads((tmp_path / "given" / "sfm.json").read_text())
