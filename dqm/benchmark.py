@@ -395,6 +395,16 @@ def _tracks_key(matcher: str, policy: str) -> str:
     return f"{matcher}-{policy}"
 
 
+def grown_labels(bench: Benchmark, result=None, *, rho: float = DEFAULT_RHO, seed: int = 0) -> np.ndarray:
+    """The clusters of the ``quickmatch-guided`` method, as :func:`evaluate` scores them: QuickMatch's (``result``,
+    or QuickMatch at ``rho``) grown by the image pairs' geometry (:func:`dqm.vision.guided.guided_labels`, USAC
+    seeded with ``seed``)."""
+    from .vision.guided import guided_labels
+
+    r = quickmatch(bench.descriptors, bench.image_ids, rho=rho) if result is None else result
+    return guided_labels(r, bench.keypoints, bench.descriptors, seed=seed)[0]
+
+
 def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: float = DEFAULT_RHO,
              ratio: float = baselines.DEFAULT_RATIO, rhos: Sequence[float] = DEFAULT_RHOS,
              ratios: Sequence[float] = DEFAULT_RATIOS, seed: int = 0, curves: bool = True,
@@ -439,10 +449,8 @@ def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: flo
                                 evaluation.pr_curve("quickmatch-verify", "rho", [rho], [s])))
     if "quickmatch-guided" in methods:
         say(f"{bench.name}: geometry-guided growth of the QuickMatch clusters")
-        from .vision.guided import guided_labels
-
         t0 = time.perf_counter()
-        labels, _ = guided_labels(r, bench.keypoints, bench.descriptors, seed=seed)
+        labels = grown_labels(bench, r, seed=seed)
         t_g = t_qm + time.perf_counter() - t0  # clustering plus verification and growth
         s, v = bench.score_clusters(labels)
         out.append(MethodResult("quickmatch-guided", "rho", rho, s, v, t_g,

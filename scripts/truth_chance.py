@@ -113,15 +113,11 @@ def main(argv=None) -> int:
         if bench.kind != "homography":
             sys.exit(f"truth_chance: {name} has landmark truth, not homographies")
         c = chance_rows(bench)
-        grown = benchmark.evaluate(bench, ["quickmatch-guided"], curves=False)[0].scores
+        labels = benchmark.grown_labels(bench)  # the grown row of `dqm evaluate`, scored as it scores them
+        grown = bench.score_labels(labels)
         found = grown.recall * c["truth"]
         rows.append((name, len(bench), c, grown, found))
         if args.fit:
-            from dqm.core import quickmatch
-            from dqm.vision.guided import guided_labels
-
-            labels, _ = guided_labels(quickmatch(bench.descriptors, bench.image_ids, rho=benchmark.DEFAULT_RHO),
-                                      bench.keypoints, bench.descriptors, seed=0)
             fits.append((name, fit_rows(bench, labels)))
         print(f"{name}: {c['truth']} truth pairs, {c['chance']:.0f} by chance, real {c['real_lo']:.0f}-"
               f"{c['real_hi']:.0f}; dqm match finds {found:.0f} (F1 {grown.f1:.3f})", flush=True)

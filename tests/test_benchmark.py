@@ -158,11 +158,7 @@ def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp
     assert f"{c['truth']:,}" in row and f"{grown.precision:.3f} / {grown.f1:.3f}" in row
     # --fit: the generated scene's truth is exact, so no image pair is listed ...
     assert "| scene:0 | none of " in text
-    from dqm.core import quickmatch
-    from dqm.vision.guided import guided_labels
-
-    labels, _ = guided_labels(quickmatch(features.descriptors, features.image_ids, rho=BM.DEFAULT_RHO),
-                              features.keypoints, features.descriptors, seed=0)
+    labels = BM.grown_labels(features)
     exact = {r["pair"]: r for r in mod.fit_rows(features, labels)}
     assert len(exact) >= 3 and all(r["beyond"] < 0.2 and r["truth_median"] < 2 for r in exact.values())
     # ... and a truth whose last image is 8 px off lists every pair with that image, whose fitted homographies
