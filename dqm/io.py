@@ -67,6 +67,13 @@ class FeatureSet:
     def __len__(self) -> int:
         return len(self.image_ids)
 
+    def global_ids(self) -> np.ndarray:
+        """The features' global ids (int64): ``feature_ids`` where the file has them, else the row numbers, as a
+        distributed job numbers them and its CLUSTERS file keys its rows."""
+        if self.feature_ids is None:
+            return np.arange(len(self), dtype=np.int64)
+        return np.asarray(self.feature_ids, np.int64)
+
     def validate(self, source: str = "features") -> "FeatureSet":
         """Check every array against the format; raise InputError naming ``source``, the array and the row."""
         check_descriptors(self.descriptors, f"{source}: descriptors", keep_integer=True)  # no float64 copy

@@ -200,8 +200,7 @@ def _descriptors_of(path: str, fs: io.FeatureSet, where: str):
     import numpy as np
 
     features = io.load_features(path)
-    ids = np.arange(len(features)) if features.feature_ids is None else np.asarray(features.feature_ids, np.int64)
-    wanted = np.arange(len(fs)) if fs.feature_ids is None else np.asarray(fs.feature_ids, np.int64)
+    ids, wanted = features.global_ids(), fs.global_ids()
     order = np.argsort(ids, kind="stable")
     rows = order[np.minimum(np.searchsorted(ids, wanted, sorter=order), max(len(ids) - 1, 0))] if len(ids) else None
     absent = np.flatnonzero(ids[rows] != wanted) if len(ids) else np.arange(len(wanted))
@@ -709,7 +708,7 @@ def run(args) -> int:
     if args.gt or args.preset == "auto" or mode != "per-image" or made:  # the images named before any work
         from ..vision.features import collect_images
 
-        paths = colmap.resolve_images(made[0].image_names) if made else \
+        paths = [Path(name) for name in made[0].image_names] if made else \
             collect_images(args.inputs, recursive=args.recursive, image_list=args.image_list)
         names = [p.name for p in paths]
         n_images = len(names)

@@ -75,7 +75,7 @@ def split_features(fs: io.FeatureSet, m: Optional[int] = None,
         if left:
             raise InputError(f"image(s) {', '.join(map(str, left[:5]))}{' ...' if len(left) > 5 else ''} are in "
                              "no agent's list; every image must belong to one agent")
-    fid = np.arange(len(ids), dtype=np.int64) if fs.feature_ids is None else np.asarray(fs.feature_ids, np.int64)
+    fid = fs.global_ids()
     desc = protocol.wire_descriptors(fs.descriptors)
     parts = []
     for a in range(m):
