@@ -71,10 +71,12 @@ def add_arguments(p) -> None:
     p.add_argument("--image-dir", default=None, metavar="DIR",
                    help="with --clusters: the folder its images are in now, if they moved since (another host's "
                         "paths in a distributed job's file): each found as named, else under DIR by its name")
-    p.add_argument("--features", default=None, metavar="FEATURES",
+    p.add_argument("--features", default=None, nargs="+", metavar="FEATURES",
                    help="with --clusters of a distributed job (dqm run, dqm coordinator: the descriptors stay with "
-                        "the agents): the FEATURES file the job ran on, whose descriptors the last stage matches "
-                        "(without it, --no-triangulate maps the file's clusters alone)")
+                        "the agents): the FEATURES file the job ran on, or its agents' files (with feature_ids, "
+                        "as dqm split writes them; a file without them as AGENT=FILE[,FILE...], the agent that "
+                        "held it), whose descriptors the last stage matches (without it, --no-triangulate maps the "
+                        "file's clusters alone)")
     before = {action.dest for action in p._actions}
     add_image_options(p, default_preset="auto",
                       auto=f"{SMALL_SCENE_PRESET} below {GLOBAL_FROM} images (more 3-D points where time is small), "
@@ -150,7 +152,7 @@ def _from_clusters(args):
                        **{name: c.get(name) for name in io.OPTIONAL_FIELDS}).validate(where)
     if "descriptors" in c:
         if args.features is not None:
-            raise InputError(f"--features {args.features}: {where} holds its descriptors already")
+            raise InputError(f"--features {args.features[0]}: {where} holds its descriptors already")
         fs.descriptors = c["descriptors"]
         fs.validate(where)
     elif args.features is not None:
@@ -193,25 +195,64 @@ def _from_clusters(args):
     return fs, types.SimpleNamespace(labels=labels.astype(np.int64)), extra
 
 
-def _descriptors_of(path: str, fs: io.FeatureSet, where: str):
-    """The descriptors of the features of ``fs`` (a distributed job's CLUSTERS file: rows by ``feature_ids``) in
-    the FEATURES file ``path`` the job ran on (its ``feature_ids``, or its rows), checked to be those features:
+def _feature_files(specs: "list[str]") -> "list[tuple]":
+    """``--features``' specs as ``(agent, [paths])``: ``FILE`` (agent None) or ``AGENT=FILE[,FILE...]``, the files
+    an agent of the job held (as ``dqm agent --peer-features`` names them)."""
+    from ..distributed.sources import agent_files
+
+    return [agent_files(spec, "--features") if spec.partition("=")[0].strip().isdigit() and "=" in spec
+            else (None, [spec]) for spec in specs]
+
+
+def _descriptors_of(specs: "list[str]", fs: io.FeatureSet, where: str):
+    """The descriptors of the features of ``fs`` (a distributed job's CLUSTERS file: rows by feature id) in the
+    FEATURES files ``specs`` names (:func:`_feature_files`) as the job numbered them: a file's ``feature_ids``;
+    without them, the rows of a file given alone, or ``(agent << 32) + row`` over the files of an agent given
+    as ``AGENT=FILE[,FILE...]`` (as its agent process numbered them). Checked to be those features: no id twice,
     every id present, the same keypoints."""
     import numpy as np
 
-    features = io.load_features(path)
-    ids, wanted = features.global_ids(), fs.global_ids()
+    from ..distributed.sources import IMAGE_BITS, feature_ids
+
+    groups = [(agent, [(path, io.load_features(path)) for path in paths]) for agent, paths in _feature_files(specs)]
+    files = [item for _, loaded in groups for item in loaded]
+    named = " ".join(specs)
+    if len(files) > 1:
+        bare = next((path for agent, loaded in groups for path, f in loaded
+                     if agent is None and f.feature_ids is None), None)
+        if bare is not None:
+            raise InputError(f"--features {bare}: no feature_ids array, so the job numbered its features by the "
+                             f"agent that held it: give it as AGENT={bare}")
+        dims = sorted({f.descriptors.shape[1] for _, f in files})
+        if len(dims) > 1:
+            raise InputError(f"--features {named}: descriptors of different dimensions ({dims})")
+    bare = next((path for path, f in files if f.keypoints is None), None)
+    if bare is not None:
+        raise InputError(f"--features {bare}: no keypoints, so its features cannot be checked against {where}'s")
+    parts = []
+    for agent, loaded in groups:
+        sets = [f for _, f in loaded]
+        parts.append(sets[0].global_ids() if agent is None else feature_ids(sets, agent))
+    ids = np.concatenate(parts)
     order = np.argsort(ids, kind="stable")
+    repeated = np.flatnonzero(ids[order][1:] == ids[order][:-1])
+    if len(repeated):
+        raise InputError(f"--features {named}: feature id {int(ids[order][repeated[0]])} is there twice (give "
+                         "each file once, each agent's under its own number)")
+    wanted = fs.global_ids()
     rows = order[np.minimum(np.searchsorted(ids, wanted, sorter=order), max(len(ids) - 1, 0))] if len(ids) else None
     absent = np.flatnonzero(ids[rows] != wanted) if len(ids) else np.arange(len(wanted))
     if len(absent):
-        raise InputError(f"--features {path}: feature {int(wanted[absent[0]])} of {where} is not in it (give the "
-                         "FEATURES file the job ran on)")
-    if features.keypoints is None or not np.array_equal(np.asarray(features.keypoints)[rows, :2],
-                                                        np.asarray(fs.keypoints)[:, :2]):
-        raise InputError(f"--features {path}: its keypoints are not those of {where}'s features (give the FEATURES "
-                         "file the job ran on)")
-    return features.descriptors[rows]
+        first = int(wanted[absent[0]])
+        agent = first >> IMAGE_BITS
+        fix = (f"agent {agent} numbered it (its row {first - (agent << IMAGE_BITS)}): give that agent's files as "
+               f"{agent}=FILE[,FILE...]" if agent else "give the FEATURES file the job ran on, or every agent's files")
+        raise InputError(f"--features {named}: feature {first} of {where} is not there; {fix}")
+    keypoints = np.concatenate([np.asarray(f.keypoints)[:, :2] for _, f in files])
+    if not np.array_equal(keypoints[rows], np.asarray(fs.keypoints)[:, :2]):
+        raise InputError(f"--features {named}: the keypoints are not those of {where}'s features (give the "
+                         "FEATURES files the job ran on)")
+    return np.concatenate([f.descriptors for _, f in files])[rows]
 
 
 def _triangulate(rec, database: Path, export, fs, folder: Path, seed: int, mapper_threads: int, threads,

@@ -123,17 +123,10 @@ def agent_features(sets: Sequence[io.FeatureSet], agent: int, sources: Optional[
     if len(dims) > 1:
         raise InputError("the agent's FEATURES files have descriptors of different dimensions ("
                          + ", ".join(f"{n}: {fs.descriptors.shape[1]}" for n, fs in zip(names, sets)) + ")")
-    ids, images, descs, keypoints, points = [], [], [], [], []
+    images, descs, keypoints, points = [], [], [], []
     table_file, table_local, table_names = [], [], []
-    offset = 0
     for f, (fs, src) in enumerate(zip(sets, names)):
         check_magnitude(np.asarray(fs.descriptors), f"{src}: descriptors")
-        n = len(fs)
-        if fs.feature_ids is not None:
-            ids.append(np.asarray(fs.feature_ids, np.int64))
-        else:
-            ids.append((np.int64(agent) << np.int64(IMAGE_BITS)) + offset + np.arange(n, dtype=np.int64))
-        offset += n
         local, inverse = np.unique(np.asarray(fs.image_ids, np.int64), return_inverse=True)
         images.append(len(table_local) + inverse.ravel())
         table_file += [f] * len(local)
@@ -142,7 +135,7 @@ def agent_features(sets: Sequence[io.FeatureSet], agent: int, sources: Optional[
         descs.append(protocol.wire_descriptors(fs.descriptors))
         keypoints.append(None if fs.keypoints is None else np.asarray(fs.keypoints, np.float32))
         points.append(None if fs.point_ids is None else np.asarray(fs.point_ids, np.int64))
-    all_ids = np.concatenate(ids)
+    all_ids = feature_ids(sets, agent)
     io.check_feature_ids(all_ids, len(all_ids), "this agent's FEATURES files")
     image = np.concatenate(images).astype(np.int64)
     kp = (np.concatenate(keypoints) if all(k is not None for k in keypoints)
@@ -158,6 +151,28 @@ def agent_features(sets: Sequence[io.FeatureSet], agent: int, sources: Optional[
     }
     wire = (np.int64(agent) << np.int64(IMAGE_BITS)) + image
     return AgentFeatures(all_ids, wire, np.concatenate(descs), catalog)
+
+
+def feature_ids(sets: Sequence[io.FeatureSet], agent: int) -> np.ndarray:
+    """The global ids of an agent's features, its FEATURES sets in the order given: each set's ``feature_ids``,
+    else ``(agent << 32) + row``, the rows counted over the sets (int64; not checked for repeats)."""
+    ids, offset = [], 0
+    for fs in sets:
+        if fs.feature_ids is not None:
+            ids.append(np.asarray(fs.feature_ids, np.int64))
+        else:
+            ids.append((np.int64(agent) << np.int64(IMAGE_BITS)) + offset + np.arange(len(fs), dtype=np.int64))
+        offset += len(fs)
+    return np.concatenate(ids) if ids else np.zeros(0, np.int64)
+
+
+def agent_files(spec: str, option: str) -> Tuple[int, List[str]]:
+    """``"2=/data/a2.npz,/data/a2b.npz"`` -> ``(2, [...])``: an agent and the FEATURES files it holds, as a
+    command line gives them (``option`` names the option in the one-line error)."""
+    agent, sep, paths = spec.partition("=")
+    if not sep or not agent.strip().isdigit() or not paths:
+        raise InputError(f"{option} must look like AGENT=FILE[,FILE...], got {spec!r}")
+    return int(agent), [p for p in paths.split(",") if p]
 
 
 def load_agent_features(paths: Sequence, agent: int) -> AgentFeatures:

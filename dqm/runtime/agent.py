@@ -151,15 +151,7 @@ class AgentHost:
 
 def parse_peer_features(specs: Optional[List[str]]) -> Dict[int, List[str]]:
     """``["2=/data/a2.npz,/data/a2b.npz", ...]`` -> {2: [...]}: where a lost agent's images can be re-read."""
-    from ..validation import InputError
-
-    out: Dict[int, List[str]] = {}
-    for spec in specs or []:
-        agent, sep, paths = spec.partition("=")
-        if not sep or not agent.strip().isdigit() or not paths:
-            raise InputError(f"--peer-features must look like AGENT=FILE[,FILE...], got {spec!r}")
-        out[int(agent)] = [p for p in paths.split(",") if p]
-    return out
+    return dict(sources.agent_files(spec, "--peer-features") for spec in specs or [])
 
 
 #: exit codes of ``dqm agent`` (docs/runtime.md)

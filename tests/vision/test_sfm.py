@@ -178,6 +178,61 @@ def test_dqm_sfm_maps_a_distributed_jobs_clusters(tmp_path, capsys):
     assert main(["sfm", "--clusters", str(job), "--features", str(other), "--out", str(tmp_path / "no")]) == 2
     assert f"--features {other}: " in capsys.readouterr().err and not (tmp_path / "no").exists()
 
+    # the agents' files as dqm split cut them (on several hosts: copied back), with their feature ids: the same model
+    assert main(["split", str(features), "--agents", "2", "--out", str(tmp_path / "s")]) == 0
+    parts = [str(tmp_path / "s" / f"agent{a}.npz") for a in range(2)]
+    assert main(["sfm", "--clusters", str(job), "--features", *parts, "--out", str(tmp_path / "m2"), "--quiet"]) == 0
+    assert (tmp_path / "m/sparse/0/points3D.bin").read_bytes() == (tmp_path / "m2/sparse/0/points3D.bin").read_bytes()
+    capsys.readouterr()
+    for given, says in [([parts[0]], f"of --clusters {job} is not there"),
+                        ([parts[0], parts[0]], "is there twice")]:
+        assert main(["sfm", "--clusters", str(job), "--features", *given, "--out", str(tmp_path / "no")]) == 2
+        assert says in capsys.readouterr().err and not (tmp_path / "no").exists()
+
+
+def test_dqm_sfm_maps_a_job_of_robots_own_files(tmp_path, capsys):
+    """Robots that each extracted their own photos (FEATURES files without feature ids, each numbering its own
+    images 0, 1, ...) ran a job on two agents (real processes over zenoh): its CLUSTERS file numbers their
+    features (agent << 32) + row, so dqm sfm --features takes each file as AGENT=FILE, and maps every photo
+    with the last stage matching their descriptors. A file without ids given bare, or under the other agent's
+    number, is refused."""
+    pytest.importorskip("zenoh")
+    from generators.scenes3d import generate_scene3d
+
+    from dqm.distributed import DQMConfig
+    from dqm.runtime.launcher import Processes, finish_job, free_port, start_job
+    from dqm.runtime.multihost import start_router
+
+    images = generate_scene3d(seed=1, n_images=5, width=480, height=360).save(tmp_path / "img")
+    robots = []
+    for r, ks in enumerate([(1, 3, 5), (2, 4)]):
+        (tmp_path / f"r{r}").mkdir()
+        for k in ks:
+            shutil.copy(images / f"img{k}.png", tmp_path / f"r{r}" / f"img{k}.png")
+        robots.append(tmp_path / f"robot{r}.npz")
+        assert main(["extract", str(tmp_path / f"r{r}"), "--out", str(robots[-1]), "--preset", "budget",
+                     "--quiet"]) == 0
+    job = tmp_path / "job.npz"
+    port, procs = free_port(), Processes()
+    try:
+        start_router(procs, [f"tcp/127.0.0.1:{port}"], tmp_path, ("127.0.0.1", port))
+        started = start_job(procs, DQMConfig(agents=2, seed=1, job="robots-sfm"), robots, tmp_path,
+                            connect=lambda a: f"tcp/127.0.0.1:{port}", clusters=job)
+        assert finish_job(started, 90)["agent_exit_codes"] == [0, 0]
+    finally:
+        procs.stop_all()
+    capsys.readouterr()
+    assert main(["sfm", "--clusters", str(job), "--features", *map(str, robots), "--out", str(tmp_path / "no")]) == 2
+    assert f"--features {robots[0]}: no feature_ids array" in capsys.readouterr().err
+    assert main(["sfm", "--clusters", str(job), "--features", f"0={robots[1]}", f"1={robots[0]}",
+                 "--out", str(tmp_path / "no")]) == 2
+    assert "--features 0=" in capsys.readouterr().err and not (tmp_path / "no").exists()
+    assert main(["sfm", "--clusters", str(job), "--features", f"0={robots[0]}", f"1={robots[1]}",
+                 "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    report = json.loads((tmp_path / "m" / "sfm.json").read_text())
+    assert report["model"]["registered"] == 5 and report["model"]["points"] > report["model_before_triangulation"][
+        "points"] > 0
+
 
 def test_images_mapped_again_take_their_features_from_the_run(tmp_path):
     """A repair that maps some of the run's images again (their SIFT choice the run's) takes their features from
