@@ -982,9 +982,13 @@ static inline unsigned scan_keep_lanes(unsigned all, int64_t c, int64_t lanes, i
         if (self >= c && self < c + lanes)
             keep &= ~(1u << (unsigned)(self - c));
     } else if (test) {
+        /* branchless: whether a column scans the row's list is as good as random */
+        const uint64_t *p = col_bits + c * words + (a >> 6);
+        const unsigned sh = (unsigned)(a & 63);
+        unsigned scanned = 0;
         for (int64_t l = 0; l < lanes; ++l)
-            if (!scan_keep(col_bits, words, c + l, a))
-                keep &= ~(1u << (unsigned)l);
+            scanned |= (unsigned)((p[l * words] >> sh) & 1u) << (unsigned)l;
+        keep &= ~scanned;
     }
     return keep;
 }
@@ -1178,8 +1182,9 @@ int64_t dqm_scan_tile(const float *G, int64_t m, int64_t k, int64_t ldg,
  * about as much in per-call overhead as the kernels' own time): the task's m rows (indices idx into the
  * operands, which are in list order) are gathered into the thread's buffers A / na (m + VNNI_ROWS rows),
  * with their weights, activity, search radius min(rad2, limit) and list; then for every block of at
- * most MAX_ROW of the list's columns lo..hi, their exact squared distances (dqm_gemm_d2_u8 from the
- * multiple of 32 below the block, into G) go through dqm_scan_tile. The same operations in the same order
+ * most MAX_ROW of the list's columns lo..hi, strip by strip of SUM_CHAIN rows, their exact squared distances
+ * (dqm_gemm_d2_u8 from the multiple of 32 below the block, into G: SUM_CHAIN x (MAX_ROW + 32) floats, which
+ * stay in cache) go through dqm_scan_tile. The same operations in the same order
  * as U8Operands.d2 and scan_tile on the gathered rows one block at a time, so the same bits (a test checks). dens_r (m) and dens_c
  * (hi - lo) are added to; edges as dqm_scan_tile's, their columns the features' indices (c0 added). limit is read once
  * per row and column (another thread may tighten it meanwhile: any value read is a valid radius).
@@ -1209,22 +1214,31 @@ int64_t dqm_scan_task(const int8_t *rows_op, int64_t lda, const int32_t *na_op, 
     for (int64_t c0 = lo; c0 < hi; c0 += MAX_ROW) {
         int64_t c1 = hi - c0 < MAX_ROW ? hi : c0 + MAX_ROW;
         int64_t b = c0 - c0 % 32, k = c1 - b;
-        int32_t code = dqm_gemm_d2_u8(A, lda, na, m, cols_op + (b / 16) * nq * 64, nb_op + b, k, nq, G, k);
-        if (code < 0)
-            return code;
         for (int64_t c = c0; c < c1; ++c) {
             float lim = limit[c];
             rad2c[c - c0] = rad2[c] < lim ? rad2[c] : lim;
         }
-        int64_t got = dqm_scan_tile(G + (c0 - b), m, c1 - c0, k, w + c0, s + c0, wr, sr, kernel, rad2r, rad2c,
-                                    n_own, lo + r0 - c0, row_list, bits + c0 * words, words, list, dens_r,
-                                    dens_c + (c0 - lo), cacc, cand_r + count, cand_c + count, cand_g + count,
-                                    cap - count);
-        if (got < 0)
-            return got;
-        for (int64_t e = count; e < count + got; ++e)
-            cand_c[e] += (int32_t)c0;
-        count += got;
+        /* strips of SUM_CHAIN rows: a strip's distances stay in cache, and dqm_scan_tile's column sums are
+           carried over at every SUM_CHAIN rows as over the whole block, so the same bits */
+        for (int64_t s0 = 0; s0 < m; s0 += SUM_CHAIN) {
+            int64_t rows = m - s0 < SUM_CHAIN ? m - s0 : SUM_CHAIN;
+            int32_t code = dqm_gemm_d2_u8(A + s0 * lda, lda, na + s0, rows, cols_op + (b / 16) * nq * 64, nb_op + b,
+                                          k, nq, G, k);
+            if (code < 0)
+                return code;
+            int64_t own = n_own - s0 < 0 ? 0 : n_own - s0;
+            int64_t got = dqm_scan_tile(G + (c0 - b), rows, c1 - c0, k, w + c0, s + c0, wr + s0, sr + s0, kernel,
+                                        rad2r + s0, rad2c, own, lo + r0 + s0 - c0, row_list + s0,
+                                        bits + c0 * words, words, list, dens_r + s0, dens_c + (c0 - lo), cacc,
+                                        cand_r + count, cand_c + count, cand_g + count, cap - count);
+            if (got < 0)
+                return got;
+            for (int64_t e = count; e < count + got; ++e) {
+                cand_r[e] += cand_r[e] >= 0 ? (int32_t)s0 : -(int32_t)s0;
+                cand_c[e] += (int32_t)c0;
+            }
+            count += got;
+        }
     }
     return count;
 }

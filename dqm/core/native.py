@@ -796,6 +796,10 @@ class U8Operands:
 _MIN_STRIP = 64
 
 
+#: rows of a strip of a scan task's distances (SUM_CHAIN of the C kernel): the task's G holds one strip
+_SCAN_STRIP = 64
+
+
 def minima_scratch() -> np.ndarray:
     """A thread's scratch for :meth:`U8Operands.minima` (a strip of rows, 256 KiB)."""
     return np.empty(_MIN_STRIP * MAX_ROW, np.float32)
@@ -828,7 +832,7 @@ class U8Scan:
         """A thread's workspace for tasks of up to ``m`` rows."""
         cap = _scan_edge_cap(m)
         return {"m": m, "A": np.zeros((m + _VNNI_ROWS, self.ops.rows.shape[1]), np.int8),
-                "na": np.zeros(m + _VNNI_ROWS, np.int32), "G": np.empty(m * (MAX_ROW + 32), np.float32),
+                "na": np.zeros(m + _VNNI_ROWS, np.int32), "G": np.empty(_SCAN_STRIP * (MAX_ROW + 32), np.float32),
                 "row_f": np.empty(3 * m, np.float32), "row_list": np.empty(m, np.int32),
                 "rad2c": np.empty(MAX_ROW, np.float32), "cacc": np.empty(MAX_ROW, np.float32),
                 "edges": _edge_buffers(cap)}

@@ -348,7 +348,8 @@ def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, ke
 def test_a_scan_task_in_one_native_call_gives_the_block_by_block_results(kernel):
     """U8Scan.run (gather, integer distances and scan tile in one call) against the loop it replaced: rows
     gathered, U8Operands.d2 from the multiple of 32 below each block of at most MAX_ROW columns, scan_tile
-    per block. A list of 1,100 columns from an unaligned start (two blocks), own rows, a tightened limit on
+    per block (the task makes its distances in strips of 64 rows). A list of 1,100 columns from an unaligned
+    start (two blocks), own rows, a tightened limit on
     some features, and an edge buffer far too small (retries): the same sums to the bit, the same edges."""
     if native.simd_level() < 3:
         pytest.skip("no AVX-512 VNNI on this CPU: the integer scan does not run here")
@@ -364,7 +365,7 @@ def test_a_scan_task_in_one_native_call_gives_the_block_by_block_results(kernel)
     limit[rng.random(n) < 0.3] = 30000.0
     lists = rng.integers(0, 10, n).astype(np.int32)
     bits = rng.integers(0, 2 ** 10, (n, 1)).astype(np.uint64)
-    lo, hi, r0, n_own, list_index = 37, 37 + 1100, 0, 50, 4
+    lo, hi, r0, n_own, list_index = 37, 37 + 1100, 0, 100, 4  # own rows in two of the task's strips of 64 rows
     idx = np.concatenate([np.arange(lo, lo + n_own), rng.choice(np.arange(hi, n), 250, replace=False)])
     lists[lo:hi] = list_index
     rows = native.U8Operands(X[idx])
