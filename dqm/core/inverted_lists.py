@@ -202,6 +202,55 @@ def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, counts: np.ndarray, by_list: np.ndarray,
+                     bounds: np.ndarray, k: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Lists whose pairs are met whole. A pair of features of lists a < b is met when either scans the other's
+    list (used both ways; where both do, the scan computes it twice and keeps it once), so lists a and b cost
+    ``P_ab |b| + P_ba |a|`` pairs, P_ab the members of a that scan b. Where that is more than ``|a| |b|``
+    (neighbouring lists, most of whose members scan each other's), every member of a scans b and no member of b
+    scans a: every pair of the two lists is met once, for fewer pairs (150k generated features: 3,006 of
+    130,816 pairs of lists, 16% fewer pairs in all), and the densities miss fewer terms. Returns ``scans``
+    without b's scans of a, the scanned lists' bitsets (:func:`_scan_bits`) and the scans added, ``(feature,
+    list)`` (int32): a's members that did not scan b."""
+    rows = np.repeat(own.astype(np.int32), scans.sum(axis=1))
+    lists = near[:, 1:][scans]
+    P = np.bincount(rows.astype(np.int64) * k + lists, minlength=k * k).reshape(k, k)
+    size = counts.astype(np.int64)
+    whole = np.triu(P * size[None, :] + P.T * size[:, None] > size[:, None] * size[None, :], 1)
+    del P
+    low, high = np.nonzero(whole)  # a < b
+    none = np.zeros(0, np.int32)
+    if not len(low):
+        return scans, _scan_bits(near, scans, k), none, none
+    kept = scans.copy()
+    kept[scans] = ~whole[lists, rows]  # b's members no longer scan a (whole[a, b] holds a < b only)
+    del rows, lists
+    bits = _scan_bits(near, kept, k)  # a's members keep their scans of b: b > a is none of those dropped
+    # every member of each lower list a, with its partner b, where it did not scan b
+    sizes = size[low]
+    start = np.repeat(bounds[low] - np.cumsum(sizes) + sizes, sizes)
+    member = by_list[start + np.arange(int(sizes.sum()))]
+    partner = np.repeat(high, sizes)
+    new = ~_has_bit(bits, member, partner)
+    member, partner = member[new].astype(np.int32), partner[new].astype(np.int32)
+    _set_bits(bits, member, partner)
+    return kept, bits, member, partner
+
+
+def _set_bits(bits: np.ndarray, rows: np.ndarray, lists: np.ndarray) -> None:
+    """Set bit ``lists[j]`` of feature ``rows[j]`` in the bitsets of :func:`_scan_bits` (any number of bits a
+    word)."""
+    if not len(rows):
+        return
+    words = bits.shape[1]
+    at = rows.astype(np.int64) * words + (lists.astype(np.int64) >> 6)
+    value = np.left_shift(np.uint64(1), (lists & 63).astype(np.uint64))
+    order = np.argsort(at, kind="stable")
+    at, value = at[order], value[order]
+    first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+    bits.reshape(-1)[at[first]] |= np.bitwise_or.reduceat(value, first)
+
+
 def kmeans(left: LeftRows, k: int, seed: int = 0, n_threads: Optional[int] = 1,
            stop: Optional[threading.Event] = None) -> np.ndarray:
     """``k`` centroids of the rows of the augmented operand ``left`` (or of an Augmented's; Lloyd's iterations
@@ -402,8 +451,11 @@ def scan(
     counts = np.diff(bounds).astype(np.int32)
     count = _scanned_lists(counts, near, (t * n) / k)
     scans = np.arange(t - 1)[None, :] < count[:, None]  # the first count[i] of feature i's other nearest lists
-    probe_list = near[:, 1:][scans]
-    probe_row = np.repeat(np.arange(n, dtype=np.int32), count)  # int32 index arrays: n * probes entries each
+    # two lists whose members scan each other's so much that meeting them whole costs fewer pairs: every
+    # member of the lower one scans the higher, and none of the higher's the lower (_lists_met_whole)
+    scans, bits, extra_row, extra_list = _lists_met_whole(own, near, scans, counts, by_list, bounds, k)
+    probe_list = np.concatenate([near[:, 1:][scans], extra_list])
+    probe_row = np.concatenate([np.repeat(np.arange(n, dtype=np.int32), scans.sum(axis=1)), extra_row])
     order = _by_list(probe_list, k)
     pbounds = _list_bounds(probe_list, k)
     del probe_list
@@ -418,7 +470,7 @@ def scan(
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)
     rad2p = pairs.search_rad2(aug, radius)[perm]
-    bits = _scan_bits(near, scans, k)[perm]
+    bits = bits[perm]
     listp = own[perm].astype(np.int32)
     probers = where[probe_row[order]]
     del probe_row, order, where
