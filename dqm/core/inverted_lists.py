@@ -31,7 +31,10 @@ as the exact pass):
    the larger list index keeps it, so every pair counts once. Both ways: at the
    same GEMMs the densities miss half as much mass (median 0.0012 instead of
    0.0029 kernel terms on sacre_coeur at 32 probes) and F1 against exact rose
-   from 0.9921 to 0.9966.
+   from 0.9921 to 0.9966. Two lists most of whose members scan each other's are
+   met whole instead (every member of the lower scans the higher, none of the
+   higher the lower: :func:`_lists_met_whole`), which costs fewer pairs (16%
+   fewer in all on 150k generated features) and leaves out fewer terms.
 3. **Exact edges.** The kept pairs' distances are recomputed exactly and those
    within the radius are the candidate parents. (Adding the candidates of each
    feature's candidates, two hops, was measured with one-way scans: at 48
