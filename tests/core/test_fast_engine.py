@@ -274,6 +274,8 @@ def test_each_features_nearest_lists_by_distance_then_index(use_native):
     W[4, :] = np.inf
     W[6, 16:32] = np.nan
     W[8, ::3] = np.nan
+    W[10] -= 30  # negative distances (float error of a GEMM) and -0 tied with +0: ordered as numbers, then index
+    W[11, :40] = np.where(np.arange(40) % 2, np.float32(0.0), np.float32(-0.0))
     ref = np.lexsort((np.broadcast_to(np.arange(512), W.shape), np.where(np.isnan(W), np.inf, W)), axis=1)
     levels = [native.set_simd_level(99), 0] if use_native else [None]
     try:
