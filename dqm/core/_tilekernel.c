@@ -1573,7 +1573,7 @@ static int64_t keys_at_most(const float *d, int64_t k, float tau, uint64_t *key)
  * largest of t chunk minima, tau, bounds the t-th smallest from above (the t minima are t entries); the
  * entries at or below it (about 110 of 512 for t = 32 on the 150k generated features' distances to their
  * centroids) become keys (value, index) whose t smallest a quickselect finds and an insertion sort orders:
- * 0.15 s for 150k x 512, t = 32, where a sorted run of the t best so far, which a later column enters when
+ * 0.27 s for 150k x 512, t = 32, where a sorted run of the t best so far, which a later column enters when
  * strictly smaller than its last, took 0.36 s (a max-heap more, a partition and a sort of every row in
  * numpy about twice). The run remains where tau is not finite (a chunk all NaN or +inf) or keys cannot be
  * made.
