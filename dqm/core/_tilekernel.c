@@ -77,6 +77,15 @@ typedef struct { float acc, err; int64_t hits; } RowOut;
 #define SUM_ROUNDINGS (SUM_CHAIN + 16 + 2)
 #define MAX_ROW 1024
 
+/* The contract between this file and dqm/core/native.py (entry points, their arguments, the buffers the caller
+   makes): native.py loads a kernel only of its own KERNEL_VERSION, so a build older than the Python beside it
+   (a checkout updated without a new install) is never called with buffers it would write past. Raise it with
+   any such change, here and in native.py. */
+int32_t dqm_kernel_version(void)
+{
+    return 2;
+}
+
 int32_t dqm_sum_roundings(void)
 {
     return SUM_ROUNDINGS;

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import logging
 import os
 from typing import Optional, Tuple
 
@@ -27,6 +28,11 @@ import numpy as np
 
 KERNEL_CODES = {"gaussian": 0, "quadratic": 1}
 _EXP_CLAMP = 87.0  # exp(-87) is the smallest normal float32 magnitude we produce
+
+
+#: the kernel's contract with this module (``dqm_kernel_version`` in _tilekernel.c): a build of another one is not
+#: loaded (2: the scan task's distances in strips, its G buffer one strip)
+KERNEL_VERSION = 2
 
 
 def _load() -> Optional[ctypes.CDLL]:
@@ -37,6 +43,18 @@ def _load() -> Optional[ctypes.CDLL]:
         try:
             lib = ctypes.CDLL(path)
         except OSError:
+            continue
+        try:
+            version = lib.dqm_kernel_version
+        except AttributeError:
+            version = None
+        else:
+            version.restype = ctypes.c_int32
+            version = int(version())
+        if version != KERNEL_VERSION:
+            logging.getLogger("dqm.core").warning(
+                "%s is a native kernel built for another dqm (version %s, this one needs %d): the numpy version "
+                "runs (slower); rebuild it with pip install -e .", path, version, KERNEL_VERSION)
             continue
         fn = lib.dqm_tile
         f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")

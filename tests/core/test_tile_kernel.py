@@ -308,6 +308,50 @@ def test_uint8_and_the_same_values_as_floats_give_identical_results(kernel):
 
 
 @needs_native
+def test_a_native_kernel_built_for_another_dqm_is_not_loaded(monkeypatch):
+    """A kernel older than the Python beside it (a checkout updated without a new install: its entry points take
+    other buffers) or of another version is never called: the numpy version runs, and one warning says to
+    rebuild. The kernel built here is this dqm's."""
+    import logging
+
+    assert native._LIB.dqm_kernel_version() == native.KERNEL_VERSION
+
+    class Call:
+        restype = None
+
+        def __call__(self):
+            return native.KERNEL_VERSION + 1
+
+    class Older:  # built before the check: no such symbol
+        def __init__(self, path):
+            pass
+
+        def __getattr__(self, name):
+            raise AttributeError(name)
+
+    class Newer:
+        def __init__(self, path):
+            self.dqm_kernel_version = Call()
+
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    log = logging.getLogger("dqm.core")
+    log.addHandler(handler)
+    level = log.level
+    log.setLevel(logging.WARNING)
+    try:
+        for fake, says in [(Older, "version None"), (Newer, f"version {native.KERNEL_VERSION + 1}")]:
+            monkeypatch.setattr(native.ctypes, "CDLL", fake)
+            records.clear()
+            assert native._load() is None
+            assert records and all(says in r.getMessage() and "pip install -e ." in r.getMessage() for r in records)
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+
+
+@needs_native
 @pytest.mark.parametrize("kernel", ["gaussian", "quadratic"])
 def test_the_fast_engines_scan_tile_matches_numpy_at_every_simd_level(levels, kernel):
     """The scan tile (dqm/core/inverted_lists.py): own rows one way without their self pair, other rows both
