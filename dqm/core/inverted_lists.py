@@ -71,7 +71,7 @@ MIN_PROBES = 32
 #: k-means: training sample per list, Lloyd iterations
 TRAIN_PER_LIST = 32
 KMEANS_ITERATIONS = 8
-#: probing rows a scan task (2,048: 150k generated features scan 7% faster than with 1,024 on the integer kernel,
+#: probing rows of a scan task (2,048: 150k generated features scan 7% faster than with 1,024 on the integer kernel,
 #: whose tasks make their distances 64 rows at a time, and 3% on the float32 GEMM; the same sums)
 ROWS = 2048
 #: candidate parents kept per feature, the nearest: a physical point seen in hundreds of images (1M generated
@@ -215,7 +215,8 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     scans a: every pair of the two lists is met once, for fewer pairs (150k generated features: 3,006 of
     130,816 pairs of lists, 16% fewer pairs in all), and the densities miss fewer terms. Returns ``scans``
     without b's scans of a, the scanned lists' bitsets (:func:`_scan_bits`) and the scans added, ``(feature,
-    list)`` (int32): a's members that did not scan b."""
+    list)`` (int32): a's members that did not scan b. (:func:`nearest_above`, the parent search of capped
+    children, still searches the lists of the quota rule, :meth:`ListIndex.scanned`.)"""
     rows = np.repeat(own.astype(np.int32), scans.sum(axis=1))
     lists = near[:, 1:][scans]
     P = np.bincount(rows.astype(np.int64) * k + lists, minlength=k * k).reshape(k, k)
