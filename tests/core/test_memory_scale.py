@@ -313,8 +313,14 @@ def test_benchmark_script_small_real_run(tmp_path):
     n = int(cells[1].replace(",", ""))
     assert n > 5000  # two photos' COLMAP SIFT
     colmap_s, into_s = float(cells[2]), float(cells[3])
-    assert colmap_s > 0 and float(cells[4]) == pytest.approx(into_s / colmap_s, rel=0.03, abs=0.01)
-    assert float(cells[7]) > 0 and float(cells[9]) == pytest.approx(float(cells[8]) / colmap_s, rel=0.03, abs=0.01)
+
+    def ratio_of(ratio, num, den):
+        """Is the printed ratio that of the unrounded times whose printed values (2 decimals) are num and den?
+        (On a fast CPU COLMAP's two photos take 0.20 s: its rounding alone moves the ratio by 2.5%.)"""
+        return (num - 0.005) / (den + 0.005) - 0.005 <= ratio <= (num + 0.005) / (den - 0.005) + 0.005
+
+    assert colmap_s >= 0.01 and ratio_of(float(cells[4]), into_s, colmap_s)
+    assert float(cells[7]) > 0 and ratio_of(float(cells[9]), float(cells[8]), colmap_s)
     assert cells[5].endswith("(exact)")  # two photos' features are below the fast engine's size
     assert float(cells[10]) == 1.0  # so the default is the exact answer
     pass_rate, gemm_rate = float(cells[11]), float(cells[12])
