@@ -1460,6 +1460,16 @@ static inline void smallest_insert(float *val, int32_t *o, int32_t *n, int32_t t
     ++*n;
 }
 
+/* Column j of value v (not NaN) as a key in (value, index) order: the float's bits made unsigned in its order
+   (-0 as +0, which compares equal to it) above the index. */
+static inline uint64_t column_key(float v, int64_t j)
+{
+    v += 0.0f;
+    uint32_t u;
+    memcpy(&u, &v, sizeof u);
+    return (uint64_t)((u & 0x80000000u) ? ~u : (u | 0x80000000u)) << 32 | (uint64_t)j;
+}
+
 #ifdef DQM_HAVE_AVX2_PATH
 /* Once the run is full, 8 columns at a time are compared with its last value and only those strictly
    smaller go through the scalar insertion, in column order: the same result (NaN compares false, as
@@ -1498,8 +1508,6 @@ static float smallest_tau_avx2(const float *d, int64_t w, int32_t t)
     return tau;
 }
 
-static inline uint64_t ordered_key(float v);
-
 /* keys_at_most's vector part: blocks of 8 columns; returns the first column left for the scalar loop. */
 __attribute__((target("avx2")))
 static int64_t keys_at_most_avx2(const float *d, int64_t k, float tau, uint64_t *key, int64_t *cnt)
@@ -1510,21 +1518,13 @@ static int64_t keys_at_most_avx2(const float *d, int64_t k, float tau, uint64_t 
         unsigned in = (unsigned)_mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + j), t8, _CMP_LE_OQ));
         for (; in; in &= in - 1) {
             const int l = __builtin_ctz(in);
-            key[n++] = ordered_key(d[j + l] + 0.0f) << 32 | (uint64_t)(j + l);
+            key[n++] = column_key(d[j + l], j + l);
         }
     }
     *cnt = n;
     return j;
 }
 #endif
-
-/* A float's bits as an unsigned key in the float's order (v not NaN; -0 given as +0 by the caller). */
-static inline uint64_t ordered_key(float v)
-{
-    uint32_t u;
-    memcpy(&u, &v, sizeof u);
-    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
-}
 
 /* key[0..t) := the t smallest of the cnt distinct keys, ascending (quickselect, then insertion). */
 static void smallest_keys(uint64_t *key, int64_t cnt, int32_t t)
@@ -1572,7 +1572,7 @@ static int64_t keys_at_most(const float *d, int64_t k, float tau, uint64_t *key)
 #endif
     for (; j < k; ++j)
         if (d[j] <= tau) /* NaN: never */
-            key[cnt++] = ordered_key(d[j] + 0.0f) << 32 | (uint64_t)j;
+            key[cnt++] = column_key(d[j], j);
     return cnt;
 }
 
