@@ -324,14 +324,34 @@ class ListIndex:
 def _block_d2(aug: pairs.Augmented, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """float32 squared distances of features ``rows`` to features ``cols`` (within :attr:`Augmented.gamma`'s
     bound; exact integers on uint8 descriptors): the integer kernel where it runs, else a float32 GEMM."""
-    if not aug.integer_kernel:
-        return aug.left_rows(rows) @ aug.right[cols].T
-    R, C = native.U8Operands(aug.exact, rows), native.U8Operands(aug.exact, cols)
-    G = np.empty((len(rows), len(cols)), np.float32)
-    for c0 in range(0, len(cols), native.MAX_ROW):
-        c1 = min(len(cols), c0 + native.MAX_ROW)
-        G[:, c0:c1] = R.d2(0, len(rows), c0, c1, cols=C)
-    return G
+    return _Blocks(aug, rows, cols).d2(0, len(rows), 0, len(cols))
+
+
+#: columns (list members) of one task of :func:`nearest_above`: its consecutive lists' members gathered at once
+NEAREST_ABOVE_COLUMNS = 16384
+
+
+class _Blocks:
+    """Distances of some rows to some columns (features), block by block: the rows and columns gathered once
+    (packed for the integer kernel where it runs), then any block's float32 squared distances (within
+    :attr:`Augmented.gamma`'s bound; exact integers on uint8 descriptors) as :func:`_block_d2` gives them."""
+
+    def __init__(self, aug: pairs.Augmented, rows: np.ndarray, cols: np.ndarray):
+        self.integer = aug.integer_kernel
+        if self.integer:
+            self.R, self.C = native.U8Operands(aug.exact, rows), native.U8Operands(aug.exact, cols)
+        else:
+            self.R, self.C = aug.left_rows(rows), aug.right[cols]
+
+    def d2(self, a: int, a1: int, b: int, b1: int) -> np.ndarray:
+        """Rows ``a..a1`` against columns ``b..b1`` (positions among the gathered ones)."""
+        if not self.integer:
+            return self.R[a:a1] @ self.C[b:b1].T
+        G = np.empty((a1 - a, b1 - b), np.float32)
+        for c0 in range(b - b % 32, b1, native.MAX_ROW):  # the packed columns' tiles start at multiples of 32
+            c1, lo = min(b1, c0 + native.MAX_ROW), max(b, c0)
+            G[:, lo - b:c1 - b] = self.R.d2(a, a1, c0, c1, cols=self.C)[:, lo - c0:]
+        return G
 
 
 def nearest_above(
@@ -368,24 +388,46 @@ def nearest_above(
     slack2 = (2.0 * aug.d2_slack(rows)).astype(np.float32)
     dens_r = density[rows]
     img_r = None if image_index is None else image_index[rows]
-    tasks = [(int(lists[a]), q0, min(e, q0 + ROWS)) for a, e in zip(starts, ends) for q0 in range(a, e, ROWS)]
+    b_all = lists[starts]
+    # a task: consecutive lists of about NEAREST_ABOVE_COLUMNS members in all, their rows and members gathered
+    # (packed for the integer kernel) once, then each list's block of distances in strips of ROWS rows
+    groups, size = [], 0
+    for g, b in enumerate(b_all.tolist()):
+        if not groups or size >= NEAREST_ABOVE_COLUMNS:
+            groups.append([])
+            size = 0
+        # the members gathered: this list's and those of the lists between the group's last one and it
+        first = b_all[groups[-1][-1]] + 1 if groups[-1] else b
+        size += int(index.bounds[b + 1] - index.bounds[first])
+        groups[-1].append(g)
 
-    def work(task):
-        b, q0, q1 = task
-        q = who[q0:q1]
-        cols = index.members[index.bounds[b]:index.bounds[b + 1]]
-        G = _block_d2(aug, rows[q], cols)
-        dc = density[cols][None, :]
-        ok = (dc > dens_r[q, None]) | ((dc == dens_r[q, None]) & (cols[None, :] < rows[q, None]))
-        ok &= G <= rad2[q, None]
-        if img_r is not None:
-            ok &= image_index[cols][None, :] != img_r[q, None]
-        r, c = np.nonzero(ok)
-        return q[r], cols[c], G[r, c]
+    def work(group):
+        g0, g1 = group[0], group[-1]
+        q_lo, q_hi = int(starts[g0]), int(ends[g1])
+        c_lo, c_hi = int(index.bounds[b_all[g0]]), int(index.bounds[b_all[g1] + 1])
+        block = _Blocks(aug, rows[who[q_lo:q_hi]], index.members[c_lo:c_hi])
+        out = []
+        for g in group:
+            b = int(b_all[g])
+            lo, hi = int(index.bounds[b]) - c_lo, int(index.bounds[b + 1]) - c_lo
+            cols = index.members[c_lo + lo:c_lo + hi]
+            for q0 in range(int(starts[g]), int(ends[g]), ROWS):
+                q1 = min(int(ends[g]), q0 + ROWS)
+                q = who[q0:q1]
+                G = block.d2(q0 - q_lo, q1 - q_lo, lo, hi)
+                r, c = np.nonzero(G <= rad2[q, None])  # few: then the rank and the image of those only
+                qr, cc, g2 = q[r], cols[c], G[r, c]
+                dc = density[cc]
+                ok = (dc > dens_r[qr]) | ((dc == dens_r[qr]) & (cc < rows[qr]))
+                if img_r is not None:
+                    ok &= image_index[cc] != img_r[qr]
+                out.append((qr[ok], cc[ok], g2[ok]))
+        return out
 
     found = []
     with pairs.tile_pool(n_threads) as run:
-        found.extend(run(work, tasks))
+        for part in run(work, groups):
+            found.extend(part)
     q = np.concatenate([f[0] for f in found])
     cand = np.concatenate([f[1] for f in found])
     g = np.concatenate([f[2] for f in found])

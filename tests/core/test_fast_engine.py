@@ -389,21 +389,40 @@ def test_children_cut_at_the_candidate_cap_still_get_their_parent(scene, monkeyp
     assert comembership_scores(unsearched.labels, exact.labels).recall < 0.99
 
 
-def test_nearest_above_is_the_nearest_higher_ranked_member_of_the_scanned_lists(scene):
+@pytest.mark.parametrize("columns, simd", [(None, 99), (1, 99), (700, 99), (700, 2)])
+def test_nearest_above_is_the_nearest_higher_ranked_member_of_the_scanned_lists(scene, monkeypatch, columns, simd):
     """nearest_above against brute force: for each row, among the members of the lists the scan's rule gives
     it, the features that rank above it, lie within its radius and (with image_index) come from another image;
-    the nearest of them (exact distances on uint8: no ties within a bound)."""
-    from dqm.core import pairs, tree
+    the nearest of them (exact distances on uint8: no ties within a bound). Whatever lists a task gathers (one
+    each; several, with lists no row scans between them, whose members are gathered too and left out; the
+    default), on the integer kernel where the CPU has it and on the float32 GEMM (SIMD level 2)."""
+    from dqm.core import native, pairs
 
+    if simd < 99 and native.simd_level() < 3:
+        pytest.skip("no AVX-512 VNNI on this CPU: the float32 path is the default case here")
+    if columns is not None:
+        monkeypatch.setattr(inverted_lists, "NEAREST_ABOVE_COLUMNS", columns)
     X, ids, exact = scene
     _, img = np.unique(ids, return_inverse=True)
-    aug = pairs.Augmented(X)
+    native.set_simd_level(simd)
+    try:
+        aug = pairs.Augmented(X)
+        assert aug.integer_kernel == (native.simd_level() == 3)
+        _check_nearest_above(aug, img, exact)
+    finally:
+        native.set_simd_level(99)
+
+
+def _check_nearest_above(aug, img, exact):
+    from dqm.core import pairs, tree
+
     w, active = dqm.core.clustering.kernel_weights(exact.sigma, "gaussian", 0.25)
     radius = 0.9 * exact.sigma
     found = inverted_lists.scan(aug, w, active, "gaussian", radius, lists=64, n_probe=6, max_candidates=3)
-    rows = np.flatnonzero(found.capped)[::3]
-    assert len(rows) > 100
-    for image_index in (None, img):
+    capped = np.flatnonzero(found.capped)
+    assert len(capped) > 300
+    # many rows (every list scanned), and four (lists between the scanned ones that none of them scans)
+    for rows, image_index in ((capped[::3], None), (capped[::3], img), (capped[:4], img)):
         child, cand = inverted_lists.nearest_above(aug, found.index, rows, exact.density, radius, image_index, 2)
         got = dict(zip(child.tolist(), cand.tolist()))
         assert len(got) == len(child)  # exact distances: one nearest each
