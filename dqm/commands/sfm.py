@@ -417,21 +417,28 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
     same = {choices(int(models[k].rec.num_reg_images())) for k in todo} == {choices(len(together))}
     batches = [todo] if len(todo) > 1 and same else [[k] for k in todo]
 
-    def redo(names: list[str], folder: Path, before: list, what: str) -> tuple[dict, list]:
+    def redo(names: list[str], folder: Path, before: list, what: str, made=None) -> tuple[dict, list]:
         """``names`` through the stages again alone into ``folder``, against the models ``before`` ((model,
         its numbers) each) that held them; what was done, and the models made alone that replace them ((model,
-        numbers, source) each; none where they are kept)."""
+        numbers, source) each; none where they are kept). ``made``: (features, export summary, SIFT choice) of
+        a run alone that held these images: with the same SIFT choice their features are taken from it rather
+        than extracted again (each image's features are its own)."""
         n = len(names)
         (preset, max_features), _ = choices(n)
         sub = _args_again(args, [paths[by_name[name]] for name in names], (preset, max_features), asked.mapper)
+        features = None
+        if made is not None and made[2] == (preset, max_features):
+            held = {name: k for k, name in enumerate(made[1].names)}
+            features = _features_of(made[0], [held[name] for name in names])
         say = f"{what} ({count(n, 'image')}) again alone, SIFT preset {preset}: "
-        print(f"{say}extraction, QuickMatch and mapping of its images into {folder} ...", flush=True)
+        print(f"{say}{'QuickMatch' if features is not None else 'extraction, QuickMatch'} and mapping of its images "
+              f"into {folder} ...", flush=True)
         entry = {"collection_folder": _folder(before[0][0], out),
                  "collection_folders": [_folder(m, out) for m, _ in before],
-                 "images": n, "preset": preset, "max_features": max_features}
+                 "images": n, "preset": preset, "max_features": max_features, "extracted": features is None}
         try:
             fs, _, _, s, mapper, own = _match_and_map(sub, folder, stage, camera, threads,
-                                                      image_dir=export.image_dir, say=say)
+                                                      image_dir=export.image_dir, say=say, features=features)
         except InputError as e:  # the models before stand; what was written stays
             print(f"{say}not redone ({e}); {what} is kept", flush=True)
             entry.update(taken=False, error=str(e))
@@ -472,7 +479,8 @@ def _scenes_alone(args, asked, out: Path, stage: _Stages, camera, threads: int, 
             pieces = []
             for j, (m, numbers, source) in enumerate(taken):
                 its = sorted(registered_names(m.rec), key=by_name.get)
-                part, alone = redo(its, folder / f"scene-{j}", [(m, numbers)], _folder(m, out))
+                part, alone = redo(its, folder / f"scene-{j}", [(m, numbers)], _folder(m, out),
+                                   made=(source[2], source[1], choices(len(names))[0]))
                 entry.setdefault("scenes", []).append(part)
                 pieces += alone or [(m, numbers, source)]
             taken = pieces

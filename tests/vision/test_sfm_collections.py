@@ -93,10 +93,22 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     from generators.scenes3d import generate_scene3d
 
     from dqm.vision import sfm
+    from dqm.vision.features import extract_images
 
     scenes = [generate_scene3d(seed=seed, n_images=n, width=480, height=360).save(tmp_path / name)
               for seed, n, name in ((0, 10, "c"), (2, 4, "a"), (5, 5, "b"))]
     monkeypatch.setattr(sfm, "GLOBAL_FROM", 10)
+    from dqm.commands import sfm as command
+
+    extracted = []  # the images of each extraction
+
+    def counted(args, **kw):
+        fs = extract(args, **kw)
+        extracted.append(len(fs.image_names))
+        return fs
+
+    extract = command.extract
+    monkeypatch.setattr(command, "extract", counted)
     argv = ["sfm", *map(str, scenes), "--quiet", "--no-triangulate"]
     assert main([*argv, "--out", str(tmp_path / "m")]) == 0
     out = capsys.readouterr().out
@@ -107,6 +119,15 @@ def test_the_small_models_of_a_collection_are_redone_alone_together(tmp_path, ca
     assert "sparse/1 and sparse/2 (9 images) again alone" in out and "(2 models for 2 models)" in out
     assert [(e["images"], e["taken"], e["collection_folder"]) for e in alone["scenes"]] == [
         (5, True, "scenes/1+2/sparse/0"), (4, True, "scenes/1+2/sparse/1")]  # each scene alone again
+    # each scene alone has the SIFT choice of the two together: its features are taken from there, not extracted
+    # again (each image's features are its own), and its clusters are QuickMatch's on those alone
+    assert alone["extracted"] and [e["extracted"] for e in alone["scenes"]] == [False, False]
+    assert extracted == [19, 9]
+    for e, scene in zip(alone["scenes"], ("b", "a")):
+        with np.load(tmp_path / "m" / e["folder"].removesuffix("/sparse/0") / "clusters.npz") as z:
+            fresh = extract_images(sorted(str(p) for p in (tmp_path / scene).glob("*.png")), preset=e["preset"])
+            assert np.array_equal(z["descriptors"], fresh.descriptors)
+            assert np.array_equal(z["keypoints"], fresh.keypoints)
     assert [m["folder"] for m in report["models"]] == ["sparse/0", "scenes/1+2/scene-0/sparse/0",
                                                        "scenes/1+2/scene-1/sparse/0"] == ["sparse/0", *alone["folders"]]
     assert [m["registered"] for m in report["models"]] == [10, 5, 4]
