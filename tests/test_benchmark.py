@@ -138,6 +138,32 @@ def test_unknown_dataset_and_method():
         BM.evaluate(bench("scene:1"), ["quickmatch", "orb"])
 
 
+def test_truth_chance_links_compares_growth_rules_under_true_and_shifted_geometry(tmp_path):
+    """scripts/truth_chance.py --links (docs/match-defaults/growth-chance.md, issue 61): per link rule of guided
+    growth, the links its planar pairs propose under their homographies and under the same shifted (chance
+    alone), and the grown clusters' scores. On a generated scene the true geometry proposes far more links than
+    a shifted one; the default rule's scores are `dqm evaluate`'s grown row; a looser rule proposes more."""
+    from script_modules import load_script
+
+    from dqm.vision import guided
+
+    mod = load_script("truth_chance")
+    out = tmp_path / "g.md"
+    assert mod.main(["scene:0", "--links", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "`python scripts/truth_chance.py scene:0 --links --out" in text
+    features = BM.load_benchmark("scene:0", preset="sfm")
+    rows = mod.link_rows(features)
+    assert [(r["threshold"], r["max_sigma"]) for r in rows] == list(mod.LINK_RULES)
+    default, *looser = rows
+    assert (default["threshold"], default["max_sigma"]) == (guided.DEFAULT_LINK_THRESHOLD, guided.DEFAULT_MAX_SIGMA)
+    assert default["planar_pairs"] > 0 and default["links"] > 4 * max(default["chance"], 1)
+    assert all(r["links"] >= default["links"] for r in looser) and looser[-1]["links"] > default["links"]
+    grown = BM.evaluate(features, ["quickmatch-guided"], curves=False)[0].scores
+    assert default["scores"].f1 == grown.f1
+    assert f"| scene:0 | 2, 1.5 | {default['planar_pairs']} | {default['links']:,} |" in text
+
+
 def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp_path, capsys):
     """scripts/truth_chance.py (docs/match-defaults/truth-chance.md, issue 61) on a generated scene: the truth's
     pairs, those chance alone gives (fewer), bounds on the real ones within the truth, and dqm match's
