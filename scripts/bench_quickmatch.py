@@ -36,6 +36,7 @@ import json
 import multiprocessing as mp
 import os
 import queue
+import re
 import shutil
 import subprocess
 import sys
@@ -374,20 +375,31 @@ def budgets_section(rows=BUDGET_ROWS):
     """Issue 37: ``max_memory`` against the measured peak resident memory of the whole process (VmHWM, fresh
     process; its peak restarted after the data are generated, so what the process held before the call counts
     and the generator's temporaries do not)."""
+    from dqm.core import memory
+    from dqm.validation import InputError
+
+    # every row checked before the first runs (a generated set as --fast names them: N or NxIMAGES)
+    for row in rows:
+        try:
+            if len(row) != 3 or not re.fullmatch(r"\d+(x\d+)?", row[0]) or row[1] not in ("exact", "fast"):
+                raise InputError("give N[xIMAGES]:exact|fast:SIZE")
+            memory.parse_size(row[2])
+        except InputError as e:
+            sys.exit(f"bench_quickmatch: --budgets {':'.join(row)}: {e}")
     print("\n### A memory budget against the measured peak\n")
     print("| generated n | engine | budget | peak RSS (whole process) | held before the call | peak / budget | "
           "parents | wall s |")
     print("|---|---|---|---|---|---|---|---|")
-    from dqm.core import memory
-
     for n, engine, budget in rows:
         r = run((n, "quickmatch", {"engine": engine, "max_memory": budget}), errors=True)
         b = memory.parse_size(budget)
+        count, _, images = n.partition("x")
+        label = f"{int(count):,}" + (f" ({int(images):,} images)" if images else "")
         if "error" in r:  # a refusal before any work is an answer too
-            print(f"| {int(n):,} | {engine} | {memory.format_bytes(b)} | {r['error']} | | | | |", flush=True)
+            print(f"| {label} | {engine} | {memory.format_bytes(b)} | {r['error']} | | | | |", flush=True)
             continue
         how = "streamed" if r.get("streaming") else "kept" if engine == "exact" else "32 nearest kept"
-        print(f"| {int(n):,} | {engine} | {memory.format_bytes(b)} | {r['peak_rss_mib'] / 1024:.2f} GiB | "
+        print(f"| {label} | {engine} | {memory.format_bytes(b)} | {r['peak_rss_mib'] / 1024:.2f} GiB | "
               f"{r['base_rss_mib'] / 1024:.2f} GiB | {r['peak_rss_mib'] * 2 ** 20 / b:.2f} | {how} | {r['wall']:.1f} |",
               flush=True)
 

@@ -405,3 +405,12 @@ def test_benchmark_script_small_budgets_run():
     for r in rows[:2]:
         assert 0 < float(r.split("|")[6]) <= 1.0  # measured peak over the budget
     assert "MemoryBudgetError" in rows[2] and "more than the memory budget of 100 MiB" in rows[2]  # refused
+    # a set of N features over IMAGES images, as --fast names them; a row it cannot run is refused before any runs
+    p = subprocess.run([sys.executable, str(script), "--budgets", "6000x3:fast:400M", "--sizes", "", "--no-graf"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "| 6,000 (3 images) | fast |" in p.stdout, p.stderr[-2000:]
+    for bad, why in (("6000x3:fast:lots", "memory size 'lots' is not understood"), ("6000:quick:1G", "N[xIMAGES]")):
+        p = subprocess.run([sys.executable, str(script), "--budgets", f"6000:fast:400M,{bad}", "--sizes", "",
+                            "--no-graf"], capture_output=True, text=True, timeout=300)
+        assert p.returncode == 1 and why in p.stderr and "Traceback" not in p.stderr
+        assert "| 6,000 |" not in p.stdout  # nothing ran
