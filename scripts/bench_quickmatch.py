@@ -82,9 +82,18 @@ def load(name):
         CACHE.mkdir(parents=True, exist_ok=True)
         np.savez(cache, D=D, ids=ids)
         return D, ids
-    n, _, images = name.partition("x")  # "N" (2,000 features an image) or "NxIMAGES"
-    ds = synthetic.sized(int(n), features_per_image=int(n) // int(images) if images else 2000)
+    n, images = generated_set(name)
+    ds = synthetic.sized(n, features_per_image=n // images if images else 2000)
     return ds.descriptors, ds.image_ids
+
+
+def generated_set(name: str):
+    """A generated set's name, ``N`` (2,000 features an image) or ``NxIMAGES``: ``(N, IMAGES or None)``;
+    ValueError for anything else."""
+    m = re.fullmatch(r"(\d+)(?:x(\d+))?", name)
+    if m is None:
+        raise ValueError(f"{name!r} is not a generated set (N or NxIMAGES)")
+    return int(m.group(1)), None if m.group(2) is None else int(m.group(2))
 
 
 def knn_numpy(X):
@@ -381,10 +390,11 @@ def budgets_section(rows=BUDGET_ROWS):
     # every row checked before the first runs (a generated set as --fast names them: N or NxIMAGES)
     for row in rows:
         try:
-            if len(row) != 3 or not re.fullmatch(r"\d+(x\d+)?", row[0]) or row[1] not in ("exact", "fast"):
+            if len(row) != 3 or row[1] not in ("exact", "fast"):
                 raise InputError("give N[xIMAGES]:exact|fast:SIZE")
+            generated_set(row[0])
             memory.parse_size(row[2])
-        except InputError as e:
+        except ValueError as e:  # InputError is one
             sys.exit(f"bench_quickmatch: --budgets {':'.join(row)}: {e}")
     print("\n### A memory budget against the measured peak\n")
     print("| generated n | engine | budget | peak RSS (whole process) | held before the call | peak / budget | "
@@ -393,8 +403,8 @@ def budgets_section(rows=BUDGET_ROWS):
     for n, engine, budget in rows:
         r = run((n, "quickmatch", {"engine": engine, "max_memory": budget}), errors=True)
         b = memory.parse_size(budget)
-        count, _, images = n.partition("x")
-        label = f"{int(count):,}" + (f" ({int(images):,} images)" if images else "")
+        count, images = generated_set(n)
+        label = f"{count:,}" + (f" ({images:,} images)" if images else "")
         if "error" in r:  # a refusal before any work is an answer too
             print(f"| {label} | {engine} | {memory.format_bytes(b)} | {r['error']} | | | | |", flush=True)
             continue
