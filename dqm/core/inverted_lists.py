@@ -77,6 +77,8 @@ ROWS = 2048
 #: candidate parents kept per feature, the nearest: a physical point seen in hundreds of images (1M generated
 #: features: points in ~350 of 500 images) would otherwise give hundreds of edges per feature (14.5 GiB)
 MAX_CANDIDATES = 32
+#: scans (feature, list) or list members handled at a time where a setup step's temporaries grow with the probes
+ENTRIES = 1 << 22
 
 ProgressFn = Optional[Callable[[int, int], None]]
 
@@ -159,11 +161,13 @@ class NearestCandidates:
         """Offer one scan tile's edges (rows of the tile: ``rows``)."""
         native.keep_nearest(r, c, g, rows, self.image, self.g, self.cand, self.count, self.limit)
 
-    def nearest(self) -> Tuple[np.ndarray, np.ndarray]:
-        """Every child's candidates, child by child, nearest first: ``(child, cand)`` as int64."""
-        child = np.repeat(np.arange(len(self.count), dtype=np.int64), self.count)
+    def nearest(self, names: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+        """Every child's candidates, child by child, nearest first: ``(child, cand)`` as int64, or with ``names``
+        (int64, one per feature) ``(names[child], names[cand])``, made without int64 copies of the indices
+        first (the edges are up to ``k n``: 64M at 2M features)."""
+        names = np.arange(len(self.count), dtype=np.int64) if names is None else names
         held = np.arange(self.k)[None, :] < self.count[:, None]
-        return child, self.cand[held].astype(np.int64)
+        return np.repeat(names, self.count), names[self.cand[held]]
 
 
 def _by_list(lists: np.ndarray, k: int) -> np.ndarray:
@@ -216,10 +220,17 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     130,816 pairs of lists, 16% fewer pairs in all), and the densities miss fewer terms. Returns ``scans``
     without b's scans of a, the scanned lists' bitsets (:func:`_scan_bits`) and the scans added, ``(feature,
     list)`` (int32): a's members that did not scan b. (:func:`nearest_above`, the parent search of capped
-    children, still searches the lists of the quota rule, :meth:`ListIndex.scanned`.)"""
-    rows = np.repeat(own.astype(np.int32), scans.sum(axis=1))
-    lists = near[:, 1:][scans]
-    P = np.bincount(rows.astype(np.int64) * k + lists, minlength=k * k).reshape(k, k)
+    children, still searches the lists of the quota rule, :meth:`ListIndex.scanned`.) Made :data:`ENTRIES`
+    scans or members at a time: the temporaries stay small whatever the probes (16 bytes a scan at once were the
+    fast engine's peak at 1M features)."""
+    n, k2 = len(near), k * k
+    step = max(1, ENTRIES // max(1, near.shape[1]))  # features a chunk
+    P = np.zeros(k2, dtype=np.int64)
+    for s in range(0, n, step):
+        sc = scans[s:s + step]
+        rows = np.repeat(own[s:s + step].astype(np.int64), sc.sum(axis=1))
+        P += np.bincount(rows * k + near[s:s + step, 1:][sc], minlength=k2)
+    P = P.reshape(k, k)
     size = counts.astype(np.int64)
     whole = np.triu(P * size[None, :] + P.T * size[:, None] > size[:, None] * size[None, :], 1)
     del P
@@ -228,18 +239,30 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     if not len(low):
         return scans, _scan_bits(near, scans, k), none, none
     kept = scans.copy()
-    kept[scans] = ~whole[lists, rows]  # b's members no longer scan a (whole[a, b] holds a < b only)
-    del rows, lists
+    for s in range(0, n, step):  # b's members no longer scan a (whole[a, b] holds a < b only)
+        sc = scans[s:s + step]
+        rows = np.repeat(own[s:s + step], sc.sum(axis=1))
+        kept[s:s + step][sc] = ~whole[near[s:s + step, 1:][sc], rows]
     bits = _scan_bits(near, kept, k)  # a's members keep their scans of b: b > a is none of those dropped
-    # every member of each lower list a, with its partner b, where it did not scan b
+    # every member of each lower list a, with its partner b, where it did not scan b; pairs of lists in chunks of
+    # about ENTRIES members (a member's bit of b is its own: setting a chunk's changes no other chunk's test)
     sizes = size[low]
-    start = np.repeat(bounds[low] - np.cumsum(sizes) + sizes, sizes)
-    member = by_list[start + np.arange(int(sizes.sum()))]
-    partner = np.repeat(high, sizes)
-    new = ~_has_bit(bits, member, partner)
-    member, partner = member[new].astype(np.int32), partner[new].astype(np.int32)
-    _set_bits(bits, member, partner)
-    return kept, bits, member, partner
+    ends = np.cumsum(sizes)
+    added_row, added_list = [], []
+    p0 = 0
+    while p0 < len(low):
+        p1 = max(p0 + 1, int(np.searchsorted(ends, ends[p0] - sizes[p0] + ENTRIES, side="right")))
+        sz = sizes[p0:p1]
+        start = np.repeat(bounds[low[p0:p1]] - np.cumsum(sz) + sz, sz)
+        member = by_list[start + np.arange(int(sz.sum()))]
+        partner = np.repeat(high[p0:p1], sz)
+        new = ~_has_bit(bits, member, partner)
+        member, partner = member[new].astype(np.int32), partner[new].astype(np.int32)
+        _set_bits(bits, member, partner)
+        added_row.append(member)
+        added_list.append(partner)
+        p0 = p1
+    return kept, bits, np.concatenate(added_row), np.concatenate(added_list)
 
 
 def _set_bits(bits: np.ndarray, rows: np.ndarray, lists: np.ndarray) -> None:
@@ -254,6 +277,39 @@ def _set_bits(bits: np.ndarray, rows: np.ndarray, lists: np.ndarray) -> None:
     at, value = at[order], value[order]
     first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
     bits.reshape(-1)[at[first]] |= np.bitwise_or.reduceat(value, first)
+
+
+def _probers(near: np.ndarray, scans: np.ndarray, extra_row: np.ndarray, extra_list: np.ndarray, k: int,
+             where: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The features that scan each list, list by list: ``(probers, pbounds)``, list b's at
+    ``probers[pbounds[b]:pbounds[b + 1]]`` as positions ``where[feature]`` (int32); within a list, those of
+    ``near[:, 1:][scans]`` in feature order, then the ``extra`` scans in their order (a stable sort of the scans
+    by list). Placed :data:`ENTRIES` scans at a time (a counting sort), so that no array of every scan is made
+    but the result: 4 bytes a scan where a whole sort held about 20."""
+    n = len(near)
+    step = max(1, ENTRIES // max(1, near.shape[1]))
+
+    def chunks():
+        for s in range(0, n, step):
+            sc = scans[s:s + step]
+            yield near[s:s + step, 1:][sc], np.repeat(np.arange(s, min(n, s + step), dtype=np.int64), sc.sum(axis=1))
+        for s in range(0, len(extra_row), ENTRIES):
+            yield extra_list[s:s + ENTRIES], extra_row[s:s + ENTRIES]
+
+    sizes = np.zeros(k, dtype=np.int64)
+    for lists, _ in chunks():
+        sizes += np.bincount(lists, minlength=k)
+    pbounds = np.concatenate([[0], np.cumsum(sizes)])
+    cursor = pbounds[:-1].copy()
+    probers = np.empty(int(pbounds[-1]), dtype=np.int32)
+    for lists, rows in chunks():
+        order = _by_list(lists, k)
+        lists = lists[order]
+        c = np.bincount(lists, minlength=k)
+        rank = np.arange(len(lists)) - (np.cumsum(c) - c)[lists]
+        probers[cursor[lists] + rank] = where[rows[order]]
+        cursor += c
+    return probers, pbounds
 
 
 def kmeans(left: LeftRows, k: int, seed: int = 0, n_threads: Optional[int] = 1,
@@ -501,15 +557,13 @@ def scan(
     # two lists whose members scan each other's so much that meeting them whole costs fewer pairs: every
     # member of the lower one scans the higher, and none of the higher's the lower (_lists_met_whole)
     scans, bits, extra_row, extra_list = _lists_met_whole(own, near, scans, counts, by_list, bounds, k)
-    probe_list = np.concatenate([near[:, 1:][scans], extra_list])
-    probe_row = np.concatenate([np.repeat(np.arange(n, dtype=np.int32), scans.sum(axis=1)), extra_row])
-    order = _by_list(probe_list, k)
-    pbounds = _list_bounds(probe_list, k)
-    del probe_list
     # everything in list order: a list's members are one slice of the operands (no gather per tile)
     perm = by_list
     where = np.empty(n, dtype=np.int32)
     where[perm] = np.arange(n, dtype=np.int32)
+    probers, pbounds = _probers(near, scans, extra_row, extra_list, k, where)
+    del near, scans, extra_row, extra_list, where  # 5 bytes a probe: 1.3 GB at 2M features
+    bits = bits[perm]
     # the rows' distances to a list: the integer (VNNI) kernel on uint8 descriptors where the CPU has it
     # (exact, as the float32 GEMM's on such data), else one float32 GEMM
     u8 = native.U8Operands(aug.exact, perm) if aug.integer_kernel else None
@@ -517,10 +571,7 @@ def scan(
     wp = np.ascontiguousarray(weights[perm], dtype=np.float32)
     sp = np.ascontiguousarray(active[perm], dtype=np.float32)
     rad2p = pairs.search_rad2(aug, radius)[perm]
-    bits = bits[perm]
     listp = own[perm].astype(np.int32)
-    probers = where[probe_row[order]]
-    del probe_row, order, where
     tasks = []  # (list, its columns lo..hi, first of its probing rows): each task makes its rows (task_rows)
     for b in range(k):
         lo, hi = int(bounds[b]), int(bounds[b + 1])
@@ -542,8 +593,8 @@ def scan(
     limit = held.limit  # read by the workers as they tighten it: any value read is a valid radius
     keeping = threading.Lock()  # the kept set does not depend on the order edges come in
     workspace = threading.local()  # each thread's buffers
-    if u8 is not None:  # gather, distances and scan tile in one native call per task
-        scanner = native.U8Scan(u8, wp, sp, kernel, rad2p, limit, listp, bits)
+    # gather, distances and scan tile in one native call per task
+    scanner = native.U8Scan(u8, wp, sp, kernel, rad2p, limit, listp, bits) if u8 is not None else None
 
     def work(task):
         b, lo, hi, r0 = task
@@ -580,8 +631,10 @@ def scan(
                 progress(done, len(tasks))
     out = np.empty(n)
     out[perm] = dens
-    cr, cc = held.nearest()
-    cr, cc = perm[cr], perm[cc]
+    # the kept distances and the scan's operands are done with: freed before the edges are made
+    held.g = None
+    u8 = Lp = Rp = probers = bits = tasks = scanner = None  # (the workers' closure holds them: rebound, not deleted)
+    cr, cc = held.nearest(perm)
     capped = np.empty(n, dtype=bool)
     capped[perm] = held.count >= held.k
     stats = {"n_lists": float(k), "n_probe": float(t), "pairs_computed": float(computed), "time_lists": time_lists}

@@ -202,22 +202,38 @@ def check_approximate(n: int, dim: int, k: int, n_threads: int, budget: int, hel
     return need
 
 
+def fast_bytes(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, itemsize: Optional[int] = None,
+               max_candidates: int = 32, integer_kernel: bool = False) -> int:
+    """Peak memory of a fast-engine run (:mod:`dqm.core.inverted_lists`), counted from what its largest step holds.
+
+    The exact run's base arrays (sigma is exact; :func:`base_bytes`, without whole float32 operands on the
+    ``integer_kernel``: :attr:`dqm.core.pairs.Augmented.integer_kernel`, uint8 descriptors and AVX-512 VNNI),
+    beside the largest of, per feature (``t`` probes, ``w`` 64-bit words of a bitset of the lists, ``m``
+    ``max_candidates``): the lists' set-up (each feature's ``t`` nearest lists, int32, which it scans, twice, its
+    bitset and the scans list by list, int32: ``10 t + 8 w``); the scan (the operands in list order: the packed
+    integer rows, ``2 dim`` bytes, or both float32 GEMM operands, ``8 (dim + 2)``; the scans; the bitset; the
+    ``m`` nearest candidates kept, 8 bytes each; about ten per-feature arrays); the candidates made edges
+    (``25 m``) and their exact distances (``24 m``). A feature scans ``t - 1`` lists at most by the quota rule
+    and the lists met whole add about as many scans as they drop, so ``t`` scans a feature bounds the mean: 22.7
+    on 1M generated features (64 probes), 55.4 on 2M (128). Measured (scripts/bench_quickmatch.py --budgets,
+    the peak above what the process held): 0.73 of this at 1M and 0.75 at 2M generated features on the integer
+    kernel."""
+    t, w, m = int(n_probe), (int(n_lists) + 63) // 64, int(max_candidates)
+    operands = 2 * dim + 8 if integer_kernel else 8 * (dim + 2)
+    setup = 10 * t + 8 * w
+    scan = operands + 4 * t + 8 * w + 8 * m + 80
+    edges = 25 * m + 80
+    chunks = 48 * min(1 << 22, n * t)  # the set-up's chunks of scans (inverted_lists.ENTRIES), 48 bytes a scan
+    return (base_bytes(n, dim, n_threads, itemsize, float_operands=not integer_kernel)
+            + n * max(setup, scan, edges) + chunks)
+
+
 def check_fast(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, budget: int,
                itemsize: Optional[int] = None, held: int = 0, max_candidates: int = 32,
                integer_kernel: bool = False) -> int:
-    """Refuse, in one line, a fast-engine run whose arrays would not fit the budget; returns its estimate.
-
-    The exact run's base arrays (sigma is exact), the GEMM operands again in list order, and per feature
-    and probe about 50 bytes (nearest lists, their sizes, which are scanned, the scanning rows of every
-    list) plus two bitsets of the scanned lists, and each feature's ``max_candidates`` nearest candidate
-    parents (8 bytes each, then their exact distances: 32 bytes each). With the ``integer_kernel``
-    (:attr:`dqm.core.pairs.Augmented.integer_kernel`: uint8 descriptors, AVX-512 VNNI) no float32 operand is
-    made whole: in their place the packed integer rows twice (sigma's, and the lists' in list order), 4
-    bytes a value. Measured on generated uint8 features: the peak above what the process held is 0.43-0.52
-    of the estimate with the integer kernel (50k, 150k, 1M), 0.59-0.64 with the float32 GEMM (AVX2; 50k, 150k)."""
-    operands = n * dim * 4 if integer_kernel else 2 * n * (dim + 2) * 4
-    need = (base_bytes(n, dim, n_threads, itemsize, float_operands=not integer_kernel) + operands
-            + 50 * n * n_probe + 2 * n * 8 * ((n_lists + 63) // 64) + 32 * n * max_candidates)
+    """Refuse, in one line, a fast-engine run whose arrays would not fit the budget (less ``held``, see
+    :func:`held_bytes`); returns its estimate (:func:`fast_bytes`)."""
+    need = fast_bytes(n, dim, n_probe, n_lists, n_threads, itemsize, max_candidates, integer_kernel)
     if need + held > budget:
         raise MemoryBudgetError(
             f"quickmatch: the fast engine with {n_probe} probes needs about {format_bytes(need)} for {n:,} "

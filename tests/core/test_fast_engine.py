@@ -88,11 +88,15 @@ def test_scanned_lists_are_those_reached_before_the_quota():
         assert ((before < quota) == (np.arange(t - 1)[None, :] < got[:, None])).all()  # a prefix of the lists
 
 
-def test_lists_met_whole_meet_every_pair_they_met_once_and_fewer_pairs():
+@pytest.mark.parametrize("entries", [None, 7])
+def test_lists_met_whole_meet_every_pair_they_met_once_and_fewer_pairs(monkeypatch, entries):
     """Two lists whose members scan each other's so much that meeting them whole costs fewer pairs: every member
     of the lower list scans the higher and none of the higher's the lower. Every pair of features met before is
     met after, no pair of two lists is met from both sides, the bitsets say what is scanned, and the pairs computed
-    fall; where no two lists qualify nothing changes."""
+    fall; where no two lists qualify nothing changes. Also made a few scans at a time (``entries``: chunks of one
+    feature, and of fewer list members than a list holds)."""
+    if entries is not None:
+        monkeypatch.setattr(inverted_lists, "ENTRIES", entries)
     rng = np.random.default_rng(5)
     k, t, n = 12, 6, 400
     own = rng.integers(0, k, n).astype(np.int32)
@@ -141,6 +145,30 @@ def test_lists_met_whole_meet_every_pair_they_met_once_and_fewer_pairs():
     lone = np.zeros_like(scans)
     same = inverted_lists._lists_met_whole(own, near, lone, counts, by_list, bounds, k)
     assert (same[0] == lone).all() and not len(same[2])
+
+
+
+@pytest.mark.parametrize("entries", [None, 5])
+def test_each_lists_probers_are_a_stable_sort_of_the_scans_by_list(monkeypatch, entries):
+    """The features that scan each list, as the scan's positions, list by list: the scans in feature order, then
+    the added ones in their order, as a stable sort of all of them by list would give; the same made a few scans
+    at a time (``entries``)."""
+    if entries is not None:
+        monkeypatch.setattr(inverted_lists, "ENTRIES", entries)
+    rng = np.random.default_rng(11)
+    k, t, n = 9, 5, 300
+    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
+    scans = rng.random((n, t - 1)) < 0.5
+    extra_row = rng.integers(0, n, 40).astype(np.int32)
+    extra_list = rng.integers(0, k, 40).astype(np.int32)
+    where = rng.permutation(n).astype(np.int32)
+    probers, pbounds = inverted_lists._probers(near, scans, extra_row, extra_list, k, where)
+    lists = np.r_[near[:, 1:][scans], extra_list]
+    rows = np.r_[np.repeat(np.arange(n), scans.sum(axis=1)), extra_row]
+    order = np.argsort(lists, kind="stable")
+    np.testing.assert_array_equal(probers, where[rows[order]])
+    np.testing.assert_array_equal(pbounds, np.r_[0, np.cumsum(np.bincount(lists, minlength=k))])
+    assert probers.dtype == np.int32
 
 
 def test_auto_runs_exact_below_its_size_and_engines_are_checked(scene):
