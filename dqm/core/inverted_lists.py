@@ -221,8 +221,8 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     without b's scans of a, the scanned lists' bitsets (:func:`_scan_bits`) and the scans added, ``(feature,
     list)`` (int32): a's members that did not scan b. (:func:`nearest_above`, the parent search of capped
     children, still searches the lists of the quota rule, :meth:`ListIndex.scanned`.) Made :data:`ENTRIES`
-    scans or members at a time: the temporaries stay small whatever the probes (16 bytes a scan at once were the
-    fast engine's peak at 1M features)."""
+    scans or members at a time, so that the temporaries stay small whatever the probes (made whole, about 24
+    bytes a scan, they were the fast engine's peak at 1M features once the scan's own end was made leaner)."""
     n, k2 = len(near), k * k
     step = max(1, ENTRIES // max(1, near.shape[1]))  # features a chunk
     P = np.zeros(k2, dtype=np.int64)
