@@ -224,7 +224,8 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     scans or members at a time, so that the temporaries stay small whatever the probes (made whole, about 24
     bytes a scan, they were the fast engine's peak at 1M features once the scan's own end was made leaner)."""
     n, k2 = len(near), k * k
-    step = max(1, ENTRIES // max(1, near.shape[1]))  # features a chunk
+    # features a chunk: ENTRIES scans, or as many as P has entries (each chunk's count adds all k^2 of them)
+    step = max(1, max(ENTRIES, k2) // max(1, near.shape[1]))
     P = np.zeros(k2, dtype=np.int64)
     for s in range(0, n, step):
         sc = scans[s:s + step]

@@ -223,7 +223,8 @@ def fast_bytes(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, ite
     setup = 10 * t + 8 * w
     scan = operands + 4 * t + 8 * w + 8 * m + 80
     edges = 25 * m + 80
-    chunks = 48 * min(1 << 22, n * t)  # the set-up's chunks of scans (inverted_lists.ENTRIES), 48 bytes a scan
+    # the set-up's chunks of scans (inverted_lists.ENTRIES, or k^2 where the lists are more), 48 bytes a scan
+    chunks = 48 * min(max(1 << 22, int(n_lists) ** 2), n * t)
     return (base_bytes(n, dim, n_threads, itemsize, float_operands=not integer_kernel)
             + n * max(setup, scan, edges) + chunks)
 
