@@ -217,7 +217,7 @@ def fast_bytes(n: int, dim: int, n_probe: int, n_lists: int, n_threads: int, ite
     and the lists met whole add about as many scans as they drop, so ``t`` scans a feature bounds the mean: 22.7
     on 1M generated features (64 probes), 55.4 on 2M (128). Measured (scripts/bench_quickmatch.py --budgets,
     the peak above what the process held): 0.58 of this at 1M and 0.69 at 2M generated features on the integer
-    kernel, 0.73 at 1M on the float32 GEMM (docs/quickmatch.md)."""
+    kernel, 0.73 at 1M on the float32 GEMM (scripts/fast_memory_steps.py; docs/quickmatch.md)."""
     t, w, m = int(n_probe), (int(n_lists) + 63) // 64, int(max_candidates)
     operands = 2 * dim + 8 if integer_kernel else 8 * (dim + 2)
     setup = 10 * t + 8 * w

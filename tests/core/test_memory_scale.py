@@ -418,3 +418,25 @@ def test_benchmark_script_small_budgets_run():
                             "--no-graf"], capture_output=True, text=True, timeout=300)
         assert p.returncode == 1 and why in p.stderr and "Traceback" not in p.stderr
         assert "| 6,000 |" not in p.stdout  # nothing ran
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the resident memory from /proc")
+def test_the_fast_engines_memory_steps_script_finds_its_peak():
+    """The small version of scripts/fast_memory_steps.py (docs/quickmatch.md runs it at 1M on the float32 GEMM):
+    every step it marks starts and ends, the peak lies in a marked step, above what the process held and under
+    the engine's estimate; bad sizes get one line, no traceback."""
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "fast_memory_steps.py"
+    p = subprocess.run([sys.executable, str(script), "20000", "10", "--simd", "2"], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    steps = [line.split("|")[1].strip() for line in p.stdout.splitlines() if line.startswith("| ")][1:]
+    for step in ("scan", "_lists_met_whole", "_probers", "nearest", "_edges_within_radius", "merge_clusters"):
+        assert steps.count("+" + step) == steps.count("-" + step) >= 1, step
+    summary = p.stdout.strip().splitlines()[-1]
+    assert "float32 GEMM" in summary and "no marked step" not in summary, summary
+    ratio = float(summary.split("peak above held / estimate ")[1].split(";")[0])
+    assert 0 < ratio <= 1, summary
+    bad = subprocess.run([sys.executable, str(script), "20000", "1"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "give at least 1,000 features" in bad.stderr and "Traceback" not in bad.stderr
