@@ -79,6 +79,8 @@ ROWS = 2048
 MAX_CANDIDATES = 32
 #: scans (feature, list) or list members handled at a time where a setup step's temporaries grow with the probes
 ENTRIES = 1 << 22
+#: features handled at a time where a set-up step goes column by column over their nearest lists
+SETUP_ROWS = 16384
 
 ProgressFn = Optional[Callable[[int, int], None]]
 
@@ -183,30 +185,35 @@ def _list_bounds(lists: np.ndarray, k: int) -> np.ndarray:
 def _scanned_lists(counts: np.ndarray, near: np.ndarray, quota: float) -> np.ndarray:
     """How many of each feature's other nearest lists (``near[:, 1:]``, nearest first) it scans: those it
     reaches having met fewer than ``quota`` features (its own list's ``counts`` included); a prefix, as the
-    features met only grow."""
-    met = counts[near[:, 0]].astype(np.int64)
+    features met only grow. :data:`SETUP_ROWS` features at a time, column by column (the columns of a block
+    stay in cache: half the time of whole columns at 1M features)."""
     count = np.zeros(len(near), dtype=np.int64)
-    for j in range(1, near.shape[1]):
-        going = met < quota
-        count += going
-        met += counts[near[:, j]]
+    for s in range(0, len(near), SETUP_ROWS):
+        block = near[s:s + SETUP_ROWS]
+        met = counts[block[:, 0]].astype(np.int64)
+        part = count[s:s + SETUP_ROWS]
+        for j in range(1, near.shape[1]):
+            part += met < quota
+            met += counts[block[:, j]]
     return count
 
 
 def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     """Every feature's scanned lists as a bitset: (n, ceil(k / 64)) uint64, bit l of word l // 64 set when the
-    feature scans list l (its own list included). Set one column of ``near`` at a time: within a column the
-    rows differ, so no word is written twice by one assignment."""
-    n = len(near)
+    feature scans list l (its own list included). :data:`SETUP_ROWS` features at a time (their words stay in
+    cache: half the time of whole columns at 1M features), one column of ``near`` at a time: within a column
+    the rows differ, so no word is written twice by one assignment."""
     words = (k + 63) // 64
-    out = np.zeros((n, words), dtype=np.uint64)
-    flat = out.reshape(-1)
-    base = np.arange(n, dtype=np.int64) * words
-    for j in range(near.shape[1]):
-        rows = slice(None) if j == 0 else np.flatnonzero(scans[:, j - 1])
-        lists = near[rows, j].astype(np.int64)
-        at = base[rows] + (lists >> 6)
-        flat[at] |= np.left_shift(np.uint64(1), (lists & 63).astype(np.uint64))
+    out = np.zeros((len(near), words), dtype=np.uint64)
+    for s in range(0, len(near), SETUP_ROWS):
+        block, scanned = near[s:s + SETUP_ROWS], scans[s:s + SETUP_ROWS]
+        flat = out[s:s + SETUP_ROWS].reshape(-1)  # a view: the block's rows are contiguous
+        base = np.arange(len(block), dtype=np.int64) * words
+        for j in range(near.shape[1]):
+            rows = slice(None) if j == 0 else np.flatnonzero(scanned[:, j - 1])
+            lists = block[rows, j].astype(np.int64)
+            at = base[rows] + (lists >> 6)
+            flat[at] |= np.left_shift(np.uint64(1), (lists & 63).astype(np.uint64))
     return out
 
 

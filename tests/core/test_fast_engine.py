@@ -72,9 +72,12 @@ def test_the_integer_kernels_scan_gives_the_float_scans_result(scene):
     np.testing.assert_array_equal(vnni.parent, gemm.parent)
 
 
-def test_scanned_lists_are_those_reached_before_the_quota():
+@pytest.mark.parametrize("setup_rows", [None, 7])
+def test_scanned_lists_are_those_reached_before_the_quota(monkeypatch, setup_rows):
     """Each feature scans its other nearest lists while it has met fewer features than the quota (its own
-    list's included): the definition by cumulative sums, on uneven lists."""
+    list's included): the definition by cumulative sums, on uneven lists; the same a few features at a time."""
+    if setup_rows is not None:
+        monkeypatch.setattr(inverted_lists, "SETUP_ROWS", setup_rows)
     rng = np.random.default_rng(3)
     k, t, n = 40, 9, 500
     counts = rng.integers(0, 60, k).astype(np.int32)
@@ -88,6 +91,24 @@ def test_scanned_lists_are_those_reached_before_the_quota():
         assert ((before < quota) == (np.arange(t - 1)[None, :] < got[:, None])).all()  # a prefix of the lists
 
 
+@pytest.mark.parametrize("setup_rows", [None, 7])
+def test_scan_bits_hold_each_features_scanned_lists(monkeypatch, setup_rows):
+    """The bitset of a feature has bit l set exactly where it scans list l (its own, and its other nearest lists
+    where ``scans`` says so), over more than one 64-bit word; the same a few features at a time."""
+    if setup_rows is not None:
+        monkeypatch.setattr(inverted_lists, "SETUP_ROWS", setup_rows)
+    rng = np.random.default_rng(8)
+    k, t, n = 150, 7, 60
+    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
+    scans = rng.random((n, t - 1)) < 0.5
+    bits = inverted_lists._scan_bits(near, scans, k)
+    assert bits.shape == (n, 3) and bits.dtype == np.uint64
+    for i in range(n):
+        scanned = {int(near[i, 0])} | {int(b) for b in near[i, 1:][scans[i]]}
+        held = {w * 64 + b for w in range(3) for b in range(64) if (int(bits[i, w]) >> b) & 1}
+        assert held == scanned, i
+
+
 @pytest.mark.parametrize("entries", [None, 7])
 def test_lists_met_whole_meet_every_pair_they_met_once_and_fewer_pairs(monkeypatch, entries):
     """Two lists whose members scan each other's so much that meeting them whole costs fewer pairs: every member
@@ -97,6 +118,7 @@ def test_lists_met_whole_meet_every_pair_they_met_once_and_fewer_pairs(monkeypat
     feature, and of fewer list members than a list holds)."""
     if entries is not None:
         monkeypatch.setattr(inverted_lists, "ENTRIES", entries)
+        monkeypatch.setattr(inverted_lists, "SETUP_ROWS", 9)  # the bitsets a few features at a time too
     rng = np.random.default_rng(5)
     k, t, n = 12, 6, 400
     own = rng.integers(0, k, n).astype(np.int32)
