@@ -129,7 +129,11 @@ def _inject(endpoint, job, agents, dim, ready, marker=None, done=None):
             for a in range(agents):
                 # on process 0's keys (without access control the router lets anyone put there)
                 s.put(keys.message_key(job, 0, a, a), payload, congestion_control=zenoh.CongestionControl.BLOCK)
-        time.sleep(1.0)  # let the 3 MiB puts leave before the paused agent goes on
+        # let the 3 MiB puts arrive and be counted before the paused agent goes on: each agent reports its
+        # counters once, when its own part is acknowledged, so a put counted after that is not in the report (13
+        # of 14 counted once in a CI run on 2 busy cores with 1 s here; not reproduced alone, nor beside 6 busy
+        # processes: the cause is a guess, and the assertion below now names the counts)
+        time.sleep(3.0)
     finally:
         if marker is not None:  # once the agent is paused (it writes the marker then)
             t0 = time.monotonic()
@@ -175,7 +179,7 @@ def test_hostile_messages_are_rejected_and_counted(data, tmp_path):
     assert "exceeds the maximum" in text
     assert "message of agent N on the key of process N, which does not host it" in text
     assert "abort message of the coordinator on the key of process N" in text
-    assert sum(rejected.values()) >= 7 * 2
+    assert sum(rejected.values()) >= 7 * 2, rejected
 
 
 def test_sigterm_to_dqm_run_leaves_no_process(tmp_path):
