@@ -91,16 +91,22 @@ def test_scanned_lists_are_those_reached_before_the_quota(monkeypatch, setup_row
         assert ((before < quota) == (np.arange(t - 1)[None, :] < got[:, None])).all()  # a prefix of the lists
 
 
+def _random_scans(seed: int, k: int, t: int, n: int):
+    """``n`` features' ``t`` nearest of ``k`` lists (distinct, in a random order) and which of the others each
+    scans (half of them), with the generator for more."""
+    rng = np.random.default_rng(seed)
+    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
+    return near, rng.random((n, t - 1)) < 0.5, rng
+
+
 @pytest.mark.parametrize("setup_rows", [None, 7])
 def test_scan_bits_hold_each_features_scanned_lists(monkeypatch, setup_rows):
     """The bitset of a feature has bit l set exactly where it scans list l (its own, and its other nearest lists
     where ``scans`` says so), over more than one 64-bit word; the same a few features at a time."""
     if setup_rows is not None:
         monkeypatch.setattr(inverted_lists, "SETUP_ROWS", setup_rows)
-    rng = np.random.default_rng(8)
     k, t, n = 150, 7, 60
-    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
-    scans = rng.random((n, t - 1)) < 0.5
+    near, scans, _ = _random_scans(8, k, t, n)
     bits = inverted_lists._scan_bits(near, scans, k)
     assert bits.shape == (n, 3) and bits.dtype == np.uint64
     for i in range(n):
@@ -177,10 +183,8 @@ def test_each_lists_probers_are_a_stable_sort_of_the_scans_by_list(monkeypatch, 
     at a time (``entries``)."""
     if entries is not None:
         monkeypatch.setattr(inverted_lists, "ENTRIES", entries)
-    rng = np.random.default_rng(11)
     k, t, n = 9, 5, 300
-    near = np.stack([rng.permutation(k)[:t] for _ in range(n)]).astype(np.int32)
-    scans = rng.random((n, t - 1)) < 0.5
+    near, scans, rng = _random_scans(11, k, t, n)
     extra_row = rng.integers(0, n, 40).astype(np.int32)
     extra_list = rng.integers(0, k, 40).astype(np.int32)
     where = rng.permutation(n).astype(np.int32)
