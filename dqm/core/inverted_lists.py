@@ -217,6 +217,19 @@ def _scan_bits(near: np.ndarray, scans: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def _scan_blocks(near: np.ndarray, scans: np.ndarray, entries: int,
+                 of: Optional[np.ndarray] = None) -> Iterator[Tuple[slice, np.ndarray, np.ndarray]]:
+    """The scans of a block of features at a time (about ``entries`` of them, at least one feature a block):
+    ``(the block's features, lists, of[feature])`` for each scan ``near[:, 1:][scans]`` of the block, in feature
+    order (``of`` None: the features' indices, int64)."""
+    step = max(1, entries // max(1, near.shape[1]))
+    for s in range(0, len(near), step):
+        block = slice(s, min(len(near), s + step))
+        sc = scans[block]
+        who = np.arange(block.start, block.stop, dtype=np.int64) if of is None else of[block]
+        yield block, near[block, 1:][sc], np.repeat(who, sc.sum(axis=1))
+
+
 def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, counts: np.ndarray, by_list: np.ndarray,
                      bounds: np.ndarray, k: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Lists whose pairs are met whole. A pair of features of lists a < b is met when either scans the other's
@@ -230,14 +243,12 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     children, still searches the lists of the quota rule, :meth:`ListIndex.scanned`.) Made :data:`ENTRIES`
     scans or members at a time, so that the temporaries stay small whatever the probes (made whole, about 24
     bytes a scan, they were the fast engine's peak at 1M features once the scan's own end was made leaner)."""
-    n, k2 = len(near), k * k
-    # features a chunk: ENTRIES scans, or as many as P has entries (each chunk's count adds all k^2 of them)
-    step = max(1, max(ENTRIES, k2) // max(1, near.shape[1]))
+    k2 = k * k
+    # blocks of ENTRIES scans, or as many as P has entries (each block's count adds all k^2 of them)
+    entries = max(ENTRIES, k2)
     P = np.zeros(k2, dtype=np.int64)
-    for s in range(0, n, step):
-        sc = scans[s:s + step]
-        rows = np.repeat(own[s:s + step].astype(np.int64), sc.sum(axis=1))
-        P += np.bincount(rows * k + near[s:s + step, 1:][sc], minlength=k2)
+    for _, lists, rows in _scan_blocks(near, scans, entries, own):
+        P += np.bincount(rows.astype(np.int64) * k + lists, minlength=k2)
     P = P.reshape(k, k)
     size = counts.astype(np.int64)
     whole = np.triu(P * size[None, :] + P.T * size[:, None] > size[:, None] * size[None, :], 1)
@@ -247,10 +258,8 @@ def _lists_met_whole(own: np.ndarray, near: np.ndarray, scans: np.ndarray, count
     if not len(low):
         return scans, _scan_bits(near, scans, k), none, none
     kept = scans.copy()
-    for s in range(0, n, step):  # b's members no longer scan a (whole[a, b] holds a < b only)
-        sc = scans[s:s + step]
-        rows = np.repeat(own[s:s + step], sc.sum(axis=1))
-        kept[s:s + step][sc] = ~whole[near[s:s + step, 1:][sc], rows]
+    for block, lists, rows in _scan_blocks(near, scans, entries, own):  # b's members no longer scan a
+        kept[block][scans[block]] = ~whole[lists, rows]  # (whole[a, b] holds a < b only)
     bits = _scan_bits(near, kept, k)  # a's members keep their scans of b: b > a is none of those dropped
     # every member of each lower list a, with its partner b, where it did not scan b; pairs of lists in chunks of
     # about ENTRIES members (a member's bit of b is its own: setting a chunk's changes no other chunk's test)
@@ -294,13 +303,9 @@ def _probers(near: np.ndarray, scans: np.ndarray, extra_row: np.ndarray, extra_l
     ``near[:, 1:][scans]`` in feature order, then the ``extra`` scans in their order (a stable sort of the scans
     by list). Placed :data:`ENTRIES` scans at a time (a counting sort), so that no array of every scan is made
     but the result: 4 bytes a scan where a whole sort held about 20."""
-    n = len(near)
-    step = max(1, ENTRIES // max(1, near.shape[1]))
-
     def chunks():
-        for s in range(0, n, step):
-            sc = scans[s:s + step]
-            yield near[s:s + step, 1:][sc], np.repeat(np.arange(s, min(n, s + step), dtype=np.int64), sc.sum(axis=1))
+        for _, lists, rows in _scan_blocks(near, scans, ENTRIES):
+            yield lists, rows
         for s in range(0, len(extra_row), ENTRIES):
             yield extra_list[s:s + ENTRIES], extra_row[s:s + ENTRIES]
 
