@@ -36,11 +36,6 @@ STEPS += [(clustering, name) for name in ("_timed_sigma", "_edges_within_radius"
 STEPS += [(tree, name) for name in ("select_parents", "merge_clusters")]
 
 
-def resident() -> int:
-    """The process's resident memory now (bytes)."""
-    return memory.process_bytes()
-
-
 def mark_steps(marks: list) -> None:
     """Wrap every step of :data:`STEPS` so that it appends ``(time, "+name")`` and ``(time, "-name")``."""
     for owner, name in STEPS:
@@ -77,23 +72,20 @@ def main(argv=None) -> int:
 
     def sample() -> None:
         while not done.is_set():
-            samples.append((time.perf_counter(), resident()))
+            samples.append((time.perf_counter(), memory.process_bytes()))
             time.sleep(0.002)
 
     gc.collect()
-    held = resident()
+    held = memory.process_bytes()
     sampler = threading.Thread(target=sample, daemon=True)
     t0 = time.perf_counter()
     sampler.start()
-    dqm.quickmatch(X, ids, engine="fast", max_memory=args.max_memory)
+    result = dqm.quickmatch(X, ids, engine="fast", max_memory=args.max_memory)
     wall = time.perf_counter() - t0
     done.set()
     sampler.join()
-    k = inverted_lists.n_lists(len(X))
+    estimate = result.stats["memory_estimate"]  # the engine's own, as it checked its budget
     integer = pairs.Augmented(X).integer_kernel
-    estimate = memory.fast_bytes(len(X), X.shape[1], inverted_lists.default_probes(k), k, pairs.default_threads(),
-                                 itemsize=X.dtype.itemsize, max_candidates=inverted_lists.MAX_CANDIDATES,
-                                 integer_kernel=integer)
     peak_at, peak = max(samples, key=lambda s: s[1])
     running: list = []
     for at, step in marks:

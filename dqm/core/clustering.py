@@ -575,10 +575,10 @@ def _quickmatch_fast(X, ids, image_index, n_images, rho, ratio_density, kernel, 
     """The fast engine (:mod:`dqm.core.inverted_lists`); arguments already checked."""
     n, dim = X.shape
     aug = pairs.Augmented(X)
-    memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
-                      itemsize=X.dtype.itemsize if aug.exact_d2 else None, held=held,
-                      max_candidates=inverted_lists.MAX_CANDIDATES, integer_kernel=aug.integer_kernel)
-    stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget)}
+    need = memory.check_fast(n, dim, n_probe, inverted_lists.n_lists(n), threads, budget,
+                             itemsize=X.dtype.itemsize if aug.exact_d2 else None, held=held,
+                             max_candidates=inverted_lists.MAX_CANDIDATES, integer_kernel=aug.integer_kernel)
+    stats: Dict[str, float] = {"engine_fast": 1.0, "memory_budget": float(budget), "memory_estimate": float(need)}
     # the lists' k-means does not need sigma: it runs beside sigma's pass (the same centroids)
     with inverted_lists.centroids_meanwhile(aug, inverted_lists.n_lists(n), seed, threads) as centroids:
         groups, sig = _timed_sigma(aug, sigma, image_index, n_images, threads, stats)
