@@ -402,7 +402,7 @@ def grown_labels(bench: Benchmark, result=None, *, rho: float = DEFAULT_RHO, see
     from .vision.guided import guided_labels
 
     r = quickmatch(bench.descriptors, bench.image_ids, rho=rho) if result is None else result
-    return guided_labels(r, bench.keypoints, bench.descriptors, seed=seed)[0]
+    return guided_labels(r, bench.keypoints, bench.descriptors, seed=seed, images=bench.images)[0]
 
 
 def evaluate(bench: Benchmark, methods: Sequence[str] | None = None, *, rho: float = DEFAULT_RHO,

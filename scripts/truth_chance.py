@@ -19,7 +19,9 @@ pairs where the truth puts more than a fifth of such inliers beyond its 5 px are
 precision counts correct matches as wrong.
 
 A third table asks what a looser link rule of guided growth would add (``--links``): per rule
-(``link_threshold`` px, ``max_sigma``; the defaults, 2 px and 1.5, first), the links the verified planar pairs
+(``link_threshold`` px, ``max_sigma``; the defaults, 2 px and 1.5, first), with the links' descriptors
+rectified from the images (dqm.vision.rectify, as `dqm match` compares them) and with the clustered
+descriptors, the links the verified planar pairs
 (on these sets nearly every pair) propose under their own homographies, and under the same homographies
 followed by the shifts above (no real correspondence left: every link proposed there is chance, though chance
 the truth may count as correct), and the scores `dqm evaluate` gives the grown clusters. Where a rule's extra
@@ -109,12 +111,15 @@ LINK_RULES = ((2.0, 1.5), (3.0, 1.5), (2.0, 2.0), (3.0, 2.0))
 
 
 def link_rows(bench: benchmark.Benchmark, rules=LINK_RULES, seed: int = 0) -> list:
-    """Per link rule: the links the verified planar pairs propose under their homographies and under each
-    :data:`dqm.evaluation.CHANCE_SHIFTS` after them (module docstring), and the grown clusters' scores."""
+    """Per link rule and per comparison (the descriptors rectified from the images, as `dqm match` compares them,
+    then the clustered descriptors): the links the verified planar pairs propose under their homographies and
+    under each :data:`dqm.evaluation.CHANCE_SHIFTS` after them (module docstring), and the grown clusters'
+    scores."""
     from dataclasses import replace
 
     from dqm.core import quickmatch
     from dqm.vision import guided
+    from dqm.vision.rectify import rectifier_for
     from dqm.vision.verify import fit_and_split
 
     result = quickmatch(bench.descriptors, bench.image_ids)
@@ -123,19 +128,25 @@ def link_rows(bench: benchmark.Benchmark, rules=LINK_RULES, seed: int = 0) -> li
     planar = {pair: m.guide() for pair, m in models.items() if m.guide().kind == "H"}
     by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
     sigma = np.where(np.isfinite(result.sigma), result.sigma, np.inf)
+    rectifier, why = rectifier_for(bench.images, kp, bench.descriptors)
+    if rectifier is None:
+        raise SystemExit(f"truth_chance: {bench.name}: {why}")
     rows = []
-    for threshold, max_sigma in rules:
-        counts = []
-        for shift in ((0.0, 0.0), *evaluation.CHANCE_SHIFTS):
-            T = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
-            shifted = {pair: replace(m, matrix=T @ m.matrix) for pair, m in planar.items()}
-            li, _, _ = guided._propose_all(labels, by_image, shifted, bench.descriptors, kp, sigma, threshold,
-                                           guided.DEFAULT_RATIO, max_sigma, 1)
-            counts.append(len(li))
-        grown, _ = guided.guided_labels(result, kp, bench.descriptors, seed=seed, link_threshold=threshold,
-                                        max_sigma=max_sigma)
-        rows.append({"threshold": threshold, "max_sigma": max_sigma, "planar_pairs": len(planar),
-                     "links": counts[0], "chance": float(np.mean(counts[1:])), "scores": bench.score_labels(grown)})
+    for rectified in (True, False):
+        for threshold, max_sigma in rules:
+            counts = []
+            for shift in ((0.0, 0.0), *evaluation.CHANCE_SHIFTS):
+                T = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
+                shifted = {pair: replace(m, matrix=T @ m.matrix) for pair, m in planar.items()}
+                li, _, _ = guided._propose_all(labels, by_image, shifted, bench.descriptors, kp, sigma, threshold,
+                                               guided.DEFAULT_RATIO, max_sigma, 1, None,
+                                               rectifier if rectified else None, ids)
+                counts.append(len(li))
+            grown, _ = guided.guided_labels(result, kp, bench.descriptors, seed=seed, link_threshold=threshold,
+                                            max_sigma=max_sigma, images=bench.images if rectified else None)
+            rows.append({"rectified": rectified, "threshold": threshold, "max_sigma": max_sigma,
+                         "planar_pairs": len(planar), "links": counts[0], "chance": float(np.mean(counts[1:])),
+                         "scores": bench.score_labels(grown)})
     return rows
 
 
@@ -200,17 +211,19 @@ def main(argv=None) -> int:
             if not off:
                 lines.append(f"| {name} | none of {len(fit)} | | | | |")
     if args.links:
-        lines += ["", "Guided growth's link rule, looser (`--links`): the links the verified planar pairs propose "
-                  "under their own homographies and under those followed by a shift of 40-70 px (mean of four: every "
-                  "link there is chance), and the grown clusters' scores. Extra: against the default rule (first row "
-                  "of each set).", "",
-                  "| data | link px, max sigma | planar pairs | links | links under a shift (chance) | "
-                  "extra links | extra under a shift | P / R / F1 |", "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "Guided growth's link rule (`--links`): the links the verified planar pairs propose under their "
+                  "own homographies and under those followed by a shift of 40-70 px (mean of four: every link there is "
+                  "chance), and the grown clusters' scores; the links' descriptors rectified from the images "
+                  "(`dqm match`'s comparison, dqm.vision.rectify) or the clustered ones. Extra: against the default "
+                  "rule with the same descriptors (first row of each).", "",
+                  "| data | descriptors | link px, max sigma | planar pairs | links | links under a shift (chance) | "
+                  "extra links | extra under a shift | P / R / F1 |", "|---|---|---|---|---|---|---|---|---|"]
         for name, found in links:
-            base = found[0]
             for r in found:
+                base = next(b for b in found if b["rectified"] == r["rectified"])
                 sc = r["scores"]
-                lines.append(f"| {name} | {r['threshold']:g}, {r['max_sigma']:g} | {r['planar_pairs']} | "
+                lines.append(f"| {name} | {'rectified' if r['rectified'] else 'clustered'} | "
+                             f"{r['threshold']:g}, {r['max_sigma']:g} | {r['planar_pairs']} | "
                              f"{r['links']:,} | {r['chance']:,.0f} | {r['links'] - base['links']:+,} | "
                              f"{r['chance'] - base['chance']:+,.0f} | {sc.precision:.3f} / {sc.recall:.3f} / "
                              f"{sc.f1:.3f} |")

@@ -154,14 +154,19 @@ def test_truth_chance_links_compares_growth_rules_under_true_and_shifted_geometr
     assert "`python scripts/truth_chance.py scene:0 --links --out" in text
     features = BM.load_benchmark("scene:0", preset="sfm")
     rows = mod.link_rows(features)
-    assert [(r["threshold"], r["max_sigma"]) for r in rows] == list(mod.LINK_RULES)
-    default, *looser = rows
-    assert (default["threshold"], default["max_sigma"]) == (guided.DEFAULT_LINK_THRESHOLD, guided.DEFAULT_MAX_SIGMA)
-    assert default["planar_pairs"] > 0 and default["links"] > 4 * max(default["chance"], 1)
-    assert all(r["links"] >= default["links"] for r in looser) and looser[-1]["links"] > default["links"]
+    rules = [(r["threshold"], r["max_sigma"]) for r in rows]
+    assert rules == 2 * list(mod.LINK_RULES) and [r["rectified"] for r in rows] == [True] * 4 + [False] * 4
+    for kind in (rows[:4], rows[4:]):
+        default, *looser = kind
+        assert (default["threshold"], default["max_sigma"]) == (guided.DEFAULT_LINK_THRESHOLD,
+                                                                guided.DEFAULT_MAX_SIGMA)
+        assert default["planar_pairs"] > 0 and default["links"] > 4 * max(default["chance"], 1)
+        assert all(r["links"] >= default["links"] for r in looser) and looser[-1]["links"] > default["links"]
+    # the rectified comparison proposes more links under the true geometry than the clustered descriptors
+    assert rows[0]["links"] > rows[4]["links"]
     grown = BM.evaluate(features, ["quickmatch-guided"], curves=False)[0].scores
-    assert default["scores"].f1 == grown.f1
-    assert f"| scene:0 | 2, 1.5 | {default['planar_pairs']} | {default['links']:,} |" in text
+    assert rows[0]["scores"].f1 == grown.f1  # dqm evaluate's grown row compares rectified descriptors
+    assert f"| scene:0 | rectified | 2, 1.5 | {rows[0]['planar_pairs']} | {rows[0]['links']:,} |" in text
 
 
 def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp_path, capsys):

@@ -273,7 +273,9 @@ def cluster(args, fs: io.FeatureSet):
         from ..vision.guided import guided_labels
 
         bar = ProgressBar("geometry (verify, then link)", force=False if args.quiet else None, unit="pairs")
-        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors, n_threads=args.threads, progress=bar)
+        images = None if fs.image_names is None else [str(name) for name in fs.image_names]
+        labels, gs = guided_labels(result, fs.keypoints, fs.descriptors, n_threads=args.threads, progress=bar,
+                                   images=images)
         result = dataclasses.replace(result, labels=labels)
         extra = {"verify": True, "guided": True}
         sizes = np.bincount(labels)

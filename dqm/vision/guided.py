@@ -21,6 +21,15 @@ those near misses are real. :func:`grow_clusters` does, deterministically:
    rivals from the whole image to a band a few pixels wide, so the ratio test can pass for true
    matches that the global test rejects (repeated structure), and the sigma bound keeps a lone
    candidate in an empty band from being taken whatever its descriptor.
+   **Rectified** (where the images are given, as ``dqm match`` on images and ``dqm evaluate`` give them):
+   a planar-or-panoramic pair compares its candidates' descriptors made again in one frame, the image
+   that appears smaller warped up by the homography into the other's, each feature described upright
+   at its own position and scale (:mod:`dqm.vision.rectify`; sigma taken to their scale). A tilted
+   plane's true matches then compare like with like: on graf, wall, boat and bikes 13-41% more links
+   under the true homographies and 19-49% fewer under shifted ones, where every link is chance
+   (``python scripts/truth_chance.py graf wall boat bikes --links``). Keypoints at one location with
+   several orientations take part once, and the others at two linked locations are paired by their own
+   descriptors (mutually nearest).
 3. **Merge**, links in order of increasing descriptor distance (ties by feature index): two
    clusters join when the union still has at most one feature per image (C2) and no member
    pair of a verified image pair contradicts the model whose inliers it counts (residual above
@@ -49,7 +58,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable, Optional, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -79,11 +88,15 @@ class GuidedStats:
     time_verify: float
     time_propose: float
     time_merge: float
+    n_rectified: int = 0  # verified pairs whose links compared rectified descriptors (dqm.vision.rectify)
+    not_rectified: str = ""  # why images were given but not used (empty: used, or none given)
 
     def summary(self) -> str:
         v = self.verify
         return (f"guided growth: {v.n_verified} of {v.n_pairs} image pairs verified ({v.n_planar} planar or "
-                f"panoramic), {v.n_split} features split off; {self.n_proposed} links proposed by the geometry, "
+                f"panoramic), {v.n_split} features split off; {self.n_proposed} links proposed by the geometry"
+                f"{f' ({self.n_rectified} pairs rectified)' if self.n_rectified else ''}"
+                f"{f' (not rectified: {self.not_rectified})' if self.not_rectified else ''}, "
                 f"{self.n_merged} joined clusters ({self.n_refused_images} refused as two features of one image, "
                 f"{self.n_refused_geometry} contradicted by a verified pair)")
 
@@ -273,14 +286,10 @@ def _nearest_two(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nda
     return _best_two(r, c, d, len(rows)) + _best_two(c, r, d, len(cols))
 
 
-def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray,
-                  kp: np.ndarray, sigma: np.ndarray, *, threshold: float, ratio: float,
-                  max_sigma: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The links one verified pair proposes (module docstring, step 2), searched along ``model.guide()``:
-    features (i in a, j in b), distance, in the order of i's position in ``rows``."""
-    if len(rows) == 0 or len(cols) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    best_c, bd_r, sd_r, best_r, _, sd_c = _nearest_two(model.guide(), rows, cols, X, kp, threshold)
+def _links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray, kp: np.ndarray, sigma: np.ndarray,
+           threshold: float, ratio: float, max_sigma: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2's test on the features ``rows`` (image a) and ``cols`` (image b), indices into X, kp and sigma."""
+    best_c, bd_r, sd_r, best_r, _, sd_c = _nearest_two(model, rows, cols, X, kp, threshold)
     r = np.flatnonzero(best_c >= 0)
     c = best_c[r]
     mutual = best_r[c] == r  # the pair is its row's nearest and its column's
@@ -290,6 +299,82 @@ def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nd
     i, j = rows[r], cols[c]
     ok &= d <= max_sigma * np.maximum(sigma[i], sigma[j])
     return i[ok], j[ok], d[ok]
+
+
+def first_at_location(kp: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """Per feature of ``features``: is it the first of them at its location (x, y, size)? SIFT gives a location
+    one keypoint per dominant orientation; upright, they have one descriptor."""
+    first = np.zeros(len(features), bool)
+    if len(features):
+        _, at = np.unique(np.asarray(kp[features, :3], np.float64), axis=0, return_index=True)
+        first[at] = True
+    return first
+
+
+def _orientation_links(li: np.ndarray, lj: np.ndarray, ld: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                       X: np.ndarray, kp: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The links of the other orientations at two linked locations: where location link (i, j) has more keypoints
+    at i's location among ``rows`` and at j's among ``cols``, each pair of them that are mutually nearest by
+    their own (oriented) descriptors, with the location link's distance."""
+    def groups(features):
+        _, loc = np.unique(np.asarray(kp[features, :3], np.float64), axis=0, return_inverse=True)
+        loc = loc.ravel()
+        order = np.argsort(loc, kind="stable")
+        starts = np.r_[0, np.flatnonzero(np.diff(loc[order])) + 1, len(loc)]
+        out = {}
+        for s, e in zip(starts[:-1], starts[1:]):
+            if e - s > 1:
+                members = features[order[s:e]]
+                for f in members.tolist():
+                    out[f] = members
+        return out
+
+    at_a, at_b = groups(rows), groups(cols)
+    found = [(li, lj, ld)]
+    for i, j, d in zip(li.tolist(), lj.tolist(), ld.tolist()):
+        sa, sb = at_a.get(i), at_b.get(j)
+        if sa is None or sb is None:
+            continue
+        sa, sb = sa[sa != i], sb[sb != j]
+        D = exact_sq_distances(X, np.repeat(sa, len(sb)), np.tile(sb, len(sa))).reshape(len(sa), len(sb))
+        near_b, near_a = D.argmin(axis=1), D.argmin(axis=0)
+        mutual = np.flatnonzero(near_a[near_b] == np.arange(len(sa)))
+        found.append((sa[mutual], sb[near_b[mutual]], np.full(len(mutual), d)))
+    return tuple(np.concatenate(x) for x in zip(*found))
+
+
+def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray,
+                  kp: np.ndarray, sigma: np.ndarray, *, threshold: float, ratio: float,
+                  max_sigma: float, rectifier=None, image_ids: Optional[np.ndarray] = None,
+                  sigma_scale: float = 1.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The links one verified pair proposes (module docstring, step 2), searched along ``model.guide()``:
+    features (i in a, j in b), distance; the merge orders them.
+
+    With a ``rectifier`` (:class:`dqm.vision.rectify.Rectifier`; ``image_ids`` then given) a pair searched along
+    its homography compares upright descriptors in one frame (step 2's rectified comparison): one keypoint per
+    location, its other orientations paired afterwards (:func:`_orientation_links`); ``sigma_scale`` takes
+    sigma to those descriptors' scale."""
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    if len(rows) == 0 or len(cols) == 0:
+        return empty
+    guide = model.guide()
+    if rectifier is None or guide.kind != "H":
+        return _links(guide, rows, cols, X, kp, sigma, threshold, ratio, max_sigma)
+    r, c = consistent_pairs(guide, kp[rows, :2], kp[cols, :2], threshold)
+    rows, cols = rows[np.unique(r)], cols[np.unique(c)]  # only features with a candidate are described again
+    if len(rows) == 0:
+        return empty
+    Da, oka, Db, okb = rectifier.pair(model.a, model.b, guide.matrix, rows, cols, kp, image_ids)
+    ra, cb = oka & first_at_location(kp, rows), okb & first_at_location(kp, cols)
+    r_at, c_at = rows[ra], cols[cb]
+    if len(r_at) == 0 or len(c_at) == 0:
+        return empty
+    nr = len(r_at)
+    local = np.arange(nr + len(c_at))
+    i, j, d = _links(guide, local[:nr], local[nr:], np.concatenate([Da[ra], Db[cb]]),
+                     np.concatenate([kp[r_at], kp[c_at]]), sigma_scale * np.concatenate([sigma[r_at], sigma[c_at]]),
+                     threshold, ratio, max_sigma)
+    return _orientation_links(r_at[i], c_at[j - nr], d, rows, cols, X, kp)
 
 
 def _residual_ok(kind: str, M: tuple, xu: tuple, xv: tuple, t2: float) -> bool:
@@ -313,7 +398,7 @@ def _residual_ok(kind: str, M: tuple, xu: tuple, xv: tuple, t2: float) -> bool:
 def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, threshold: float = 4.0,
                   ratio: float = DEFAULT_RATIO, max_sigma: float = DEFAULT_MAX_SIGMA, confidence: float = 0.999,
                   min_inliers: int = MIN_INLIERS, seed: int = 0, link_threshold: float = DEFAULT_LINK_THRESHOLD,
-                  n_threads: Optional[int] = None,
+                  n_threads: Optional[int] = None, images: Optional[Sequence] = None,
                   progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, GuidedStats]:
     """Clusters verified and grown by the image pairs' geometry (module docstring), and what was done.
 
@@ -324,6 +409,8 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
     proposed link's; ``ratio``: Lowe's ratio among the geometry's candidates; ``max_sigma``: the
     distance bound in units of sigma; ``seed``: USAC's;
     ``n_threads``: image pairs handled at once (default: all cores; the result does not depend on it);
+    ``images``: per image id, its path or array, where the features came from: planar-or-panoramic pairs then
+    compare their links' descriptors rectified (:mod:`dqm.vision.rectify`); None: the clustered descriptors;
     ``progress(done, total)``: image pairs done, twice (verification, then the links; ``done`` restarts at 0).
     Returns labels numbered by each cluster's lowest feature index, as quickmatch numbers them.
     """
@@ -357,15 +444,23 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
     t1 = time.perf_counter()
     by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
     workers = max(1, default_threads() if n_threads is None else int(n_threads))
+    rect, why = None, ""
+    if images is not None:
+        from .rectify import rectifier_for
+
+        rect, why = rectifier_for(images, kp, X)
     li, lj, ld = _propose_all(labels, by_image, models, X, kp, sigma, float(link_threshold), ratio, max_sigma,
-                              workers, progress)
+                              workers, progress, rect, ids)
     t2 = time.perf_counter()
     labels, merged, refused_c2, refused_geo = _merge(labels, ids, kp, models, li, lj, ld, float(threshold) ** 2)
-    stats = GuidedStats(vstats, len(li), merged, refused_c2, refused_geo, t1 - t0, t2 - t1, time.perf_counter() - t2)
+    n_rect = 0 if rect is None else sum(m.guide().kind == "H" for m in models.values())
+    stats = GuidedStats(vstats, len(li), merged, refused_c2, refused_geo, t1 - t0, t2 - t1, time.perf_counter() - t2,
+                        n_rect, why)
     return labels, stats
 
 
-def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_sigma, workers, progress=None):
+def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_sigma, workers, progress=None,
+                 rectified=None, ids=None):
     """The links of every verified pair (features whose cluster lacks the other image), in pair order."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -379,7 +474,9 @@ def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_s
         in_a = np.zeros(n_labels, bool)
         in_a[labels[A]] = True
         return propose_links(models[pair], A[~in_b[labels[A]]], B[~in_a[labels[B]]], X, kp, sigma,
-                             threshold=threshold, ratio=ratio, max_sigma=max_sigma)
+                             threshold=threshold, ratio=ratio, max_sigma=max_sigma,
+                             rectifier=rectified, image_ids=ids,
+                             sigma_scale=1.0 if rectified is None else rectified.sigma_scale)
 
     found = []
     with ThreadPoolExecutor(workers) as pool:
