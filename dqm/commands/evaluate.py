@@ -132,9 +132,10 @@ def _markdown(args, methods, results, benches, skipped, plots, total_s, load) ->
         (f"- {benchmark.METHODS['quickmatch-guided']}: the QuickMatch clusters verified as above, then per verified "
          "pair the features without a match in the other image are linked to their mutual nearest descriptor among "
          f"the other image's features that fit the pair's model within {g.DEFAULT_LINK_THRESHOLD:g} px (Lowe ratio "
-         f"{g.DEFAULT_RATIO:g} among those, distance <= {g.DEFAULT_MAX_SIGMA:g} sigma), and clusters join along the "
-         "links where C2 and every verified pair allow (dqm.vision.guided; docs/sfm.md). One operating point; its "
-         "time is clustering, verification and growth.")
+         f"{g.DEFAULT_RATIO:g} among those, distance <= {g.DEFAULT_MAX_SIGMA:g} sigma; on a planar-or-panoramic pair "
+         "the descriptors compared are made again from the images in one frame, upright: dqm.vision.rectify), and "
+         "clusters join along the links where C2 and every verified pair allow (dqm.vision.guided; docs/sfm.md). "
+         "One operating point; its time is clustering, verification and growth.")
     ] if "quickmatch-guided" in methods else []
     ours = [
         (f"- QuickMatch: rho {args.rho:g}{default if args.rho == DEFAULT_RHO else ''}, Gaussian kernel; PR curve over "
