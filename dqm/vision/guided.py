@@ -25,8 +25,8 @@ those near misses are real. :func:`grow_clusters` does, deterministically:
    a planar-or-panoramic pair compares its candidates' descriptors made again in one frame, the image
    that appears smaller warped up by the homography into the other's, each feature described upright
    at its own position and scale (:mod:`dqm.vision.rectify`; sigma taken to their scale). A tilted
-   plane's true matches then compare like with like: on graf, wall, boat and bikes 13-41% more links
-   under the true homographies and 19-49% fewer under shifted ones, where every link is chance
+   plane's true matches then compare like with like: on graf, wall, boat and bikes 22-46% more links
+   under the true homographies and 15-48% fewer under shifted ones, where every link is chance
    (``python scripts/truth_chance.py graf wall boat bikes --links``). Keypoints at one location with
    several orientations take part once, and the others at two linked locations are paired by their own
    descriptors (mutually nearest).

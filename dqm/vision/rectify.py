@@ -9,9 +9,10 @@ in **one frame**: the image in which the plane appears smaller is warped up by H
 frame (so no image is ever down-sampled), its keypoints move there with their scale taken through
 H's local Jacobian, and every feature of the pair is described **upright** (angle 0) at its own
 position and scale: the frame already aligns the two views, so the orientation that SIFT
-estimates, which the tilt perturbs by 5-20 degrees on graf, is not needed. A true match then
-compares like with like (median distance on graf's first pair 89 -> about 50 of 512), while a
-chance candidate, whose patch shows other content, stays far.
+estimates, which the tilt perturbs by 5-22 degrees on graf, is not needed. A true match then
+compares like with like (the median distance of graf's verified matches of image 1 with images 2, 3
+and 4: 89, 165, 219 -> 59, 90, 126, of a length of 512), while a chance candidate, whose patch shows
+other content, stays far.
 
 Descriptors are OpenCV's SIFT computed at the stored keypoints (``size``; the pyramid level is
 recovered from it, :func:`sift_octave`, so a keypoint described again in its own image at its own

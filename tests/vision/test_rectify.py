@@ -149,3 +149,32 @@ def test_the_other_orientations_of_two_linked_locations_are_paired_by_their_own_
     i, j, d = _orientation_links(np.array([0]), np.array([3]), np.array([7.0]), rows, cols, X, kp)
     assert sorted(zip(i.tolist(), j.tolist())) == [(0, 3), (1, 4)]  # 2 has no partner left at B; 5 is elsewhere
     assert d.tolist() == [7.0, 7.0]
+
+
+def test_dqm_match_rectifies_where_the_images_named_in_the_features_are_at_hand(tmp_path, capsys):
+    import shutil
+
+    from dqm import io
+    from dqm.cli import main
+
+    sc = generate_scene(n_images=4, size=(300, 400), seed=3)
+    (tmp_path / "img").mkdir()
+    for k, im in enumerate(sc.images):
+        cv2.imwrite(str(tmp_path / "img" / f"{k}.png"), im)
+    assert main(["extract", str(tmp_path / "img"), "--out", str(tmp_path / "f.npz"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "c.npz"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "pairs rectified" in out and "not rectified" not in out
+    fs = io.load_features(tmp_path / "f.npz")
+    r = dqm.quickmatch(fs.descriptors, fs.image_ids)
+    with_images, _ = guided_labels(r, fs.keypoints, fs.descriptors, images=[str(p) for p in fs.image_names])
+    assert np.array_equal(io.load_clusters(tmp_path / "c.npz")["labels"], with_images)
+    # the images gone: the clustered descriptors, and the summary says why
+    shutil.move(tmp_path / "img", tmp_path / "elsewhere")
+    assert main(["match", str(tmp_path / "f.npz"), "--out", str(tmp_path / "c2.npz"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "not rectified: image" in out and "not found" in out
+    plain, _ = guided_labels(r, fs.keypoints, fs.descriptors)
+    assert np.array_equal(io.load_clusters(tmp_path / "c2.npz")["labels"], plain)
+    assert not np.array_equal(plain, with_images)
