@@ -345,15 +345,15 @@ def _orientation_links(li: np.ndarray, lj: np.ndarray, ld: np.ndarray, rows: np.
 
 def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray,
                   kp: np.ndarray, sigma: np.ndarray, *, threshold: float, ratio: float,
-                  max_sigma: float, rectifier=None, image_ids: Optional[np.ndarray] = None,
-                  sigma_scale: float = 1.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  max_sigma: float, rectifier=None,
+                  image_ids: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The links one verified pair proposes (module docstring, step 2), searched along ``model.guide()``:
     features (i in a, j in b), distance; the merge orders them.
 
     With a ``rectifier`` (:class:`dqm.vision.rectify.Rectifier`; ``image_ids`` then given) a pair searched along
     its homography compares upright descriptors in one frame (step 2's rectified comparison): one keypoint per
-    location, its other orientations paired afterwards (:func:`_orientation_links`); ``sigma_scale`` takes
-    sigma to those descriptors' scale."""
+    location, its other orientations paired afterwards (:func:`_orientation_links`); the rectifier's
+    ``sigma_scale`` takes sigma to those descriptors' scale."""
     empty = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     if len(rows) == 0 or len(cols) == 0:
         return empty
@@ -364,7 +364,10 @@ def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nd
     rows, cols = rows[np.unique(r)], cols[np.unique(c)]  # only features with a candidate are described again
     if len(rows) == 0:
         return empty
-    Da, oka, Db, okb = rectifier.pair(model.a, model.b, guide.matrix, rows, cols, kp, image_ids)
+    rectified = rectifier.pair(model.a, model.b, guide.matrix, rows, cols, kp, image_ids)
+    if rectified is None:  # an image that cannot serve (rectifier.skipped says why)
+        return _links(guide, rows, cols, X, kp, sigma, threshold, ratio, max_sigma)
+    Da, oka, Db, okb = rectified
     ra, cb = oka & first_at_location(kp, rows), okb & first_at_location(kp, cols)
     r_at, c_at = rows[ra], cols[cb]
     if len(r_at) == 0 or len(c_at) == 0:
@@ -372,7 +375,8 @@ def propose_links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.nd
     nr = len(r_at)
     local = np.arange(nr + len(c_at))
     i, j, d = _links(guide, local[:nr], local[nr:], np.concatenate([Da[ra], Db[cb]]),
-                     np.concatenate([kp[r_at], kp[c_at]]), sigma_scale * np.concatenate([sigma[r_at], sigma[c_at]]),
+                     np.concatenate([kp[r_at], kp[c_at]]),
+                     rectifier.sigma_scale * np.concatenate([sigma[r_at], sigma[c_at]]),
                      threshold, ratio, max_sigma)
     return _orientation_links(r_at[i], c_at[j - nr], d, rows, cols, X, kp)
 
@@ -448,12 +452,12 @@ def grow_clusters(labels, image_ids, keypoints, descriptors, sigma=None, *, thre
     if images is not None:
         from .rectify import rectifier_for
 
-        rect, why = rectifier_for(images, kp, X)
+        rect, why = rectifier_for(images, kp, X, ids)
     li, lj, ld = _propose_all(labels, by_image, models, X, kp, sigma, float(link_threshold), ratio, max_sigma,
                               workers, progress, rect, ids)
     t2 = time.perf_counter()
     labels, merged, refused_c2, refused_geo = _merge(labels, ids, kp, models, li, lj, ld, float(threshold) ** 2)
-    n_rect = 0 if rect is None else sum(m.guide().kind == "H" for m in models.values())
+    n_rect, why = (0, why) if rect is None else (rect.rectified, rect.skipped)
     stats = GuidedStats(vstats, len(li), merged, refused_c2, refused_geo, t1 - t0, t2 - t1, time.perf_counter() - t2,
                         n_rect, why)
     return labels, stats
@@ -475,8 +479,7 @@ def _propose_all(labels, by_image, models, X, kp, sigma, threshold, ratio, max_s
         in_a[labels[A]] = True
         return propose_links(models[pair], A[~in_b[labels[A]]], B[~in_a[labels[B]]], X, kp, sigma,
                              threshold=threshold, ratio=ratio, max_sigma=max_sigma,
-                             rectifier=rectified, image_ids=ids,
-                             sigma_scale=1.0 if rectified is None else rectified.sigma_scale)
+                             rectifier=rectified, image_ids=ids)
 
     found = []
     with ThreadPoolExecutor(workers) as pool:

@@ -114,7 +114,9 @@ class Rectifier:
         self._grays: "OrderedDict[int, np.ndarray]" = OrderedDict()
         self._own: dict = {}
         self._lock = threading.Lock()
-        self._image_locks = {}
+        self._image_locks: dict = {}
+        self.rectified = 0  # pairs compared rectified
+        self.skipped = ""  # why a pair was not (the first reason met)
 
     def gray(self, k: int) -> np.ndarray:
         """Image ``k`` in grey (decoded once while it stays among the last ``cached`` used)."""
@@ -169,29 +171,54 @@ class Rectifier:
         return D, ok
 
     def pair(self, a: int, b: int, H: np.ndarray, rows: np.ndarray, cols: np.ndarray, kp: np.ndarray,
-             image_ids: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+             image_ids: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Upright descriptors of image a's ``rows`` and image b's ``cols`` in one frame (H maps a's pixels to
-        b's): b warped into a's frame where H shrinks areas around a's centre, else a into b's. Returns
-        (descriptors of rows, described, descriptors of cols, described)."""
-        h, w = self.gray(a).shape[:2]
+        b's): a warped up into b's frame where H enlarges areas around a's centre, else b into a's. Returns
+        (descriptors of rows, described, descriptors of cols, described), or None where an image cannot serve
+        (it does not decode, or the features' keypoints lie outside it: not the image they came from); then
+        :attr:`skipped` says why and the pair is compared with the clustered descriptors."""
+        from ..validation import InputError
+
+        try:
+            ga, gb = self.gray(a), self.gray(b)
+        except (InputError, OSError, ValueError) as exc:
+            return self._skip(str(exc))
+        for k, g, f in ((a, ga, rows), (b, gb, cols)):
+            xy = kp[f, :2]  # within a pixel of the image (COLMAP's keypoints put pixel centres at +0.5)
+            if len(xy) and ((xy < -1).any() or (xy[:, 0] > g.shape[1] + 1).any() or (xy[:, 1] > g.shape[0] + 1).any()):
+                return self._skip(f"keypoints of image {k} lie outside its {g.shape[1]} x {g.shape[0]} pixels")
+        h, w = ga.shape[:2]
         if area_scale(H, np.array([[w / 2.0, h / 2.0]]))[0] > 1.0:  # b shows a's middle larger: warp a up
             Da, oka = self.warped(a, b, H, rows, kp)
             Db, okb = self.own(b, cols, kp, image_ids)
         else:
             Da, oka = self.own(a, rows, kp, image_ids)
             Db, okb = self.warped(b, a, np.linalg.inv(H), cols, kp)
+        with self._lock:
+            self.rectified += 1
         return Da, oka, Db, okb
 
+    def _skip(self, why: str) -> None:
+        with self._lock:
+            self.skipped = self.skipped or why
+        return None
 
-def rectifier_for(images: Optional[Sequence], keypoints, descriptors) -> Tuple[Optional[Rectifier], str]:
+
+def rectifier_for(images: Optional[Sequence], keypoints, descriptors,
+                  image_ids: Optional[np.ndarray] = None) -> Tuple[Optional[Rectifier], str]:
     """A :class:`Rectifier` over ``images`` where they can serve (keypoints with a size column, every image a
     file or an array), else None and why not. Its ``sigma_scale`` is :data:`DESCRIPTOR_NORM` over the
     clustered ``descriptors``' median length (1 for SIFT and RootSIFT as dqm and COLMAP store them), so that
     guided growth's sigma bound means the same for both."""
     from pathlib import Path
 
+    from ..validation import InputError
+
     if images is None:
         return None, "no images given"
+    if image_ids is not None and len(image_ids) and len(images) <= int(np.max(image_ids)):
+        raise InputError(f"guided growth: images must give one image per image id (0..{int(np.max(image_ids))}); "
+                         f"got {len(images)}")
     kp = np.asarray(keypoints)
     if kp.ndim != 2 or kp.shape[1] < 3:
         return None, "the keypoints have no size"

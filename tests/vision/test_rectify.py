@@ -115,7 +115,7 @@ def test_growth_with_the_images_finds_more_true_pairs_at_the_same_precision(scen
     plain, s0 = guided_labels(r, kp, D)
     rect, s1 = guided_labels(r, kp, D, images=sc.images)
     assert_consistent(rect, ids)
-    assert s0.n_rectified == 0 and s1.n_rectified == s1.verify.n_planar > 0
+    assert s0.n_rectified == 0 and 0 < s1.n_rectified <= s1.verify.n_planar and not s1.not_rectified
     p0 = truth.score(*evaluation.cluster_pairs(plain, ids))
     p1 = truth.score(*evaluation.cluster_pairs(rect, ids))
     assert p1.recall > p0.recall and p1.f1 > p0.f1, (p0, p1)
@@ -133,6 +133,15 @@ def test_growth_without_usable_images_says_why_and_compares_the_clustered_descri
     assert np.array_equal(labels, plain)
     assert stats.n_rectified == 0 and "not found" in stats.not_rectified and "not rectified" in stats.summary()
     assert rectifier_for(sc.images, kp[:, :2], D)[0] is None  # no keypoint sizes
+    with pytest.raises(dqm.InputError, match="one image per image id"):
+        guided_labels(r, kp, D, images=sc.images[:-1])
+    # an image smaller than its keypoints say (not the one they came from): that image's pairs compare the
+    # clustered descriptors, the others are rectified
+    small = list(sc.images)
+    small[0] = np.asarray(small[0])[:100, :100]
+    labels, stats = guided_labels(r, kp, D, images=small)
+    assert "keypoints of image 0 lie outside" in stats.not_rectified
+    assert 0 < stats.n_rectified < stats.verify.n_planar
     rect, _ = rectifier_for(sc.images, kp, D.astype(np.float32) / 512.0)
     assert rect.sigma_scale == pytest.approx(512.0, rel=0.01)  # unit-length descriptors: sigma scaled to RootSIFT's
 
