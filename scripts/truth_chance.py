@@ -111,16 +111,17 @@ LINK_RULES = ((2.0, 1.5), (3.0, 1.5), (2.0, 2.0), (3.0, 2.0))
 
 
 def link_rows(bench: benchmark.Benchmark, rules=LINK_RULES, seed: int = 0) -> list:
-    """Per link rule and per comparison (the descriptors rectified from the images, as `dqm match` compares them,
-    then the clustered descriptors): the links the verified planar pairs propose under their homographies and
-    under each :data:`dqm.evaluation.CHANCE_SHIFTS` after them (module docstring), and the grown clusters'
-    scores."""
+    """Per comparison (the descriptors rectified from the images, as `dqm match` compares them, with the ring of
+    the verification's 4 px at :data:`dqm.vision.guided.RING_MAX_SIGMA`; the default rule rectified without that
+    ring; the clustered descriptors) and link rule: the links the verified planar pairs propose under their
+    homographies and under each :data:`dqm.evaluation.CHANCE_SHIFTS` after them (module docstring), and the grown
+    clusters' scores."""
     from dataclasses import replace
 
     from dqm.core import quickmatch
     from dqm.vision import guided
     from dqm.vision.rectify import rectifier_for
-    from dqm.vision.verify import fit_and_split
+    from dqm.vision.verify import DEFAULT_THRESHOLD, fit_and_split
 
     result = quickmatch(bench.descriptors, bench.image_ids)
     ids, kp = bench.image_ids, np.asarray(bench.keypoints, np.float64)
@@ -128,25 +129,30 @@ def link_rows(bench: benchmark.Benchmark, rules=LINK_RULES, seed: int = 0) -> li
     planar = {pair: m.guide() for pair, m in models.items() if m.guide().kind == "H"}
     by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
     sigma = np.where(np.isfinite(result.sigma), result.sigma, np.inf)
-    rectifier, why = rectifier_for(bench.images, kp, bench.descriptors)
-    if rectifier is None:
-        raise SystemExit(f"truth_chance: {bench.name}: {why}")
     rows = []
-    for rectified in (True, False):
-        for threshold, max_sigma in rules:
-            counts = []
-            for shift in ((0.0, 0.0), *evaluation.CHANCE_SHIFTS):
-                T = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
-                shifted = {pair: replace(m, matrix=T @ m.matrix) for pair, m in planar.items()}
-                li, _, _ = guided._propose_all(labels, by_image, shifted, bench.descriptors, kp, sigma, threshold,
-                                               guided.DEFAULT_RATIO, max_sigma, 1, None,
-                                               rectifier if rectified else None, ids)
-                counts.append(len(li))
+    runs = [("rectified", r, DEFAULT_THRESHOLD) for r in rules] + [("rectified, no ring", rules[0], 0.0)]
+    runs += [("clustered", r, 0.0) for r in rules]
+    for kind, (threshold, max_sigma), ring in runs:
+        rectifier = None
+        if kind != "clustered":  # a fresh one per rule: it counts the pairs it rectified
+            rectifier, why = rectifier_for(bench.images, kp, bench.descriptors, ids)
+            if rectifier is None:
+                raise SystemExit(f"truth_chance: {bench.name}: {why}")
+        counts = []
+        for shift in ((0.0, 0.0), *evaluation.CHANCE_SHIFTS):
+            T = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
+            shifted = {pair: replace(m, matrix=T @ m.matrix) for pair, m in planar.items()}
+            li, _, _ = guided._propose_all(labels, by_image, shifted, bench.descriptors, kp, sigma, threshold,
+                                           guided.DEFAULT_RATIO, max_sigma, 1, None, rectifier, ids, ring)
+            counts.append(len(li))
+        if kind == "rectified, no ring":
+            grown = None  # growth rectifies with its ring: this row counts links only
+        else:
             grown, _ = guided.guided_labels(result, kp, bench.descriptors, seed=seed, link_threshold=threshold,
-                                            max_sigma=max_sigma, images=bench.images if rectified else None)
-            rows.append({"rectified": rectified, "threshold": threshold, "max_sigma": max_sigma,
-                         "planar_pairs": len(planar), "links": counts[0], "chance": float(np.mean(counts[1:])),
-                         "scores": bench.score_labels(grown)})
+                                            max_sigma=max_sigma, images=bench.images if rectifier else None)
+        rows.append({"kind": kind, "threshold": threshold, "max_sigma": max_sigma, "planar_pairs": len(planar),
+                     "links": counts[0], "chance": float(np.mean(counts[1:])),
+                     "scores": None if grown is None else bench.score_labels(grown)})
     return rows
 
 
@@ -211,22 +217,25 @@ def main(argv=None) -> int:
             if not off:
                 lines.append(f"| {name} | none of {len(fit)} | | | | |")
     if args.links:
+        from dqm.vision import guided
+
         lines += ["", "Guided growth's link rule (`--links`): the links the verified planar pairs propose under their "
                   "own homographies and under those followed by a shift of 40-70 px (mean of four: every link there is "
                   "chance), and the grown clusters' scores; the links' descriptors rectified from the images "
-                  "(`dqm match`'s comparison, dqm.vision.rectify) or the clustered ones. Extra: against the default "
-                  "rule with the same descriptors (first row of each).", "",
+                  "(`dqm match`'s comparison, dqm.vision.rectify: with the ring out to the verification's 4 px at "
+                  f"{guided.RING_MAX_SIGMA:g} sigma, and the default rule without it) or the clustered ones. Extra: "
+                  "against the default rule with the same descriptors (first row of each).", "",
                   "| data | descriptors | link px, max sigma | planar pairs | links | links under a shift (chance) | "
                   "extra links | extra under a shift | P / R / F1 |", "|---|---|---|---|---|---|---|---|---|"]
         for name, found in links:
             for r in found:
-                base = next(b for b in found if b["rectified"] == r["rectified"])
+                base = next(b for b in found if b["kind"] == r["kind"].split(",")[0])
                 sc = r["scores"]
-                lines.append(f"| {name} | {'rectified' if r['rectified'] else 'clustered'} | "
-                             f"{r['threshold']:g}, {r['max_sigma']:g} | {r['planar_pairs']} | "
-                             f"{r['links']:,} | {r['chance']:,.0f} | {r['links'] - base['links']:+,} | "
-                             f"{r['chance'] - base['chance']:+,.0f} | {sc.precision:.3f} / {sc.recall:.3f} / "
-                             f"{sc.f1:.3f} |")
+                lines.append(f"| {name} | {r['kind']} | {r['threshold']:g}, {r['max_sigma']:g} | "
+                             f"{r['planar_pairs']} | {r['links']:,} | {r['chance']:,.0f} | "
+                             f"{r['links'] - base['links']:+,} | {r['chance'] - base['chance']:+,.0f} | "
+                             + ("links only |" if sc is None else
+                                f"{sc.precision:.3f} / {sc.recall:.3f} / {sc.f1:.3f} |"))
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out is not None:

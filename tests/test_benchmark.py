@@ -155,18 +155,26 @@ def test_truth_chance_links_compares_growth_rules_under_true_and_shifted_geometr
     features = BM.load_benchmark("scene:0", preset="sfm")
     rows = mod.link_rows(features)
     rules = [(r["threshold"], r["max_sigma"]) for r in rows]
-    assert rules == 2 * list(mod.LINK_RULES) and [r["rectified"] for r in rows] == [True] * 4 + [False] * 4
-    for kind in (rows[:4], rows[4:]):
+    n = len(mod.LINK_RULES)
+    assert rules == list(mod.LINK_RULES) + [mod.LINK_RULES[0]] + list(mod.LINK_RULES)
+    assert [r["kind"] for r in rows] == ["rectified"] * n + ["rectified, no ring"] + ["clustered"] * n
+    rectified, no_ring, clustered = rows[:n], rows[n], rows[n + 1:]
+    for kind in (rectified, clustered):
         default, *looser = kind
         assert (default["threshold"], default["max_sigma"]) == (guided.DEFAULT_LINK_THRESHOLD,
                                                                 guided.DEFAULT_MAX_SIGMA)
         assert default["planar_pairs"] > 0 and default["links"] > 4 * max(default["chance"], 1)
-        assert all(r["links"] >= default["links"] for r in looser) and looser[-1]["links"] > default["links"]
-    # the rectified comparison proposes more links under the true geometry than the clustered descriptors
-    assert rows[0]["links"] > rows[4]["links"]
+        assert looser[-1]["links"] > default["links"]
+    # rectified, the default rule proposes more links under the true geometry than the clustered descriptors;
+    # its ring adds links under the true geometry and hardly any by chance
+    assert no_ring["links"] > clustered[0]["links"]
+    assert rectified[0]["links"] > no_ring["links"]
+    assert rectified[0]["chance"] - no_ring["chance"] < 0.1 * (rectified[0]["links"] - no_ring["links"])
+    assert no_ring["scores"] is None
     grown = BM.evaluate(features, ["quickmatch-guided"], curves=False)[0].scores
-    assert rows[0]["scores"].f1 == grown.f1  # dqm evaluate's grown row compares rectified descriptors
+    assert rectified[0]["scores"].f1 == grown.f1  # dqm evaluate's grown row compares rectified, with the ring
     assert f"| scene:0 | rectified | 2, 1.5 | {rows[0]['planar_pairs']} | {rows[0]['links']:,} |" in text
+    assert f"| scene:0 | rectified, no ring | 2, 1.5 | {no_ring['planar_pairs']} | {no_ring['links']:,} |" in text
 
 
 def test_truth_chance_script_counts_the_truths_coincidences_beside_dqm_match(tmp_path, capsys):

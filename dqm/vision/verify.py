@@ -37,8 +37,10 @@ from .colmap import cluster_pairs
 
 LOG = logging.getLogger("dqm.vision")
 
-#: COLMAP's defaults (TwoViewGeometryOptions): min_num_inliers, max_H_inlier_ratio
+#: COLMAP's defaults (TwoViewGeometryOptions): min_num_inliers, max_H_inlier_ratio, and its RANSAC's max_error
+#: (px): the residual within which a match is an inlier
 MIN_INLIERS = 15
+DEFAULT_THRESHOLD = 4.0
 MAX_H_INLIER_RATIO = 0.8
 #: COLMAP's names of the two configurations dqm tells apart (TwoViewGeometry::ConfigurationType)
 PLANAR = "planar_or_panoramic"
@@ -168,7 +170,7 @@ def check_geometry_inputs(labels, image_ids, keypoints, threshold: float, confid
     return labels, ids, kp
 
 
-def fit_pairs(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
+def fit_pairs(labels, image_ids, keypoints, *, threshold: float = DEFAULT_THRESHOLD, confidence: float = 0.999,
               min_inliers: int = MIN_INLIERS, seed: int = 0,
               progress: Optional[Callable[[int, int], None]] = None) -> Tuple[dict, int, int]:
     """The verified image pairs' models, ``{(a, b): PairModel}``, from the matches the clusters imply.
@@ -234,7 +236,7 @@ def verify_stats(models: dict, n_pairs: int, n_matches: int, n_split: int) -> Ve
                        n_split)
 
 
-def fit_and_split(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
+def fit_and_split(labels, image_ids, keypoints, *, threshold: float = DEFAULT_THRESHOLD, confidence: float = 0.999,
                   min_inliers: int = MIN_INLIERS, seed: int = 0,
                   progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, dict, VerifyStats]:
     """:func:`fit_pairs` then :func:`split_contradicted` on checked arrays: the split labels, the
@@ -245,7 +247,7 @@ def fit_and_split(labels, image_ids, keypoints, *, threshold: float = 4.0, confi
     return out, models, verify_stats(models, n_pairs, n_matches, n_split)
 
 
-def verify_clusters(labels, image_ids, keypoints, *, threshold: float = 4.0, confidence: float = 0.999,
+def verify_clusters(labels, image_ids, keypoints, *, threshold: float = DEFAULT_THRESHOLD, confidence: float = 0.999,
                     min_inliers: int = MIN_INLIERS, seed: int = 0,
                     progress: Optional[Callable[[int, int], None]] = None) -> Tuple[np.ndarray, VerifyStats]:
     """Labels with geometrically unsupported members split off, and what was done (module docstring).

@@ -187,3 +187,33 @@ def test_dqm_match_rectifies_where_the_images_named_in_the_features_are_at_hand(
     plain, _ = guided_labels(r, fs.keypoints, fs.descriptors)
     assert np.array_equal(io.load_clusters(tmp_path / "c2.npz")["labels"], plain)
     assert not np.array_equal(plain, with_images)
+
+
+def test_the_ring_adds_links_out_to_the_verification_threshold_only_for_features_left_free(scene):
+    from dqm.vision import guided
+    from dqm.vision.verify import DEFAULT_THRESHOLD, fit_and_split
+
+    sc, D, ids, kp, r = scene
+    kp = np.asarray(kp, np.float64)
+    labels, models, _ = fit_and_split(r.labels, ids, kp)
+    by_image = {int(k): np.flatnonzero(ids == k) for k in np.unique(ids)}
+    sigma = np.where(np.isfinite(r.sigma), r.sigma, np.inf)
+
+    def links(ring):
+        rect, _ = rectifier_for(sc.images, kp, D, ids)
+        li, lj, _ = guided._propose_all(labels, by_image, models, D, kp, sigma, guided.DEFAULT_LINK_THRESHOLD,
+                                        guided.DEFAULT_RATIO, guided.DEFAULT_MAX_SIGMA, 1, None, rect, ids, ring)
+        return set(zip(li.tolist(), lj.tolist()))
+
+    inner, both = links(0.0), links(DEFAULT_THRESHOLD)
+    extra = both - inner
+    assert inner <= both and extra
+    def pair(i, j):
+        return tuple(sorted((int(ids[i]), int(ids[j]))))
+
+    taken = {(pair(i, j), f) for i, j in inner for f in (i, j)}
+    assert not any((pair(i, j), f) in taken for i, j in extra for f in (i, j))  # only what no inner link took
+    for i, j in extra:  # within the verification's 4 px of the pair's homography
+        a, b = (i, j) if ids[i] < ids[j] else (j, i)
+        m = models[(int(ids[a]), int(ids[b]))].guide()
+        assert m.sq_residuals(kp[[a], :2], kp[[b], :2])[0] <= DEFAULT_THRESHOLD ** 2 + 1e-9
