@@ -106,8 +106,10 @@ def add_cluster_options(p, command: str = "match") -> None:
 GUIDED_HELP = {
     "match": "geometry-guided growth: the clusters are verified as with --verify, then each verified image pair "
              "links features that fit its geometry within 2 px (the homography of a planar pair, else the "
-             "fundamental matrix) and are mutual nearest descriptors among those (ratio 0.8, <= 1.5 sigma); "
-             "clusters join along the links where C2 and every verified pair allow. On by default wherever the "
+             "fundamental matrix) and are mutual nearest descriptors among those (ratio 0.8, <= 1.5 sigma; on a "
+             "planar pair the descriptors are made again from the images, rectified into one frame, where the "
+             "images are at hand, and links reach 4 px at <= 1.0 sigma); clusters join along the links where C2 "
+             "and every verified pair allow. On by default wherever the "
              "features have keypoints (more complete clusters: higher F1 on every image set of "
              "docs/evaluation.md), except with --verify or a COLMAP database as INPUT (its matches go back to "
              "COLMAP's mapper, whose cameras growth worsens); --no-guided: QuickMatch's clusters as they are",
