@@ -103,46 +103,54 @@ class Rectifier:
     """Upright descriptors of a planar pair's features in one frame (module docstring).
 
     ``images``: per image id, a path or an array (what :func:`dqm.vision.features.as_gray` reads); ``cached``:
-    decoded images kept at once; ``sigma_scale``: what takes a distance between the clustered descriptors to
-    one between these (guided growth's sigma bound). Thread-safe: guided growth calls :meth:`pair` from several
-    threads."""
+    decoded images, and images' upright descriptors, kept at once (the last used); ``sigma_scale``: what takes
+    a distance between the clustered descriptors to one between these (guided growth's sigma bound).
+    Thread-safe: guided growth calls :meth:`pair` from several threads."""
 
     def __init__(self, images: Sequence, cached: int = 8, sigma_scale: float = 1.0):
         self.images = list(images)
         self.sigma_scale = float(sigma_scale)
         self.cached = max(2, int(cached))
         self._grays: "OrderedDict[int, np.ndarray]" = OrderedDict()
-        self._own: dict = {}
+        self._own: "OrderedDict[int, tuple]" = OrderedDict()
         self._lock = threading.Lock()
         self._image_locks: dict = {}
         self.rectified = 0  # pairs compared rectified
         self.skipped = ""  # why a pair was not (the first reason met)
 
+    def _kept(self, store: "OrderedDict", k: int, make):
+        """``store[k]``, made by ``make()`` once while it stays among the last ``cached`` used (one maker per key
+        at a time)."""
+        with self._lock:
+            if k in store:
+                store.move_to_end(k)
+                return store[k]
+            lock = self._image_locks.setdefault((id(store), k), threading.Lock())
+        with lock:
+            with self._lock:
+                if k in store:
+                    return store[k]
+            value = make()
+            with self._lock:
+                store[k] = value
+                while len(store) > self.cached:
+                    store.popitem(last=False)
+        return value
+
     def gray(self, k: int) -> np.ndarray:
-        """Image ``k`` in grey (decoded once while it stays among the last ``cached`` used)."""
+        """Image ``k`` in grey."""
         from .features import as_gray
 
-        with self._lock:
-            if k in self._grays:
-                self._grays.move_to_end(k)
-                return self._grays[k]
-        img = as_gray(self.images[k])
-        with self._lock:
-            self._grays[k] = img
-            while len(self._grays) > self.cached:
-                self._grays.popitem(last=False)
-        return img
+        return self._kept(self._grays, k, lambda: as_gray(self.images[k]))
 
     def own(self, k: int, features: np.ndarray, kp: np.ndarray, image_ids: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Upright descriptors of image ``k``'s ``features`` in their own image: every feature of image k
-        (``image_ids == k``) is described the first time and kept."""
-        with self._lock:
-            lock = self._image_locks.setdefault(k, threading.Lock())
-        with lock:
-            have = self._own.get(k)
-            if have is None:
-                every = np.flatnonzero(image_ids == k)
-                have = self._own[k] = (every, *upright_descriptors(self.gray(k), kp[every, :2], kp[every, 2]))
+        (``image_ids == k``) is described at once, and kept as the images are."""
+        def describe():
+            every = np.flatnonzero(image_ids == k)
+            return (every, *upright_descriptors(self.gray(k), kp[every, :2], kp[every, 2]))
+
+        have = self._kept(self._own, k, describe)
         pos = np.minimum(np.searchsorted(have[0], features), max(len(have[0]) - 1, 0))
         if len(features) and not (have[0][pos] == features).all():
             raise ValueError(f"features of another image than {k} asked for")

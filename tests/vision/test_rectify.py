@@ -217,3 +217,15 @@ def test_the_ring_adds_links_out_to_the_verification_threshold_only_for_features
         a, b = (i, j) if ids[i] < ids[j] else (j, i)
         m = models[(int(ids[a]), int(ids[b]))].guide()
         assert m.sq_residuals(kp[[a], :2], kp[[b], :2])[0] <= DEFAULT_THRESHOLD ** 2 + 1e-9
+
+
+def test_a_rectifier_that_keeps_two_images_gives_what_one_that_keeps_all_gives(scene):
+    sc, D, ids, kp, r = scene
+    kp = np.asarray(kp, np.float64)
+    H = {(a, b): sc.homography(a, b) for a in range(4) for b in range(a + 1, 4)}
+    small, big = Rectifier(sc.images, cached=2), Rectifier(sc.images, cached=16)
+    for (a, b), h in list(H.items()) + list(H.items())[::-1]:  # images evicted and made again
+        rows, cols = np.flatnonzero(ids == a), np.flatnonzero(ids == b)
+        for x, y in zip(small.pair(a, b, h, rows, cols, kp, ids), big.pair(a, b, h, rows, cols, kp, ids)):
+            assert np.array_equal(x, y)
+    assert len(small._grays) <= 2 and len(small._own) <= 2 and small.rectified == big.rectified == 12
