@@ -307,13 +307,20 @@ def _links(model: PairModel, rows: np.ndarray, cols: np.ndarray, X: np.ndarray, 
     return i[ok], j[ok], d[ok]
 
 
+def _locations(kp: np.ndarray, features: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The distinct locations (x, y, size) of ``features``: each location's first position among them, and each
+    feature's location. SIFT gives a location one keypoint per dominant orientation."""
+    _, first, loc = np.unique(np.asarray(kp[features, :3], np.float64), axis=0, return_index=True,
+                              return_inverse=True)
+    return first, loc.ravel()
+
+
 def first_at_location(kp: np.ndarray, features: np.ndarray) -> np.ndarray:
-    """Per feature of ``features``: is it the first of them at its location (x, y, size)? SIFT gives a location
-    one keypoint per dominant orientation; upright, they have one descriptor."""
+    """Per feature of ``features``: is it the first of them at its location (:func:`_locations`)? Upright, the
+    keypoints of one location have one descriptor."""
     first = np.zeros(len(features), bool)
     if len(features):
-        _, at = np.unique(np.asarray(kp[features, :3], np.float64), axis=0, return_index=True)
-        first[at] = True
+        first[_locations(kp, features)[0]] = True
     return first
 
 
@@ -323,8 +330,7 @@ def _orientation_links(li: np.ndarray, lj: np.ndarray, ld: np.ndarray, rows: np.
     at i's location among ``rows`` and at j's among ``cols``, each pair of them that are mutually nearest by
     their own (oriented) descriptors, with the location link's distance."""
     def groups(features):
-        _, loc = np.unique(np.asarray(kp[features, :3], np.float64), axis=0, return_inverse=True)
-        loc = loc.ravel()
+        loc = _locations(kp, features)[1]
         order = np.argsort(loc, kind="stable")
         starts = np.r_[0, np.flatnonzero(np.diff(loc[order])) + 1, len(loc)]
         out = {}

@@ -54,7 +54,7 @@ def upright_descriptors(gray: np.ndarray, xy: np.ndarray, size: np.ndarray) -> T
     which of them OpenCV described (the others are zero rows)."""
     import cv2
 
-    from .features import root_sift
+    from .features import _finish
 
     n = len(xy)
     out = np.zeros((n, 128), np.uint8)
@@ -79,7 +79,7 @@ def upright_descriptors(gray: np.ndarray, xy: np.ndarray, size: np.ndarray) -> T
             found.append(left.pop(0) if left else -1)
         rows = np.array(found, np.int64)
     ok = rows >= 0
-    out[rows[ok]] = root_sift(np.clip(np.round(desc[ok]), 0, 255))
+    out[rows[ok]] = _finish(desc[ok], "rootsift")  # as the image presets store them
     done[rows[ok]] = True
     return out, done
 
